@@ -1,0 +1,28 @@
+//! A framework-neutral state dict: named `f32` tensors with row-major shapes.
+//!
+//! Checkpoint importers produce one; network constructors consume one. Convolution weights are
+//! OIHW, biases are `[O]`, exactly as PyTorch stores them.
+
+use std::collections::BTreeMap;
+
+/// One dense `f32` tensor, row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TensorF32 {
+    pub shape: Vec<usize>,
+    pub data: Vec<f32>,
+}
+
+impl TensorF32 {
+    /// A tensor from a shape and data; `None` if the element count does not match the shape.
+    pub fn new(shape: Vec<usize>, data: Vec<f32>) -> Option<TensorF32> {
+        (shape.iter().product::<usize>() == data.len()).then_some(TensorF32 { shape, data })
+    }
+
+    /// Number of elements.
+    pub fn numel(&self) -> usize {
+        self.data.len()
+    }
+}
+
+/// Tensors by name, in sorted order.
+pub type StateDict = BTreeMap<String, TensorF32>;

@@ -4,6 +4,10 @@
 //! Conventions follow the oracle: cameras are `camera_from_world` in OpenCV axes (x right, y down,
 //! z forward), pixel centres sit at `(x + 0.5, y + 0.5)`, quaternions are `(w, x, y, z)`.
 
+pub mod camera;
 pub mod real;
+pub mod scene;
 
+pub use camera::{Camera, Intrinsics};
 pub use real::Real;
+pub use scene::FeatureGaussians;

@@ -1,1 +1,20 @@
-//! (crate under construction)
+//! Training loops of dsgs.
+//!
+//! This part holds the geometry stage: a faithful CPU version of the 3D Gaussian Splatting
+//! trainer (Kerbl et al. 2023) with its original defaults, and the building blocks the later
+//! stages reuse.
+//!
+//! * [`adam`]: `torch.optim.Adam` semantics, per-tensor learning rates, row-wise state surgery.
+//! * [`schedule`]: the log-linear position learning-rate schedule.
+//! * [`ssim`], [`loss`]: SSIM and the `0.8 L1 + 0.2 (1 - SSIM)` loss, forward and backward; PSNR.
+
+pub mod adam;
+pub mod error;
+pub mod loss;
+pub mod schedule;
+pub mod ssim;
+
+pub use adam::{Adam, AdamConfig, ParamState};
+pub use error::TrainError;
+pub use schedule::ExponentialLr;
+pub use ssim::ImageShape;

@@ -1,0 +1,27 @@
+//! Errors of the training crate.
+
+use std::path::PathBuf;
+
+/// Everything that can go wrong while training, checkpointing or resuming.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// Arrays whose sizes disagree.
+    #[error("shape mismatch: {0}")]
+    Shape(String),
+    /// A configuration value that cannot work.
+    #[error("invalid configuration: {0}")]
+    Config(String),
+    /// Reading or writing a file failed.
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A checkpoint that is not what this trainer writes.
+    #[error("checkpoint {}: {message}", path.display())]
+    Checkpoint { path: PathBuf, message: String },
+    /// The dataset has nothing to train on, or an image does not fit its camera.
+    #[error("dataset: {0}")]
+    Dataset(String),
+}

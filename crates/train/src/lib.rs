@@ -7,14 +7,23 @@
 //! * [`adam`]: `torch.optim.Adam` semantics, per-tensor learning rates, row-wise state surgery.
 //! * [`schedule`]: the log-linear position learning-rate schedule.
 //! * [`ssim`], [`loss`]: SSIM and the `0.8 L1 + 0.2 (1 - SSIM)` loss, forward and backward; PSNR.
+//! * [`init`]: initial Gaussians from a point cloud (k-d tree neighbour scales).
+//! * [`model`]: the trainable scene with its Adam groups; [`density`]: clone, split, prune and
+//!   opacity reset, keeping the optimiser state consistent.
 
 pub mod adam;
+pub mod density;
 pub mod error;
+pub mod init;
 pub mod loss;
+pub mod model;
 pub mod schedule;
 pub mod ssim;
 
 pub use adam::{Adam, AdamConfig, ParamState};
+pub use density::{DensifyConfig, DensifyReport, DensityStats};
 pub use error::TrainError;
+pub use init::{gaussians_from_points, random_points_in_box, PointCloud};
+pub use model::{GaussianGrads, GaussianModel, LearningRates};
 pub use schedule::ExponentialLr;
 pub use ssim::ImageShape;

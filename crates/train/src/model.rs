@@ -1,0 +1,338 @@
+//! The trainable Gaussian model of the geometry stage: the scene, its Adam state and its
+//! densification statistics, kept consistent with each other.
+//!
+//! The optimiser holds one tensor per parameter group of the 3DGS trainer, with its learning rate:
+//!
+//! | group      | scene array                       | row width       | default lr            |
+//! |------------|-----------------------------------|-----------------|-----------------------|
+//! | `xyz`      | `means`                           | 3               | scheduled (see below) |
+//! | `f_dc`     | `sh`, coefficient 0               | 3               | 0.0025                |
+//! | `f_rest`   | `sh`, coefficients 1..K           | 3 (K - 1)       | 0.0025 / 20           |
+//! | `opacity`  | `opacity_logits`                  | 1               | 0.05                  |
+//! | `scaling`  | `log_scales`                      | 3               | 0.005                 |
+//! | `rotation` | `quats`                           | 4               | 0.001                 |
+//!
+//! The position learning rate follows [`ExponentialLr`] from 1.6e-4 to 1.6e-6 times the scene
+//! extent over 30,000 steps. The opacity rate is 0.05 as in the code released with the paper
+//! (later releases lowered it to 0.025). The scene stores SH coefficients up to the maximum degree
+//! from the start; the active degree, used for rendering, grows during training, and the
+//! coefficients above it receive zero gradients (as in 3DGS, where they are masked out of the
+//! rasterizer but stay in the optimiser).
+
+use gaussian::FeatureGaussians;
+use serde::{Deserialize, Serialize};
+
+use crate::adam::{Adam, AdamConfig};
+use crate::density::DensityStats;
+use crate::error::TrainError;
+use crate::schedule::ExponentialLr;
+
+/// Name of the position group.
+pub const XYZ: &str = "xyz";
+/// Name of the SH DC group.
+pub const F_DC: &str = "f_dc";
+/// Name of the higher-order SH group (absent when the maximum degree is 0).
+pub const F_REST: &str = "f_rest";
+/// Name of the opacity group.
+pub const OPACITY: &str = "opacity";
+/// Name of the log-scale group.
+pub const SCALING: &str = "scaling";
+/// Name of the rotation group.
+pub const ROTATION: &str = "rotation";
+
+/// Learning rates of the geometry stage (3DGS `OptimizationParams` defaults of the paper code).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct LearningRates {
+    /// Initial position rate, before scaling by the scene extent.
+    pub position_lr_init: f64,
+    /// Final position rate, before scaling by the scene extent.
+    pub position_lr_final: f64,
+    /// Warm-up multiplier of the position schedule (inactive with 0 delay steps).
+    pub position_lr_delay_mult: f64,
+    /// Warm-up steps of the position schedule.
+    pub position_lr_delay_steps: u64,
+    /// Step at which the position rate reaches its final value.
+    pub position_lr_max_steps: u64,
+    /// SH DC rate; higher SH coefficients use `feature_lr / feature_rest_divisor`.
+    pub feature_lr: f64,
+    pub feature_rest_divisor: f64,
+    pub opacity_lr: f64,
+    pub scaling_lr: f64,
+    pub rotation_lr: f64,
+}
+
+impl Default for LearningRates {
+    fn default() -> Self {
+        LearningRates {
+            position_lr_init: 0.00016,
+            position_lr_final: 0.0000016,
+            position_lr_delay_mult: 0.01,
+            position_lr_delay_steps: 0,
+            position_lr_max_steps: 30_000,
+            feature_lr: 0.0025,
+            feature_rest_divisor: 20.0,
+            opacity_lr: 0.05,
+            scaling_lr: 0.005,
+            rotation_lr: 0.001,
+        }
+    }
+}
+
+impl LearningRates {
+    /// The position schedule for a scene of the given extent.
+    pub fn position_schedule(&self, spatial_lr_scale: f64) -> ExponentialLr {
+        ExponentialLr {
+            lr_init: self.position_lr_init * spatial_lr_scale,
+            lr_final: self.position_lr_final * spatial_lr_scale,
+            delay_steps: self.position_lr_delay_steps,
+            delay_mult: self.position_lr_delay_mult,
+            max_steps: self.position_lr_max_steps,
+        }
+    }
+}
+
+/// Gradients of a loss with respect to the scene parameters, laid out like the scene; `sh` holds
+/// `coeffs_per_gaussian` coefficients per Gaussian, which may be fewer than the scene stores (the
+/// active degree), in which case the missing ones are zero.
+#[derive(Clone, Copy, Debug)]
+pub struct GaussianGrads<'a> {
+    pub means: &'a [[f32; 3]],
+    pub quats: &'a [[f32; 4]],
+    pub log_scales: &'a [[f32; 3]],
+    pub opacity_logits: &'a [f32],
+    pub sh: &'a [[f32; 3]],
+    pub coeffs_per_gaussian: usize,
+}
+
+/// A scene with its optimiser state and densification statistics.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GaussianModel {
+    /// The parameters; SH coefficients are stored up to the maximum degree.
+    pub scene: FeatureGaussians<f32>,
+    /// The SH degree used for rendering, `<= scene.sh_degree`.
+    pub active_sh_degree: usize,
+    pub adam: Adam<f32>,
+    pub stats: DensityStats,
+}
+
+impl GaussianModel {
+    /// A model at step 0: fresh Adam state with the given rates, active SH degree 0, zero
+    /// statistics. The position rate starts at the schedule's value for step 0.
+    pub fn new(
+        scene: FeatureGaussians<f32>,
+        lrs: &LearningRates,
+        adam: AdamConfig,
+        spatial_lr_scale: f64,
+    ) -> Result<Self, TrainError> {
+        check_scene(&scene)?;
+        let n = scene.len();
+        let k = scene.sh_coeffs_per_gaussian();
+        let mut opt = Adam::new(adam);
+        opt.add_param(XYZ, lrs.position_schedule(spatial_lr_scale).at(0), n, 3);
+        opt.add_param(F_DC, lrs.feature_lr, n, 3);
+        if k > 1 {
+            opt.add_param(
+                F_REST,
+                lrs.feature_lr / lrs.feature_rest_divisor,
+                n,
+                3 * (k - 1),
+            );
+        }
+        opt.add_param(OPACITY, lrs.opacity_lr, n, 1);
+        opt.add_param(SCALING, lrs.scaling_lr, n, 3);
+        opt.add_param(ROTATION, lrs.rotation_lr, n, 4);
+        Ok(GaussianModel {
+            scene,
+            active_sh_degree: 0,
+            adam: opt,
+            stats: DensityStats::new(n),
+        })
+    }
+
+    /// Number of Gaussians.
+    pub fn len(&self) -> usize {
+        self.scene.len()
+    }
+
+    /// Whether the model has no Gaussians.
+    pub fn is_empty(&self) -> bool {
+        self.scene.is_empty()
+    }
+
+    /// Index of an optimiser group by name.
+    pub fn group(&self, name: &str) -> Result<usize, TrainError> {
+        self.adam
+            .index_of(name)
+            .ok_or_else(|| TrainError::Shape(format!("the optimiser has no group `{name}`")))
+    }
+
+    /// Sets the position learning rate.
+    pub fn set_position_lr(&mut self, lr: f64) -> Result<(), TrainError> {
+        let g = self.group(XYZ)?;
+        self.adam.set_lr(g, lr);
+        Ok(())
+    }
+
+    /// Raises the active SH degree by one, up to the stored maximum.
+    pub fn one_up_sh_degree(&mut self) {
+        if self.active_sh_degree < self.scene.sh_degree {
+            self.active_sh_degree += 1;
+        }
+    }
+
+    /// The scene to render: the stored scene truncated to the active SH degree (a copy; the
+    /// stored scene itself when the active degree is the maximum).
+    pub fn render_scene(&self) -> std::borrow::Cow<'_, FeatureGaussians<f32>> {
+        if self.active_sh_degree == self.scene.sh_degree {
+            return std::borrow::Cow::Borrowed(&self.scene);
+        }
+        let k_all = self.scene.sh_coeffs_per_gaussian();
+        let k = (self.active_sh_degree + 1) * (self.active_sh_degree + 1);
+        let mut s = FeatureGaussians {
+            means: self.scene.means.clone(),
+            log_scales: self.scene.log_scales.clone(),
+            quats: self.scene.quats.clone(),
+            opacity_logits: self.scene.opacity_logits.clone(),
+            sh_degree: self.active_sh_degree,
+            sh: Vec::with_capacity(self.len() * k),
+            feature_dim: self.scene.feature_dim,
+            features: self.scene.features.clone(),
+        };
+        for row in self.scene.sh.chunks_exact(k_all) {
+            s.sh.extend_from_slice(&row[..k]);
+        }
+        std::borrow::Cow::Owned(s)
+    }
+
+    /// One Adam step of every group from the gradients of the loss.
+    pub fn step(&mut self, grads: &GaussianGrads<'_>) -> Result<(), TrainError> {
+        let n = self.len();
+        let k_all = self.scene.sh_coeffs_per_gaussian();
+        let kg = grads.coeffs_per_gaussian;
+        let lens = [
+            ("means", grads.means.len(), n),
+            ("quats", grads.quats.len(), n),
+            ("log_scales", grads.log_scales.len(), n),
+            ("opacity_logits", grads.opacity_logits.len(), n),
+            ("sh", grads.sh.len(), n * kg),
+        ];
+        for (what, got, want) in lens {
+            if got != want {
+                return Err(TrainError::Shape(format!(
+                    "gradient of `{what}` has {got} rows, the model has {want}"
+                )));
+            }
+        }
+        if kg == 0 || kg > k_all {
+            return Err(TrainError::Shape(format!(
+                "gradient has {kg} SH coefficients per Gaussian, the model stores {k_all}"
+            )));
+        }
+        let g = self.group(XYZ)?;
+        self.adam.step(
+            g,
+            self.scene.means.as_flattened_mut(),
+            grads.means.as_flattened(),
+        )?;
+        // SH gradients at the stored width (zeros above the active degree)
+        let padded;
+        let sh_grad: &[[f32; 3]] = if kg == k_all {
+            grads.sh
+        } else {
+            let mut p = vec![[0.0f32; 3]; n * k_all];
+            for (dst, src) in p.chunks_exact_mut(k_all).zip(grads.sh.chunks_exact(kg)) {
+                dst[..kg].copy_from_slice(src);
+            }
+            padded = p;
+            &padded
+        };
+        let stride = 3 * k_all;
+        let g = self.group(F_DC)?;
+        self.adam.step_strided(
+            g,
+            self.scene.sh.as_flattened_mut(),
+            sh_grad.as_flattened(),
+            stride,
+            0,
+        )?;
+        if k_all > 1 {
+            let g = self.group(F_REST)?;
+            self.adam.step_strided(
+                g,
+                self.scene.sh.as_flattened_mut(),
+                sh_grad.as_flattened(),
+                stride,
+                3,
+            )?;
+        }
+        let g = self.group(OPACITY)?;
+        self.adam
+            .step(g, &mut self.scene.opacity_logits, grads.opacity_logits)?;
+        let g = self.group(SCALING)?;
+        self.adam.step(
+            g,
+            self.scene.log_scales.as_flattened_mut(),
+            grads.log_scales.as_flattened(),
+        )?;
+        let g = self.group(ROTATION)?;
+        self.adam.step(
+            g,
+            self.scene.quats.as_flattened_mut(),
+            grads.quats.as_flattened(),
+        )?;
+        Ok(())
+    }
+
+    /// Checks that scene, optimiser state and statistics agree on the number of Gaussians.
+    pub fn check_consistency(&self) -> Result<(), TrainError> {
+        check_scene(&self.scene)?;
+        let n = self.len();
+        for p in self.adam.params() {
+            if p.rows() != n {
+                return Err(TrainError::Shape(format!(
+                    "optimiser group `{}` has {} rows for {n} Gaussians",
+                    p.name,
+                    p.rows()
+                )));
+            }
+        }
+        if !self.stats.is_consistent(n) {
+            return Err(TrainError::Shape(format!(
+                "densification statistics track {} Gaussians, the model has {n}",
+                self.stats.len()
+            )));
+        }
+        if self.active_sh_degree > self.scene.sh_degree {
+            return Err(TrainError::Shape(format!(
+                "active SH degree {} exceeds the stored degree {}",
+                self.active_sh_degree, self.scene.sh_degree
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Array lengths of a scene without features, as the geometry stage trains it.
+pub(crate) fn check_scene(scene: &FeatureGaussians<f32>) -> Result<(), TrainError> {
+    let n = scene.len();
+    let k = scene.sh_coeffs_per_gaussian();
+    if scene.sh_degree > 3
+        || scene.log_scales.len() != n
+        || scene.quats.len() != n
+        || scene.opacity_logits.len() != n
+        || scene.sh.len() != n * k
+        || scene.features.len() != n * scene.feature_dim
+    {
+        return Err(TrainError::Shape(format!(
+            "inconsistent scene: {n} means, {} log-scales, {} quaternions, {} opacities, {} SH \
+             rows for degree {}",
+            scene.log_scales.len(),
+            scene.quats.len(),
+            scene.opacity_logits.len(),
+            scene.sh.len(),
+            scene.sh_degree
+        )));
+    }
+    Ok(())
+}

@@ -1,0 +1,261 @@
+//! The forward pass: alpha-blends any number of channels per pixel, tile by tile in parallel.
+//!
+//! Each 16x16 tile blends its depth-sorted Gaussians front to back with the rule of
+//! [`crate::blend`]: `out = sum_i w_i c_i + T_final background`, `w_i = alpha_i T_i`,
+//! `T_i = prod_{j<i} (1 - alpha_j)`, alpha image `1 - T_final`, depth image `sum_i w_i z_i`.
+//!
+//! Determinism: every pixel is computed by one thread in a fixed order, so the result does not
+//! depend on the number of threads.
+//!
+//! Memory: the outputs (`D + 3` reals and one `u32` per pixel), a tile-major staging copy of
+//! them of the same size, the [`TileBins`], and per thread one tile's packed Gaussians
+//! (7 reals per Gaussian in the tile).
+
+use gaussian::Real;
+use rayon::prelude::*;
+
+use crate::blend::{evaluate, pixel_centre, Splat, TILE_PIXELS, TILE_SIZE, TRANSMITTANCE_MIN};
+use crate::error::{check_len, RasterError};
+use crate::tiles::TileBins;
+
+/// Projected Gaussians with their per-Gaussian channel values: what the rasterizer blends.
+///
+/// All slices have one entry per Gaussian, `channels` has `channel_count` values per Gaussian
+/// (Gaussian-major). A Gaussian with a zero radius is culled.
+#[derive(Clone, Copy, Debug)]
+pub struct Splats<'a, T> {
+    /// Pixel coordinates of the projected means.
+    pub means2d: &'a [[T; 2]],
+    /// Inverse 2D covariances `(a, b, c)`: `sigma = 0.5 (a dx^2 + c dy^2) + b dx dy`.
+    pub conics: &'a [[T; 3]],
+    /// View-space depths (sort key and depth channel).
+    pub depths: &'a [T],
+    /// Per-axis screen radii in pixels; `[0, 0]` (or any zero) means culled.
+    pub radii: &'a [[u32; 2]],
+    /// Opacities in `[0, 1]` (after the sigmoid).
+    pub opacities: &'a [T],
+    /// `len() * channel_count` channel values, Gaussian-major.
+    pub channels: &'a [T],
+    /// Channels per Gaussian (`D`).
+    pub channel_count: usize,
+}
+
+impl<T: Real> Splats<'_, T> {
+    /// Number of Gaussians.
+    pub fn len(&self) -> usize {
+        self.means2d.len()
+    }
+
+    /// Whether there are no Gaussians.
+    pub fn is_empty(&self) -> bool {
+        self.means2d.is_empty()
+    }
+
+    /// Checks that all arrays agree in length.
+    pub fn validate(&self) -> Result<(), RasterError> {
+        let n = self.len();
+        check_len("conics", self.conics.len(), n)?;
+        check_len("depths", self.depths.len(), n)?;
+        check_len("radii", self.radii.len(), n)?;
+        check_len("opacities", self.opacities.len(), n)?;
+        check_len("channels", self.channels.len(), n * self.channel_count)?;
+        Ok(())
+    }
+
+    /// The packed form of Gaussian `g` read by the tile loops.
+    #[inline]
+    pub(crate) fn splat(&self, g: usize) -> Splat<T> {
+        Splat::new(self.means2d[g], self.conics[g], self.opacities[g])
+    }
+
+    /// Channel values of Gaussian `g`.
+    #[inline]
+    pub(crate) fn channels_of(&self, g: usize) -> &[T] {
+        &self.channels[g * self.channel_count..(g + 1) * self.channel_count]
+    }
+}
+
+/// The rasterizer's forward outputs. Images are row-major, `width x height`; the channel image
+/// has `channel_count` values per pixel (channel last).
+#[derive(Clone, Debug)]
+pub struct Rasterized<T> {
+    pub width: u32,
+    pub height: u32,
+    pub channel_count: usize,
+    /// `sum_i w_i c_i + T_final background`, `height * width * channel_count` values.
+    pub image: Vec<T>,
+    /// Accumulated opacity `1 - T_final`.
+    pub alpha: Vec<T>,
+    /// Blend-weighted view depth `sum_i w_i z_i` (not normalised).
+    pub depth: Vec<T>,
+    /// `depth / alpha`, or 0 where `alpha` is 0: the expected depth of the visible surface.
+    pub normalized_depth: Vec<T>,
+    /// Number of Gaussians blended into each pixel.
+    pub blended: Vec<u32>,
+    /// The tile binning, reused by the backward pass.
+    pub bins: TileBins,
+}
+
+impl<T: Real> Rasterized<T> {
+    /// The channel values of pixel `(x, y)`.
+    pub fn pixel(&self, x: u32, y: u32) -> &[T] {
+        let p = (y as usize * self.width as usize + x as usize) * self.channel_count;
+        &self.image[p..p + self.channel_count]
+    }
+
+    /// Total number of blended Gaussian-pixel pairs.
+    pub fn blended_pairs(&self) -> u64 {
+        self.blended.iter().map(|&c| c as u64).sum()
+    }
+}
+
+/// Rasterizes `splats` into a `width x height` image over `background` (`channel_count` values).
+pub fn rasterize<T: Real>(
+    splats: &Splats<T>,
+    width: u32,
+    height: u32,
+    background: &[T],
+) -> Result<Rasterized<T>, RasterError> {
+    splats.validate()?;
+    let bins = TileBins::new(width, height, splats.means2d, splats.depths, splats.radii)?;
+    rasterize_binned(splats, bins, background)
+}
+
+/// [`rasterize`] with tile bins built beforehand for the same Gaussians and image size.
+pub fn rasterize_binned<T: Real>(
+    splats: &Splats<T>,
+    bins: TileBins,
+    background: &[T],
+) -> Result<Rasterized<T>, RasterError> {
+    splats.validate()?;
+    let (width, height) = (bins.width(), bins.height());
+    bins.check(width, height, splats.len())?;
+    let d = splats.channel_count;
+    check_len("background", background.len(), d)?;
+
+    let tiles = bins.tile_count();
+    // Staging rows hold at least one channel so that chunking works when `d == 0`.
+    let d_stage = d.max(1);
+    let mut t_image = vec![T::zero(); tiles * TILE_PIXELS * d_stage];
+    let mut t_alpha = vec![T::zero(); tiles * TILE_PIXELS];
+    let mut t_depth = vec![T::zero(); tiles * TILE_PIXELS];
+    let mut t_count = vec![0u32; tiles * TILE_PIXELS];
+    t_image
+        .par_chunks_mut(TILE_PIXELS * d_stage)
+        .zip(t_alpha.par_chunks_mut(TILE_PIXELS))
+        .zip(t_depth.par_chunks_mut(TILE_PIXELS))
+        .zip(t_count.par_chunks_mut(TILE_PIXELS))
+        .enumerate()
+        .for_each_init(Vec::new, |packed, (t, (((img, alpha), depth), count))| {
+            forward_tile(
+                splats, &bins, background, t, packed, img, alpha, depth, count,
+            );
+        });
+
+    // Tile-major staging to row-major images.
+    let w = width as usize;
+    let h = height as usize;
+    let tiles_x = bins.grid().0 as usize;
+    let ts = TILE_SIZE as usize;
+    let staged =
+        |x: usize, y: usize| (y / ts * tiles_x + x / ts) * TILE_PIXELS + (y % ts) * ts + x % ts;
+    let mut alpha = vec![T::zero(); h * w];
+    let mut depth = vec![T::zero(); h * w];
+    let mut blended = vec![0u32; h * w];
+    alpha
+        .par_chunks_mut(w)
+        .zip(depth.par_chunks_mut(w))
+        .zip(blended.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, ((a_row, z_row), n_row))| {
+            for x in 0..w {
+                let lp = staged(x, y);
+                a_row[x] = t_alpha[lp];
+                z_row[x] = t_depth[lp];
+                n_row[x] = t_count[lp];
+            }
+        });
+    let mut image = vec![T::zero(); h * w * d];
+    if d > 0 {
+        image
+            .par_chunks_mut(w * d)
+            .enumerate()
+            .for_each(|(y, row)| {
+                for x in 0..w {
+                    let lp = staged(x, y) * d_stage;
+                    row[x * d..(x + 1) * d].copy_from_slice(&t_image[lp..lp + d]);
+                }
+            });
+    }
+    let normalized_depth = depth
+        .par_iter()
+        .zip(alpha.par_iter())
+        .map(|(&z, &a)| if a > T::zero() { z / a } else { T::zero() })
+        .collect();
+    Ok(Rasterized {
+        width,
+        height,
+        channel_count: d,
+        image,
+        alpha,
+        depth,
+        normalized_depth,
+        blended,
+        bins,
+    })
+}
+
+/// Blends one tile into its tile-major output slots (pixel `(lx, ly)` at `ly * 16 + lx`).
+#[allow(clippy::too_many_arguments)]
+fn forward_tile<T: Real>(
+    splats: &Splats<T>,
+    bins: &TileBins,
+    background: &[T],
+    t: usize,
+    packed: &mut Vec<Splat<T>>,
+    img: &mut [T],
+    alpha_out: &mut [T],
+    depth_out: &mut [T],
+    count_out: &mut [u32],
+) {
+    let d = splats.channel_count;
+    let ids = bins.tile(t);
+    packed.clear();
+    packed.extend(ids.iter().map(|&g| splats.splat(g as usize)));
+    let (x0, y0, x1, y1) = bins.pixel_rect(t);
+    let t_min = T::lit(TRANSMITTANCE_MIN);
+    for py in y0..y1 {
+        let cy = pixel_centre::<T>(py);
+        for px in x0..x1 {
+            let cx = pixel_centre::<T>(px);
+            let lp = ((py - y0) * TILE_SIZE + (px - x0)) as usize;
+            let out = &mut img[lp * d..(lp + 1) * d];
+            let mut trans = T::one();
+            let mut z = T::zero();
+            let mut n = 0u32;
+            for (k, s) in packed.iter().enumerate() {
+                let Some(hit) = evaluate(s, cx, cy) else {
+                    continue;
+                };
+                let next = trans * (T::one() - hit.alpha);
+                if next <= t_min {
+                    break;
+                }
+                let w = hit.alpha * trans;
+                let g = ids[k] as usize;
+                for (o, &c) in out.iter_mut().zip(splats.channels_of(g)) {
+                    *o += w * c;
+                }
+                z += w * splats.depths[g];
+                n += 1;
+                trans = next;
+            }
+            for (o, &b) in out.iter_mut().zip(background) {
+                *o += trans * b;
+            }
+            alpha_out[lp] = T::one() - trans;
+            depth_out[lp] = z;
+            count_out[lp] = n;
+        }
+    }
+}

@@ -1,0 +1,256 @@
+//! Binning of projected Gaussians into 16x16 screen tiles, sorted front to back per tile.
+//!
+//! Convention (the oracle's `tile_mask`): a Gaussian with per-axis pixel radii `(rx, ry)`, both
+//! positive, touches tiles `[floor((m - r) / 16), ceil((m + r) / 16))` per axis, clamped to the
+//! tile grid. Each tile lists the Gaussians touching it in ascending view depth; ties keep
+//! ascending Gaussian index (a stable sort, as `torch.sort(stable=True)` over all Gaussians).
+//!
+//! Memory: one `u32` per tile-Gaussian intersection plus one `usize` per tile, and transiently one
+//! `u32` per Gaussian (the depth order) and three `u32`/`usize` per tile.
+
+use gaussian::Real;
+use rayon::prelude::*;
+
+use crate::blend::TILE_SIZE;
+use crate::error::{check_len, RasterError};
+
+/// The per-tile, depth-sorted lists of Gaussian indices for one image.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct TileBins {
+    width: u32,
+    height: u32,
+    gaussian_count: usize,
+    tiles_x: u32,
+    tiles_y: u32,
+    /// `offsets[t]..offsets[t + 1]` is tile `t`'s range in `gaussian_ids` (tiles row-major).
+    offsets: Vec<usize>,
+    /// Gaussian indices, tile-major, front to back within a tile.
+    gaussian_ids: Vec<u32>,
+}
+
+/// A half-open rectangle of tiles `[x0, x1) x [y0, y1)`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TileRect {
+    pub x0: u32,
+    pub x1: u32,
+    pub y0: u32,
+    pub y1: u32,
+}
+
+impl TileRect {
+    /// Number of tiles in the rectangle.
+    pub fn count(&self) -> usize {
+        (self.x1 - self.x0) as usize * (self.y1 - self.y0) as usize
+    }
+}
+
+/// Tiles per axis for an image: `ceil(width / 16)`, `ceil(height / 16)`.
+pub fn tile_grid(width: u32, height: u32) -> (u32, u32) {
+    (width.div_ceil(TILE_SIZE), height.div_ceil(TILE_SIZE))
+}
+
+/// The tiles a Gaussian touches, or `None` when a radius is zero (culled) or the clamped range is
+/// empty.
+pub fn tile_rect<T: Real>(
+    mean2d: [T; 2],
+    radii: [u32; 2],
+    tiles_x: u32,
+    tiles_y: u32,
+) -> Option<TileRect> {
+    if radii[0] == 0 || radii[1] == 0 {
+        return None;
+    }
+    let tile = T::lit(TILE_SIZE as f64);
+    // Computed as the oracle does: m/16 -/+ r/16, then floor/ceil, then clamp to [0, tiles].
+    let range = |m: T, r: u32, n: u32| -> (u32, u32) {
+        let tm = m / tile;
+        let tr = T::lit(r as f64) / tile;
+        let clamp = |v: T| -> u32 {
+            let v = v.to_f64_exact();
+            if v.is_nan() || v <= 0.0 {
+                0
+            } else if v >= n as f64 {
+                n
+            } else {
+                v as u32
+            }
+        };
+        (clamp((tm - tr).floor()), clamp((tm + tr).ceil()))
+    };
+    let (x0, x1) = range(mean2d[0], radii[0], tiles_x);
+    let (y0, y1) = range(mean2d[1], radii[1], tiles_y);
+    if x0 < x1 && y0 < y1 {
+        Some(TileRect { x0, x1, y0, y1 })
+    } else {
+        None
+    }
+}
+
+impl TileBins {
+    /// Bins `means2d`/`radii` for a `width x height` image, ordering each tile by `depths`.
+    pub fn new<T: Real>(
+        width: u32,
+        height: u32,
+        means2d: &[[T; 2]],
+        depths: &[T],
+        radii: &[[u32; 2]],
+    ) -> Result<TileBins, RasterError> {
+        let n = means2d.len();
+        check_len("depths", depths.len(), n)?;
+        check_len("radii", radii.len(), n)?;
+        if width == 0 || height == 0 {
+            return Err(RasterError::EmptyImage { width, height });
+        }
+        if n >= u32::MAX as usize {
+            return Err(RasterError::TooManyGaussians(n));
+        }
+        let (tiles_x, tiles_y) = tile_grid(width, height);
+        let tile_count = tiles_x as usize * tiles_y as usize;
+
+        let rects: Vec<Option<TileRect>> = means2d
+            .par_iter()
+            .zip(radii.par_iter())
+            .map(|(&m, &r)| tile_rect(m, r, tiles_x, tiles_y))
+            .collect();
+
+        // Stable depth order of the Gaussians that touch any tile (ties: ascending index).
+        let mut order: Vec<u32> = (0..n as u32)
+            .filter(|&g| rects[g as usize].is_some())
+            .collect();
+        order.par_sort_by(|&i, &j| depths[i as usize].total_cmp_real(&depths[j as usize]));
+
+        let mut counts = vec![0usize; tile_count];
+        for r in rects.iter().flatten() {
+            for ty in r.y0..r.y1 {
+                let row = ty as usize * tiles_x as usize;
+                for tx in r.x0..r.x1 {
+                    counts[row + tx as usize] += 1;
+                }
+            }
+        }
+        let mut offsets = Vec::with_capacity(tile_count + 1);
+        let mut total = 0usize;
+        offsets.push(0);
+        for c in &counts {
+            total += c;
+            offsets.push(total);
+        }
+        let mut cursor: Vec<usize> = offsets[..tile_count].to_vec();
+        let mut gaussian_ids = vec![0u32; total];
+        for &g in &order {
+            let r = rects[g as usize].expect("only binned Gaussians are in the depth order");
+            for ty in r.y0..r.y1 {
+                let row = ty as usize * tiles_x as usize;
+                for tx in r.x0..r.x1 {
+                    let slot = &mut cursor[row + tx as usize];
+                    gaussian_ids[*slot] = g;
+                    *slot += 1;
+                }
+            }
+        }
+        Ok(TileBins {
+            width,
+            height,
+            gaussian_count: n,
+            tiles_x,
+            tiles_y,
+            offsets,
+            gaussian_ids,
+        })
+    }
+
+    /// Image width in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Image height in pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
+    /// Number of Gaussians the bins were built for (binned or not).
+    pub fn gaussian_count(&self) -> usize {
+        self.gaussian_count
+    }
+
+    /// Tiles per axis.
+    pub fn grid(&self) -> (u32, u32) {
+        (self.tiles_x, self.tiles_y)
+    }
+
+    /// Number of tiles.
+    pub fn tile_count(&self) -> usize {
+        self.offsets.len() - 1
+    }
+
+    /// Total number of tile-Gaussian intersections.
+    pub fn intersection_count(&self) -> usize {
+        self.gaussian_ids.len()
+    }
+
+    /// The range of tile `t` in the intersection list.
+    pub fn range(&self, t: usize) -> std::ops::Range<usize> {
+        self.offsets[t]..self.offsets[t + 1]
+    }
+
+    /// The Gaussians of tile `t`, front to back.
+    pub fn tile(&self, t: usize) -> &[u32] {
+        &self.gaussian_ids[self.range(t)]
+    }
+
+    /// All intersections, tile-major (tiles row-major), front to back within a tile.
+    pub fn gaussian_ids(&self) -> &[u32] {
+        &self.gaussian_ids
+    }
+
+    /// The pixel rectangle `(x0, y0, x1, y1)` of tile `t`, clipped to the image.
+    pub fn pixel_rect(&self, t: usize) -> (u32, u32, u32, u32) {
+        let tx = t as u32 % self.tiles_x;
+        let ty = t as u32 / self.tiles_x;
+        let x0 = tx * TILE_SIZE;
+        let y0 = ty * TILE_SIZE;
+        (
+            x0,
+            y0,
+            (x0 + TILE_SIZE).min(self.width),
+            (y0 + TILE_SIZE).min(self.height),
+        )
+    }
+
+    /// Bytes held by the bins.
+    pub fn memory_bytes(&self) -> usize {
+        self.offsets.len() * std::mem::size_of::<usize>()
+            + self.gaussian_ids.len() * std::mem::size_of::<u32>()
+    }
+
+    pub(crate) fn check(&self, width: u32, height: u32, count: usize) -> Result<(), RasterError> {
+        if self.width == width && self.height == height && self.gaussian_count == count {
+            Ok(())
+        } else {
+            Err(RasterError::BinsMismatch {
+                bins_width: self.width,
+                bins_height: self.height,
+                bins_count: self.gaussian_count,
+                width,
+                height,
+                count,
+            })
+        }
+    }
+}
+
+/// Ascending order on reals for the depth sort: numeric order (so `-0.0 == 0.0` and equal depths
+/// keep index order under the stable sort), NaN after every number.
+trait DepthOrder {
+    fn total_cmp_real(&self, other: &Self) -> std::cmp::Ordering;
+}
+
+impl<T: Real> DepthOrder for T {
+    fn total_cmp_real(&self, other: &Self) -> std::cmp::Ordering {
+        match self.partial_cmp(other) {
+            Some(o) => o,
+            None => self.is_nan().cmp(&other.is_nan()),
+        }
+    }
+}

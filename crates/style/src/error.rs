@@ -1,0 +1,43 @@
+//! The error type of the `style` crate: every failure names the quantity and the problem.
+
+use thiserror::Error;
+
+/// Errors of feature-space operations, losses and style caches.
+#[derive(Debug, Error)]
+pub enum StyleError {
+    /// Two tensors that must agree in shape do not.
+    #[error("{what}: shape {actual:?} does not match the expected {expected:?}")]
+    Shape {
+        what: &'static str,
+        expected: Vec<usize>,
+        actual: Vec<usize>,
+    },
+    /// Unbiased statistics need at least two samples per channel.
+    #[error("{what}: statistics need at least 2 pixels per channel, got {count}")]
+    TooFewPixels { what: &'static str, count: usize },
+    /// A list that must not be empty is empty, or lists that must have equal lengths do not.
+    #[error("{what}: {problem}")]
+    Invalid { what: &'static str, problem: String },
+    /// A non-finite value where a finite one is required.
+    #[error("{what}: value {value} is not finite")]
+    NonFinite { what: &'static str, value: f64 },
+    /// A network operation failed.
+    #[error("network: {0}")]
+    Net(String),
+}
+
+/// Result alias of this crate.
+pub type Result<T, E = StyleError> = std::result::Result<T, E>;
+
+/// Fails with [`StyleError::Shape`] unless `actual == expected`.
+pub(crate) fn check_shape(what: &'static str, actual: &[usize], expected: &[usize]) -> Result<()> {
+    if actual == expected {
+        Ok(())
+    } else {
+        Err(StyleError::Shape {
+            what,
+            expected: expected.to_vec(),
+            actual: actual.to_vec(),
+        })
+    }
+}

@@ -1,6 +1,51 @@
 //! Convolutional networks of dsgs on CPU: the normalised VGG encoder (standard and fullres), the
-//! AdaIN-style decoder, the MLP lifter, their backward passes, and checkpoint import.
+//! AdaIN-style decoder, the MLP lifter, their backward passes, the convolution engine they run on,
+//! and their canonical safetensors weights format.
+//!
+//! Tensors are `ndarray::Array4` in NCHW order. Networks and kernels are generic over
+//! [`Scalar`] (`f32` in production, the default type parameter; `f64` for checking gradients).
+//!
+//! * [`Encoder`]: features `relu1_1 ..= relu{depth}_1`, forward with tape, backward from
+//!   cotangents on any subset of the features.
+//! * [`Decoder`]: forward with tape, backward to the input and every parameter.
+//! * [`Lifter`]: `relu(conv1x1(x))`, forward and backward.
+//! * Built from a [`StateDict`] in the AdaIN/WCT Sequential layout or the compressed named layout
+//!   ([`layout`]), or loaded from canonical safetensors files ([`weights_file`]).
 
+pub mod checkpoint;
+pub mod conv;
+pub mod decoder;
+pub mod encoder;
+pub mod error;
+pub mod layer;
+pub mod layout;
+pub mod lifter;
+mod mask;
+pub mod pool;
+pub mod scalar;
+mod sequential;
 pub mod state_dict;
+pub mod upsample;
+pub mod weights_file;
 
+pub use decoder::{Decoder, DecoderGrads, DecoderTape};
+pub use encoder::{Encoder, EncoderTape};
+pub use error::NetError;
+pub use layer::{ConvGrad, ConvLayer};
+pub use layout::Layout;
+pub use lifter::{Lifter, LifterGrads, LifterTape};
+pub use pool::PoolRounding;
+pub use scalar::Scalar;
 pub use state_dict::{StateDict, TensorF32};
+pub use weights_file::NetWeights;
+
+/// Whether the encoder pools and the decoder upsamples between levels (`Standard`) or both keep
+/// the input resolution throughout (`Fullres`, pooling and upsampling replaced by identity).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Resolution {
+    /// The original networks.
+    #[default]
+    Standard,
+    /// No pooling in the encoder and no upsampling in the decoder.
+    Fullres,
+}

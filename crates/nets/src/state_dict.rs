@@ -26,3 +26,21 @@ impl TensorF32 {
 
 /// Tensors by name, in sorted order.
 pub type StateDict = BTreeMap<String, TensorF32>;
+
+impl TensorF32 {
+    /// A tensor from an `ndarray` array of any dimension (copied in row-major order).
+    pub fn from_array<D: ndarray::Dimension>(a: &ndarray::Array<f32, D>) -> TensorF32 {
+        TensorF32 {
+            shape: a.shape().to_vec(),
+            data: a.iter().copied().collect(),
+        }
+    }
+}
+
+/// The tensors whose names start with `prefix`, with the prefix removed, e.g.
+/// `sub_dict(&sd, "vgg.")` turns `vgg.0.weight` into `0.weight`.
+pub fn sub_dict(sd: &StateDict, prefix: &str) -> StateDict {
+    sd.iter()
+        .filter_map(|(k, v)| k.strip_prefix(prefix).map(|s| (s.to_string(), v.clone())))
+        .collect()
+}

@@ -1,0 +1,99 @@
+//! Errors of the checkpoint importer.
+//!
+//! [`FormatError`] says what is wrong with the bytes, naming the byte offset (always counted from
+//! the start of the file, also inside zip entries), the storage key or the tensor name.
+//! [`CheckpointError`] adds the file it came from.
+
+use std::path::PathBuf;
+
+/// A checkpoint file that could not be imported.
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    /// The file could not be read at all.
+    #[error("cannot read checkpoint {}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// The file was read but its contents are not an importable checkpoint.
+    #[error("checkpoint {}: {problem}", path.display())]
+    Invalid { path: PathBuf, problem: FormatError },
+}
+
+/// What is wrong with the bytes of a checkpoint.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum FormatError {
+    /// Neither a zip archive nor a pickle.
+    #[error(
+        "not a PyTorch checkpoint: it starts with {found:02x?}, expected a zip archive \
+         (50 4b 03 04) or a pickle (80)"
+    )]
+    UnknownFormat { found: Vec<u8> },
+
+    /// The data ends before a field that must be there.
+    #[error("truncated: {what} at byte {offset} needs {needed} more bytes than the file has")]
+    Truncated {
+        what: String,
+        offset: u64,
+        needed: u64,
+    },
+
+    /// A pickle opcode outside the subset that state dicts use.
+    #[error(
+        "pickle opcode {opcode:#04x} ({}) at byte {offset} is not allowed in a state dict",
+        super::pickle::opcode_name(*opcode)
+    )]
+    UnsupportedOpcode { opcode: u8, offset: u64 },
+
+    /// A pickle global outside the whitelist.
+    #[error("pickle global {module}.{name} at byte {offset} is not allowed in a state dict")]
+    UnsupportedGlobal {
+        module: String,
+        name: String,
+        offset: u64,
+    },
+
+    /// A pickle that is well formed byte-wise but does not make sense.
+    #[error("malformed pickle at byte {offset}: {reason}")]
+    Pickle { offset: u64, reason: String },
+
+    /// A pickle that exceeds a resource limit of the importer.
+    #[error("pickle at byte {offset} exceeds the limit of {limit} {what}")]
+    Limit {
+        offset: u64,
+        what: &'static str,
+        limit: u64,
+    },
+
+    /// The legacy header pickles (magic number, protocol version, system info) are wrong.
+    #[error("legacy checkpoint header at byte {offset}: {reason}")]
+    Header { offset: u64, reason: String },
+
+    /// A structurally broken zip archive.
+    #[error("corrupt zip archive at byte {offset}: {reason}")]
+    Zip { offset: u64, reason: String },
+
+    /// A zip entry the format requires is absent.
+    #[error("zip archive has no entry {name}")]
+    MissingEntry { name: String },
+
+    /// A zip entry whose bytes do not match its recorded CRC-32.
+    #[error("zip entry {name} at byte {offset} fails its CRC-32 check (corrupt data)")]
+    Checksum { name: String, offset: u64 },
+
+    /// A storage referenced by a tensor whose bytes are not in the file.
+    #[error("storage {key} is referenced by the pickle but its data is not in the file")]
+    MissingStorage { key: String },
+
+    /// A storage whose recorded size or type is inconsistent.
+    #[error("storage {key}: {reason}")]
+    Storage { key: String, reason: String },
+
+    /// A tensor whose shape, strides or offset do not fit its storage.
+    #[error("tensor {name}: {reason}")]
+    Tensor { name: String, reason: String },
+
+    /// The unpickled object is not a (possibly wrapped or nested) dict of tensors.
+    #[error("unsupported checkpoint layout: {reason}")]
+    Layout { reason: String },
+}

@@ -1,0 +1,434 @@
+//! Convolution engine: 3x3 convolution with reflection padding and 1x1 convolution, forward and
+//! backward, NCHW, on top of `matrixmultiply`'s GEMM.
+//!
+//! Convention (PyTorch `Conv2d`, cross-correlation): weights are `[O, C, K, K]`, biases `[O]`, and
+//! `y[n,o,r,x] = b[o] + sum_{c,i,j} w[o,c,i,j] * xp[n,c,r+i,x+j]`, where `xp` is the input padded
+//! by one pixel with reflection (`F.pad(x, (1,1,1,1), mode="reflect")`, which mirrors about the edge
+//! pixel without repeating it) for 3x3 kernels and the input itself for 1x1 kernels.
+//!
+//! # How it is computed
+//! Every convolution, including the backward ones, is reduced to a *valid* cross-correlation of an
+//! already padded tensor (`conv_valid`), computed as im2col + GEMM tile by tile:
+//! * forward 3x3: reflection-pad by 1, then valid 3x3;
+//! * input gradient 3x3: zero-pad the output gradient by 2 and correlate with the flipped,
+//!   transposed kernel (`wt[c,o,i,j] = w[o,c,2-i,2-j]`), which yields the gradient of the padded
+//!   input; then fold the reflected border back onto the pixels it was copied from;
+//! * weight gradient: `dW[o, (c,i,j)] += dY_tile[o, p] * col_tile[(c,i,j), p]` accumulated tile by
+//!   tile in a fixed order;
+//! * 1x1 convolutions need no im2col at all: the input itself is the GEMM operand.
+//!
+//! # Memory bound
+//! The output is split into tiles of whole output rows of one image. A tile holds at most
+//! [`TILE_PIXELS`] output pixels and its im2col buffer (`C*K*K` rows by tile pixels) at most
+//! [`COL_BUDGET_BYTES`], unless a single output row alone is larger (then a tile is one row). Each
+//! worker thread owns one such buffer, so the scratch memory of a convolution is at most
+//! `threads * max(COL_BUDGET_BYTES, C*K*K*W_out*size_of::<T>())`, independent of the image height
+//! and batch size. For a 256x256 fullres relu4_1 pass in `f32` this is 16 MiB per thread, where a
+//! whole-image im2col of the 512-channel layers would need 2.4 GB. Besides scratch, a convolution
+//! allocates its output and one padded copy of its input (or output gradient).
+//!
+//! # Parallelism and determinism
+//! Forward and input-gradient tiles run in parallel with rayon, each with a single-threaded GEMM
+//! writing a disjoint block of the output. Weight gradients visit the tiles sequentially in a fixed
+//! order and parallelise inside a tile over fixed column blocks of `dW`. The tiling depends only
+//! on the shapes, never on the number of threads, and every output element is produced by exactly
+//! one GEMM call per tile with a fixed summation order, so results are bitwise identical for any
+//! thread count.
+
+use ndarray::{s, Array1, Array4, ArrayView1, ArrayView4, Axis};
+use rayon::prelude::*;
+
+use crate::scalar::Scalar;
+
+/// Target number of output pixels per tile (a good GEMM width for `matrixmultiply`).
+pub const TILE_PIXELS: usize = 2048;
+
+/// Upper bound on one im2col scratch buffer, in bytes (unless one output row is larger).
+pub const COL_BUDGET_BYTES: usize = 16 << 20;
+
+/// Columns of `dW` per parallel block in the weight gradient.
+const DW_COLUMN_BLOCK: usize = 128;
+
+/// A raw pointer that may be sent to other threads; users guarantee disjoint writes.
+#[derive(Clone, Copy)]
+struct SyncPtr<T>(*mut T);
+// SAFETY: only used to write disjoint regions from parallel tasks (see each use).
+unsafe impl<T> Send for SyncPtr<T> {}
+// SAFETY: as above.
+unsafe impl<T> Sync for SyncPtr<T> {}
+
+impl<T> SyncPtr<T> {
+    fn get(self) -> *mut T {
+        self.0
+    }
+}
+
+/// Output rows per tile for a valid convolution with `ckk = C*K*K` and output width `w_out`.
+fn rows_per_tile<T>(ckk: usize, w_out: usize, h_out: usize, kernel: usize) -> usize {
+    let by_pixels = TILE_PIXELS / w_out.max(1);
+    let by_memory = if kernel == 1 {
+        usize::MAX // no im2col buffer
+    } else {
+        COL_BUDGET_BYTES / (ckk * w_out * std::mem::size_of::<T>()).max(1)
+    };
+    by_pixels.min(by_memory).clamp(1, h_out.max(1))
+}
+
+/// The tiles `(image, first row, last row + 1)` of an output of `n` images of `h_out` rows.
+fn tiles(n: usize, h_out: usize, rows: usize) -> Vec<(usize, usize, usize)> {
+    let mut v = Vec::new();
+    for img in 0..n {
+        let mut r0 = 0;
+        while r0 < h_out {
+            let r1 = (r0 + rows).min(h_out);
+            v.push((img, r0, r1));
+            r0 = r1;
+        }
+    }
+    v
+}
+
+/// Fills `col` (`C*K*K` rows of `(r1-r0)*w_out` pixels) with the windows of image `img` of the
+/// padded input for output rows `r0..r1`.
+fn im2col<T: Scalar>(xp: &[T], dims: [usize; 3], k: usize, r0: usize, r1: usize, col: &mut [T]) {
+    let [_, hp, wp] = dims;
+    let w_out = wp - k + 1;
+    let px = (r1 - r0) * w_out;
+    col.par_chunks_mut(k * k * px)
+        .enumerate()
+        .for_each(|(c, block)| {
+            let plane = &xp[c * hp * wp..(c + 1) * hp * wp];
+            for i in 0..k {
+                for j in 0..k {
+                    let dst = &mut block[(i * k + j) * px..(i * k + j + 1) * px];
+                    for r in r0..r1 {
+                        let src = &plane[(r + i) * wp + j..(r + i) * wp + j + w_out];
+                        dst[(r - r0) * w_out..(r - r0 + 1) * w_out].copy_from_slice(src);
+                    }
+                }
+            }
+        });
+}
+
+/// Valid cross-correlation of a padded input `xp [N,C,Hp,Wp]` with `w [O,C,K,K]`, plus an
+/// optional bias, optionally followed by ReLU. Output `[N, O, Hp-K+1, Wp-K+1]`.
+pub(crate) fn conv_valid<T: Scalar>(
+    xp: ArrayView4<T>,
+    w: ArrayView4<T>,
+    bias: Option<ArrayView1<T>>,
+    relu: bool,
+) -> Array4<T> {
+    let (n, c, hp, wp) = xp.dim();
+    let (o, wc, k, k2) = w.dim();
+    assert_eq!(wc, c, "conv: weight has {wc} input channels, input has {c}");
+    assert_eq!(k, k2, "conv: kernel must be square");
+    assert!(
+        hp >= k && wp >= k,
+        "conv: input {hp}x{wp} smaller than kernel {k}"
+    );
+    let (h_out, w_out) = (hp - k + 1, wp - k + 1);
+    let xp = xp.as_standard_layout();
+    let w = w.as_standard_layout();
+    let xs = xp.as_slice().expect("standard layout");
+    let ws = w.as_slice().expect("standard layout");
+    let bias: Option<Vec<T>> = bias.map(|b| b.to_vec());
+    if let Some(b) = &bias {
+        assert_eq!(
+            b.len(),
+            o,
+            "conv: bias has {} entries for {o} outputs",
+            b.len()
+        );
+    }
+    let ckk = c * k * k;
+    let mut out = Array4::<T>::zeros((n, o, h_out, w_out));
+    let out_ptr = SyncPtr(out.as_mut_ptr());
+    let rows = rows_per_tile::<T>(ckk, w_out, h_out, k);
+    let jobs = tiles(n, h_out, rows);
+    let plane_out = h_out * w_out;
+    jobs.par_iter()
+        .for_each_init(Vec::<T>::new, |col, &(img, r0, r1)| {
+            let px = (r1 - r0) * w_out;
+            let x_img = &xs[img * c * hp * wp..(img + 1) * c * hp * wp];
+            let (b_ptr, rsb) = if k == 1 {
+                (x_img[r0 * wp..].as_ptr(), (hp * wp) as isize)
+            } else {
+                col.resize(ckk * px, T::ZERO);
+                im2col(x_img, [c, hp, wp], k, r0, r1, col);
+                (col.as_ptr(), px as isize)
+            };
+            // SAFETY: the tile writes rows r0..r1 of every output channel of image `img`, which no
+            // other tile touches; all strides stay inside the buffers.
+            unsafe {
+                let c_ptr = out_ptr.get().add(img * o * plane_out + r0 * w_out);
+                T::gemm(
+                    o,
+                    ckk,
+                    px,
+                    T::ONE,
+                    ws.as_ptr(),
+                    ckk as isize,
+                    1,
+                    b_ptr,
+                    rsb,
+                    1,
+                    T::ZERO,
+                    c_ptr,
+                    plane_out as isize,
+                    1,
+                );
+                if bias.is_some() || relu {
+                    for oc in 0..o {
+                        let row = std::slice::from_raw_parts_mut(c_ptr.add(oc * plane_out), px);
+                        let b = bias.as_ref().map_or(T::ZERO, |b| b[oc]);
+                        if relu {
+                            for v in row.iter_mut() {
+                                let t = *v + b;
+                                *v = if t > T::ZERO { t } else { T::ZERO };
+                            }
+                        } else {
+                            for v in row.iter_mut() {
+                                *v += b;
+                            }
+                        }
+                    }
+                }
+            }
+        });
+    out
+}
+
+/// Gradients of a valid cross-correlation with respect to its weights and bias, given the padded
+/// input `xp [N,C,Hp,Wp]`, the output gradient `dy [N,O,Hp-K+1,Wp-K+1]` and the kernel size.
+pub(crate) fn conv_valid_param_grads<T: Scalar>(
+    xp: ArrayView4<T>,
+    dy: ArrayView4<T>,
+    k: usize,
+) -> (Array4<T>, Array1<T>) {
+    let (n, c, hp, wp) = xp.dim();
+    let (dn, o, h_out, w_out) = dy.dim();
+    assert_eq!(dn, n, "conv grads: batch sizes differ");
+    assert_eq!(
+        (h_out, w_out),
+        (hp - k + 1, wp - k + 1),
+        "conv grads: output gradient has the wrong size"
+    );
+    let xp = xp.as_standard_layout();
+    let dy = dy.as_standard_layout();
+    let xs = xp.as_slice().expect("standard layout");
+    let dys = dy.as_slice().expect("standard layout");
+    let ckk = c * k * k;
+    let plane_out = h_out * w_out;
+    let mut dw = vec![T::ZERO; o * ckk];
+    let rows = rows_per_tile::<T>(ckk, w_out, h_out, k);
+    let mut col = Vec::<T>::new();
+    for (img, r0, r1) in tiles(n, h_out, rows) {
+        let px = (r1 - r0) * w_out;
+        let x_img = &xs[img * c * hp * wp..(img + 1) * c * hp * wp];
+        // B[p, j] = col[j, p]: row stride 1, column stride `csb`.
+        let (b_ptr, csb) = if k == 1 {
+            (SyncPtr(x_img[r0 * wp..].as_ptr() as *mut T), hp * wp)
+        } else {
+            col.resize(ckk * px, T::ZERO);
+            im2col(x_img, [c, hp, wp], k, r0, r1, &mut col);
+            (SyncPtr(col.as_ptr() as *mut T), px)
+        };
+        let a_ptr = SyncPtr(dys[img * o * plane_out + r0 * w_out..].as_ptr() as *mut T);
+        // Column blocks of dW are strided in memory, so they are addressed by pointer.
+        let dw_ptr = SyncPtr(dw.as_mut_ptr());
+        let blocks: Vec<usize> = (0..ckk).step_by(DW_COLUMN_BLOCK).collect();
+        blocks.par_iter().for_each(|&j0| {
+            let nb = DW_COLUMN_BLOCK.min(ckk - j0);
+            // SAFETY: block j0 writes columns j0..j0+nb of every row of dW, disjoint from the
+            // other blocks; the operands are read-only and in bounds.
+            unsafe {
+                T::gemm(
+                    o,
+                    px,
+                    nb,
+                    T::ONE,
+                    a_ptr.get(),
+                    plane_out as isize,
+                    1,
+                    b_ptr.get().add(j0 * csb),
+                    1,
+                    csb as isize,
+                    T::ONE,
+                    dw_ptr.get().add(j0),
+                    ckk as isize,
+                    1,
+                );
+            }
+        });
+    }
+    let db: Vec<T> = (0..o)
+        .into_par_iter()
+        .map(|oc| {
+            let mut acc = T::ZERO;
+            for img in 0..n {
+                let start = (img * o + oc) * plane_out;
+                acc += dys[start..start + plane_out].iter().copied().sum::<T>();
+            }
+            acc
+        })
+        .collect();
+    (
+        Array4::from_shape_vec((o, c, k, k), dw).expect("shape"),
+        Array1::from_vec(db),
+    )
+}
+
+/// Reflection padding by one pixel on both spatial axes (`F.pad(x, (1,1,1,1), mode="reflect")`).
+///
+/// # Panics
+/// If the height or width is below 2 (reflection needs a neighbour to mirror).
+pub fn pad_reflect1<T: Scalar>(x: ArrayView4<T>) -> Array4<T> {
+    let (n, c, h, w) = x.dim();
+    assert!(
+        h >= 2 && w >= 2,
+        "reflection padding needs at least 2x2 pixels, got {h}x{w}"
+    );
+    let mut out = Array4::<T>::zeros((n, c, h + 2, w + 2));
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(x.axis_iter(Axis(0)).into_par_iter())
+        .for_each(|(mut o_img, x_img)| {
+            for (mut o, xc) in o_img.outer_iter_mut().zip(x_img.outer_iter()) {
+                o.slice_mut(s![1..h + 1, 1..w + 1]).assign(&xc);
+                o.slice_mut(s![0, 1..w + 1]).assign(&xc.row(1));
+                o.slice_mut(s![h + 1, 1..w + 1]).assign(&xc.row(h - 2));
+                for r in 0..h + 2 {
+                    o[[r, 0]] = o[[r, 2]];
+                    o[[r, w + 1]] = o[[r, w - 1]];
+                }
+            }
+        });
+    out
+}
+
+/// Zero padding by `p` pixels on both spatial axes.
+fn pad_zero<T: Scalar>(x: ArrayView4<T>, p: usize) -> Array4<T> {
+    let (n, c, h, w) = x.dim();
+    let mut out = Array4::<T>::zeros((n, c, h + 2 * p, w + 2 * p));
+    out.slice_mut(s![.., .., p..p + h, p..p + w]).assign(&x);
+    out
+}
+
+/// The adjoint of [`pad_reflect1`]: folds the gradient of a reflection-padded tensor
+/// `[N,C,H+2,W+2]` back onto the `[N,C,H,W]` pixels the border was copied from.
+fn fold_reflect1<T: Scalar>(gp: Array4<T>) -> Array4<T> {
+    let (n, c, hp, wp) = gp.dim();
+    let (h, w) = (hp - 2, wp - 2);
+    let mut out = Array4::<T>::zeros((n, c, h, w));
+    out.axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .zip(gp.axis_iter(Axis(0)).into_par_iter())
+        .for_each(|(mut o_img, g_img)| {
+            for (mut o, g) in o_img.outer_iter_mut().zip(g_img.outer_iter()) {
+                // Rows first on padded columns: padded row 0 mirrors input row 1, row h+1 mirrors
+                // input row h-2; then the padded columns likewise.
+                let mut rows = g.slice(s![1..h + 1, ..]).to_owned();
+                {
+                    let top = g.row(0);
+                    let mut r = rows.row_mut(1);
+                    r += &top;
+                }
+                {
+                    let bottom = g.row(h + 1);
+                    let mut r = rows.row_mut(h - 2);
+                    r += &bottom;
+                }
+                o.assign(&rows.slice(s![.., 1..w + 1]));
+                for r in 0..h {
+                    o[[r, 1]] += rows[[r, 0]];
+                    o[[r, w - 2]] += rows[[r, w + 1]];
+                }
+            }
+        });
+    out
+}
+
+/// The kernel of the input gradient: `wt[c,o,i,j] = w[o,c,K-1-i,K-1-j]`.
+fn flip_transpose<T: Scalar>(w: ArrayView4<T>) -> Array4<T> {
+    let (o, c, k, _) = w.dim();
+    Array4::from_shape_fn((c, o, k, k), |(ci, oi, i, j)| {
+        w[[oi, ci, k - 1 - i, k - 1 - j]]
+    })
+}
+
+fn check_3x3(w: &ArrayView4<impl Scalar>) {
+    let (_, _, kh, kw) = w.dim();
+    assert!(kh == 3 && kw == 3, "expected a 3x3 kernel, got {kh}x{kw}");
+}
+
+fn check_1x1(w: &ArrayView4<impl Scalar>) {
+    let (_, _, kh, kw) = w.dim();
+    assert!(kh == 1 && kw == 1, "expected a 1x1 kernel, got {kh}x{kw}");
+}
+
+/// 3x3 convolution with reflection padding 1: `x [N,C,H,W]`, `w [O,C,3,3]`, `b [O]` to
+/// `[N,O,H,W]`, optionally followed by ReLU.
+///
+/// # Panics
+/// On inconsistent shapes or `H < 2` or `W < 2`.
+pub fn conv3x3_reflect<T: Scalar>(
+    x: ArrayView4<T>,
+    w: ArrayView4<T>,
+    b: ArrayView1<T>,
+    relu: bool,
+) -> Array4<T> {
+    check_3x3(&w);
+    conv_valid(pad_reflect1(x).view(), w, Some(b), relu)
+}
+
+/// Input gradient of [`conv3x3_reflect`] (without ReLU) given the output gradient `dy [N,O,H,W]`.
+pub fn conv3x3_reflect_backward_input<T: Scalar>(dy: ArrayView4<T>, w: ArrayView4<T>) -> Array4<T> {
+    check_3x3(&w);
+    let (_, _, h, wd) = dy.dim();
+    assert!(
+        h >= 2 && wd >= 2,
+        "reflection padding needs at least 2x2 pixels, got {h}x{wd}"
+    );
+    let dxp = conv_valid(
+        pad_zero(dy, 2).view(),
+        flip_transpose(w).view(),
+        None,
+        false,
+    );
+    fold_reflect1(dxp)
+}
+
+/// Weight and bias gradients of [`conv3x3_reflect`] (without ReLU) given its input `x` and the
+/// output gradient `dy`. Returns `([O,C,3,3], [O])`.
+pub fn conv3x3_reflect_backward_params<T: Scalar>(
+    x: ArrayView4<T>,
+    dy: ArrayView4<T>,
+) -> (Array4<T>, Array1<T>) {
+    conv_valid_param_grads(pad_reflect1(x).view(), dy, 3)
+}
+
+/// 1x1 convolution: `x [N,C,H,W]`, `w [O,C,1,1]`, `b [O]` to `[N,O,H,W]`, optionally followed by
+/// ReLU.
+pub fn conv1x1<T: Scalar>(
+    x: ArrayView4<T>,
+    w: ArrayView4<T>,
+    b: ArrayView1<T>,
+    relu: bool,
+) -> Array4<T> {
+    check_1x1(&w);
+    conv_valid(x, w, Some(b), relu)
+}
+
+/// Input gradient of [`conv1x1`] (without ReLU).
+pub fn conv1x1_backward_input<T: Scalar>(dy: ArrayView4<T>, w: ArrayView4<T>) -> Array4<T> {
+    check_1x1(&w);
+    conv_valid(dy, flip_transpose(w).view(), None, false)
+}
+
+/// Weight and bias gradients of [`conv1x1`] (without ReLU). Returns `([O,C,1,1], [O])`.
+pub fn conv1x1_backward_params<T: Scalar>(
+    x: ArrayView4<T>,
+    dy: ArrayView4<T>,
+) -> (Array4<T>, Array1<T>) {
+    conv_valid_param_grads(x, dy, 1)
+}

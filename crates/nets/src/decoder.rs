@@ -1,0 +1,172 @@
+//! The decoder that inverts the encoder: levels of 3x3 reflection-padded conv + ReLU from the
+//! deepest level up, with nearest 2x upsampling between levels, and no activation after the last
+//! conv unless the weights say so (the compressed decoder has one).
+//!
+//! The fullres variant ([`Resolution::Fullres`]) skips the upsamplings; the weights are the same.
+
+use ndarray::{Array4, ArrayView4};
+
+use crate::error::NetError;
+use crate::layer::{ConvGrad, ConvLayer};
+use crate::layout::{decoder_spec, read_conv, DecoderSpec};
+use crate::scalar::Scalar;
+use crate::sequential::{self, Step, Tape};
+use crate::state_dict::StateDict;
+use crate::Resolution;
+
+/// The decoder from `relu{depth}_1` features to an image.
+#[derive(Clone, Debug)]
+pub struct Decoder<T: Scalar = f32> {
+    /// Deepest level first.
+    levels: Vec<Vec<ConvLayer<T>>>,
+    final_relu: bool,
+    resolution: Resolution,
+}
+
+/// What [`Decoder::backward`] needs from a forward pass: every conv input and the ReLU masks.
+#[derive(Clone, Debug)]
+pub struct DecoderTape<T: Scalar = f32>(Tape<T>);
+
+/// Gradients of a scalar loss through the decoder.
+#[derive(Clone, Debug)]
+pub struct DecoderGrads<T: Scalar = f32> {
+    /// With respect to the decoder input.
+    pub input: Array4<T>,
+    /// With respect to each conv's weight and bias, in [`Decoder::layers`] order.
+    pub params: Vec<ConvGrad<T>>,
+}
+
+impl<T: Scalar> Decoder<T> {
+    /// Builds the decoder from a state dict in the Sequential (AdaIN/WCT) or named (compressed)
+    /// layout. Depth and widths come from the weights.
+    pub fn from_state_dict(sd: &StateDict) -> Result<Decoder<T>, NetError> {
+        Self::from_spec(sd, decoder_spec(sd, None)?)
+    }
+
+    pub(crate) fn from_spec(sd: &StateDict, spec: DecoderSpec) -> Result<Decoder<T>, NetError> {
+        let mut c: Option<usize> = None;
+        let mut levels = Vec::new();
+        for lv in &spec.levels {
+            let mut convs = Vec::new();
+            for r in lv {
+                let layer: ConvLayer<T> = read_conv(sd, r, 3, c)?;
+                c = Some(layer.out_channels());
+                convs.push(layer);
+            }
+            levels.push(convs);
+        }
+        Ok(Decoder {
+            levels,
+            final_relu: spec.final_relu,
+            resolution: Resolution::Standard,
+        })
+    }
+
+    /// Number of levels (`relu{depth}_1` is the input).
+    pub fn depth(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// Input channels (the encoder width at `relu{depth}_1`).
+    pub fn in_channels(&self) -> usize {
+        self.levels[0][0].in_channels()
+    }
+
+    /// Output channels (3 for images).
+    pub fn out_channels(&self) -> usize {
+        self.layers().last().expect("non-empty").out_channels()
+    }
+
+    /// Number of convs per level, deepest level first.
+    pub fn convs_per_level(&self) -> Vec<usize> {
+        self.levels.iter().map(Vec::len).collect()
+    }
+
+    /// Whether a ReLU follows the last conv.
+    pub fn final_relu(&self) -> bool {
+        self.final_relu
+    }
+
+    /// Standard or fullres.
+    pub fn resolution(&self) -> Resolution {
+        self.resolution
+    }
+
+    /// The same weights with the given resolution variant.
+    pub fn with_resolution(mut self, resolution: Resolution) -> Decoder<T> {
+        self.resolution = resolution;
+        self
+    }
+
+    /// All convs in execution order.
+    pub fn layers(&self) -> impl Iterator<Item = &ConvLayer<T>> {
+        self.levels.iter().flatten()
+    }
+
+    /// All convs in execution order, mutably (for optimisers). Changing a shape breaks the network.
+    pub fn layers_mut(&mut self) -> impl Iterator<Item = &mut ConvLayer<T>> {
+        self.levels.iter_mut().flatten()
+    }
+
+    /// The same decoder in another precision.
+    pub fn cast<U: Scalar>(&self) -> Decoder<U> {
+        Decoder {
+            levels: self
+                .levels
+                .iter()
+                .map(|lv| lv.iter().map(ConvLayer::cast).collect())
+                .collect(),
+            final_relu: self.final_relu,
+            resolution: self.resolution,
+        }
+    }
+
+    fn steps(&self) -> Vec<Step<'_, T>> {
+        let total: usize = self.levels.iter().map(Vec::len).sum();
+        let mut steps = Vec::new();
+        let mut i = 0;
+        for (k, lv) in self.levels.iter().enumerate() {
+            if k > 0 && self.resolution == Resolution::Standard {
+                steps.push(Step::Up);
+            }
+            for layer in lv {
+                i += 1;
+                let relu = i < total || self.final_relu;
+                steps.push(Step::Conv { layer, relu });
+            }
+        }
+        steps.push(Step::Output);
+        steps
+    }
+
+    /// Decodes features `[N, C, h, w]` to `[N, 3, H, W]`.
+    pub fn forward(&self, x: ArrayView4<T>) -> Result<Array4<T>, NetError> {
+        let (mut outs, _) = sequential::forward(&self.steps(), x, false, false, "decoder")?;
+        Ok(outs.pop().expect("one output"))
+    }
+
+    /// [`Decoder::forward`], also returning the tape for [`Decoder::backward`].
+    pub fn forward_with_tape(
+        &self,
+        x: ArrayView4<T>,
+    ) -> Result<(Array4<T>, DecoderTape<T>), NetError> {
+        let (mut outs, tape) = sequential::forward(&self.steps(), x, true, true, "decoder")?;
+        Ok((
+            outs.pop().expect("one output"),
+            DecoderTape(tape.expect("tape requested")),
+        ))
+    }
+
+    /// Gradients of `<dy, decoder(x)>` with respect to the input and to every parameter.
+    pub fn backward(
+        &self,
+        tape: &DecoderTape<T>,
+        dy: ArrayView4<T>,
+    ) -> Result<DecoderGrads<T>, NetError> {
+        let b = sequential::backward(&self.steps(), &tape.0, &[Some(dy)], true, "decoder")?;
+        Ok(DecoderGrads {
+            input: b.input,
+            params: b.params,
+        })
+    }
+}

@@ -1,0 +1,296 @@
+//! The canonical weights file: safetensors, `f32`, with documented tensor names and metadata.
+//!
+//! Tensor names (weights OIHW, biases `[O]`):
+//! * `encoder.conv0.{weight,bias}`: the 1x1 input conv;
+//! * `encoder.conv{K}_{J}.{weight,bias}`: the J-th 3x3 conv of relu level K (`conv1_1`, `conv1_2`,
+//!   `conv2_1`, ..., up to `conv{depth}_1`);
+//! * `decoder.conv{K}_{J}.{weight,bias}`: the decoder conv mirroring encoder `conv{K}_{J}`
+//!   (run from the deepest level down: `conv4_1`, `conv3_4`, ..., `conv1_1`);
+//! * `lifter.{weight,bias}`: the lifter's 1x1 conv `[C, F, 1, 1]`.
+//!
+//! Metadata (`__metadata__`, all strings): `format` = `dsgs-nets`, `format_version` = `1`, and for
+//! each network present:
+//! * `encoder.depth`, `encoder.in_channels`, `encoder.widths` (comma-separated channels of
+//!   `relu{k}_1`), `encoder.convs_per_level` (comma-separated), `encoder.pool` (`ceil`/`floor`);
+//! * `decoder.depth`, `decoder.in_channels`, `decoder.out_channels`, `decoder.convs_per_level`
+//!   (deepest level first), `decoder.final_relu` (`true`/`false`);
+//! * `lifter.in_channels`, `lifter.out_channels`.
+//!
+//! Loading checks the metadata against the tensors and names the offending entry on mismatch.
+//! Saving writes a temporary file in the target directory and renames it, so a reader never sees a
+//! partial file. The resolution variant (standard/fullres) is a way of running the weights, not a
+//! property of them, and is not stored.
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use safetensors::tensor::TensorView;
+use safetensors::{Dtype, SafeTensors};
+
+use crate::decoder::Decoder;
+use crate::encoder::Encoder;
+use crate::error::NetError;
+use crate::layer::ConvLayer;
+use crate::layout::{decoder_spec, encoder_spec};
+use crate::lifter::Lifter;
+use crate::pool::PoolRounding;
+use crate::state_dict::{sub_dict, StateDict, TensorF32};
+
+/// The `format` metadata value.
+pub const FORMAT: &str = "dsgs-nets";
+/// The `format_version` metadata value.
+pub const FORMAT_VERSION: &str = "1";
+
+/// A set of networks stored together (any of them may be absent).
+#[derive(Clone, Debug, Default)]
+pub struct NetWeights {
+    pub encoder: Option<Encoder>,
+    pub decoder: Option<Decoder>,
+    pub lifter: Option<Lifter>,
+}
+
+fn join(v: &[usize]) -> String {
+    v.iter().map(usize::to_string).collect::<Vec<_>>().join(",")
+}
+
+fn put_layer(sd: &mut StateDict, prefix: &str, l: &ConvLayer) {
+    sd.insert(format!("{prefix}.weight"), TensorF32::from_array(&l.weight));
+    sd.insert(format!("{prefix}.bias"), TensorF32::from_array(&l.bias));
+}
+
+impl NetWeights {
+    /// The tensors under their canonical names.
+    pub fn to_state_dict(&self) -> StateDict {
+        let mut sd = StateDict::new();
+        if let Some(e) = &self.encoder {
+            for l in e.layers() {
+                put_layer(&mut sd, &format!("encoder.{}", l.name), l);
+            }
+        }
+        if let Some(d) = &self.decoder {
+            for l in d.layers() {
+                put_layer(&mut sd, &format!("decoder.{}", l.name), l);
+            }
+        }
+        if let Some(l) = &self.lifter {
+            put_layer(&mut sd, "lifter", l.layer());
+        }
+        sd
+    }
+
+    /// The metadata describing the networks present.
+    pub fn metadata(&self) -> HashMap<String, String> {
+        let mut m = HashMap::new();
+        m.insert("format".into(), FORMAT.into());
+        m.insert("format_version".into(), FORMAT_VERSION.into());
+        if let Some(e) = &self.encoder {
+            m.insert("encoder.depth".into(), e.depth().to_string());
+            m.insert("encoder.in_channels".into(), e.in_channels().to_string());
+            m.insert("encoder.widths".into(), join(&e.widths()));
+            m.insert("encoder.convs_per_level".into(), join(&e.convs_per_level()));
+            m.insert("encoder.pool".into(), e.pool_rounding().as_str().into());
+        }
+        if let Some(d) = &self.decoder {
+            m.insert("decoder.depth".into(), d.depth().to_string());
+            m.insert("decoder.in_channels".into(), d.in_channels().to_string());
+            m.insert("decoder.out_channels".into(), d.out_channels().to_string());
+            m.insert("decoder.convs_per_level".into(), join(&d.convs_per_level()));
+            m.insert("decoder.final_relu".into(), d.final_relu().to_string());
+        }
+        if let Some(l) = &self.lifter {
+            m.insert("lifter.in_channels".into(), l.in_channels().to_string());
+            m.insert("lifter.out_channels".into(), l.out_channels().to_string());
+        }
+        m
+    }
+
+    /// Serialises to safetensors bytes.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, NetError> {
+        let sd = self.to_state_dict();
+        let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = sd
+            .iter()
+            .map(|(k, t)| {
+                let b = t.data.iter().flat_map(|v| v.to_le_bytes()).collect();
+                (k.clone(), t.shape.clone(), b)
+            })
+            .collect();
+        let views = bytes
+            .iter()
+            .map(|(k, shape, b)| {
+                TensorView::new(Dtype::F32, shape.clone(), b)
+                    .map(|v| (k.clone(), v))
+                    .map_err(|e| NetError::Input(format!("tensor {k}: {e}")))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        safetensors::serialize(views, Some(self.metadata()))
+            .map_err(|e| NetError::Input(format!("cannot serialise weights: {e}")))
+    }
+
+    /// Writes the file atomically (temporary file in the same directory, then rename).
+    pub fn save(&self, path: &Path) -> Result<(), NetError> {
+        let bytes = self.to_bytes()?;
+        let io = |source| NetError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        let name = path
+            .file_name()
+            .ok_or_else(|| NetError::File {
+                path: path.to_path_buf(),
+                detail: "not a file path".into(),
+            })?
+            .to_string_lossy()
+            .into_owned();
+        let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
+        let write = || -> std::io::Result<()> {
+            let mut f = std::fs::File::create(&tmp)?;
+            f.write_all(&bytes)?;
+            f.sync_all()?;
+            std::fs::rename(&tmp, path)
+        };
+        write().map_err(|e| {
+            let _ = std::fs::remove_file(&tmp);
+            io(e)
+        })
+    }
+
+    /// Reads a file written by [`NetWeights::save`].
+    pub fn load(path: &Path) -> Result<NetWeights, NetError> {
+        let bytes = std::fs::read(path).map_err(|source| NetError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        NetWeights::from_bytes(&bytes).map_err(|e| match e {
+            NetError::Io { .. } | NetError::File { .. } => e,
+            other => NetError::File {
+                path: path.to_path_buf(),
+                detail: other.to_string(),
+            },
+        })
+    }
+
+    /// Parses safetensors bytes in the canonical format.
+    pub fn from_bytes(bytes: &[u8]) -> Result<NetWeights, NetError> {
+        let bad = |d: String| NetError::Input(d);
+        let (_, meta) = SafeTensors::read_metadata(bytes)
+            .map_err(|e| bad(format!("not a safetensors file: {e}")))?;
+        let st = SafeTensors::deserialize(bytes)
+            .map_err(|e| bad(format!("not a safetensors file: {e}")))?;
+        let md = meta.metadata().clone().unwrap_or_default();
+        let get = |k: &str| {
+            md.get(k)
+                .cloned()
+                .ok_or_else(|| bad(format!("metadata entry `{k}` is missing")))
+        };
+        if get("format")? != FORMAT {
+            return Err(bad(format!("metadata `format` is not `{FORMAT}`")));
+        }
+        let v = get("format_version")?;
+        if v != FORMAT_VERSION {
+            return Err(bad(format!("unsupported format_version {v}")));
+        }
+        let mut sd = StateDict::new();
+        for (name, view) in st.tensors() {
+            if view.dtype() != Dtype::F32 {
+                return Err(bad(format!(
+                    "tensor `{name}` has dtype {:?}, expected F32",
+                    view.dtype()
+                )));
+            }
+            let data = view
+                .data()
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
+                .collect();
+            sd.insert(
+                name.clone(),
+                TensorF32 {
+                    shape: view.shape().to_vec(),
+                    data,
+                },
+            );
+        }
+        let check = |key: &str, found: String| -> Result<(), NetError> {
+            let want = get(key)?;
+            if want != found {
+                return Err(bad(format!(
+                    "metadata `{key}` = {want} but the tensors give {found}"
+                )));
+            }
+            Ok(())
+        };
+        let mut out = NetWeights::default();
+        if md.contains_key("encoder.depth") {
+            let pool = match get("encoder.pool")?.as_str() {
+                "ceil" => PoolRounding::Ceil,
+                "floor" => PoolRounding::Floor,
+                other => return Err(bad(format!("metadata `encoder.pool` = {other}"))),
+            };
+            let esd = sub_dict(&sd, "encoder.");
+            let e = Encoder::from_spec(&esd, encoder_spec(&esd, Some(pool))?)
+                .map_err(|e| prefix_tensor(e, "encoder."))?;
+            check("encoder.depth", e.depth().to_string())?;
+            check("encoder.in_channels", e.in_channels().to_string())?;
+            check("encoder.widths", join(&e.widths()))?;
+            check("encoder.convs_per_level", join(&e.convs_per_level()))?;
+            out.encoder = Some(e);
+        }
+        if md.contains_key("decoder.depth") {
+            let final_relu = match get("decoder.final_relu")?.as_str() {
+                "true" => true,
+                "false" => false,
+                other => return Err(bad(format!("metadata `decoder.final_relu` = {other}"))),
+            };
+            let dsd = sub_dict(&sd, "decoder.");
+            let d = Decoder::from_spec(&dsd, decoder_spec(&dsd, Some(final_relu))?)
+                .map_err(|e| prefix_tensor(e, "decoder."))?;
+            check("decoder.depth", d.depth().to_string())?;
+            check("decoder.in_channels", d.in_channels().to_string())?;
+            check("decoder.out_channels", d.out_channels().to_string())?;
+            check("decoder.convs_per_level", join(&d.convs_per_level()))?;
+            out.decoder = Some(d);
+        }
+        if md.contains_key("lifter.in_channels") {
+            let l = Lifter::from_state_dict(&sub_dict(&sd, "lifter."))
+                .map_err(|e| prefix_tensor(e, "lifter."))?;
+            check("lifter.in_channels", l.in_channels().to_string())?;
+            check("lifter.out_channels", l.out_channels().to_string())?;
+            out.lifter = Some(l);
+        }
+        let known = |k: &str| {
+            (out.encoder.is_some() && k.starts_with("encoder."))
+                || (out.decoder.is_some() && k.starts_with("decoder."))
+                || (out.lifter.is_some() && k.starts_with("lifter."))
+        };
+        if let Some(k) = sd.keys().find(|k| !known(k)) {
+            return Err(bad(format!(
+                "tensor `{k}` belongs to no network described by the metadata"
+            )));
+        }
+        Ok(out)
+    }
+}
+
+/// Puts the file-level prefix back on tensor names in an error.
+fn prefix_tensor(e: NetError, prefix: &str) -> NetError {
+    match e {
+        NetError::MissingTensor { name } => NetError::MissingTensor {
+            name: format!("{prefix}{name}"),
+        },
+        NetError::TensorShape {
+            name,
+            found,
+            expected,
+        } => NetError::TensorShape {
+            name: format!("{prefix}{name}"),
+            found,
+            expected,
+        },
+        other => other,
+    }
+}

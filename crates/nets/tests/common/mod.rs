@@ -1,0 +1,105 @@
+//! Shared helpers of the `nets` integration tests: fixture tensors as arrays and state dicts.
+#![allow(dead_code)]
+
+use dsgs_testkit::{Fixture, Tensor};
+use ndarray::{Array4, ArrayView4, Dimension};
+use nets::{ConvLayer, Scalar, StateDict, TensorF32};
+
+/// The oracle fixture of the networks.
+pub fn nets_fixture() -> Fixture {
+    Fixture::shared("oracle/fixtures/nets.safetensors")
+}
+
+/// A 4-D fixture tensor in precision `T`.
+pub fn arr4<T: Scalar>(t: &Tensor) -> Array4<T> {
+    assert_eq!(t.shape.len(), 4, "not a 4-D tensor: {:?}", t.shape);
+    let s = &t.shape;
+    Array4::from_shape_vec(
+        (s[0], s[1], s[2], s[3]),
+        t.data.iter().map(|&v| T::from_f64(v)).collect(),
+    )
+    .expect("shape")
+}
+
+/// The tensors named `{prefix}*` as an `f32` state dict with the prefix removed.
+pub fn state_dict(fx: &Fixture, prefix: &str) -> StateDict {
+    fx.names()
+        .into_iter()
+        .filter_map(|n| {
+            n.strip_prefix(prefix).map(|k| {
+                let t = fx.get(n);
+                let data = t.data.iter().map(|&v| v as f32).collect();
+                (
+                    k.to_string(),
+                    TensorF32::new(t.shape.clone(), data).expect("shape"),
+                )
+            })
+        })
+        .collect()
+}
+
+/// Overwrites every layer's parameters with the exact (float64) fixture values
+/// `{prefix}{source}.weight` / `.bias`, so an `f64` network carries no `f32` rounding.
+pub fn exact_weights<'a>(
+    layers: impl Iterator<Item = &'a mut ConvLayer<f64>>,
+    fx: &Fixture,
+    prefix: &str,
+) {
+    for l in layers {
+        let w = fx.get(&format!("{prefix}{}.weight", l.source));
+        assert_eq!(w.shape, l.weight.shape());
+        l.weight = arr4(w);
+        let b = fx.get(&format!("{prefix}{}.bias", l.source));
+        l.bias = ndarray::Array1::from_vec(b.data.clone());
+    }
+}
+
+/// Data as `f64` in row-major order.
+pub fn to_f64<T: Scalar, D: Dimension>(a: &ndarray::Array<T, D>) -> Vec<f64> {
+    a.iter().map(|v| v.to_f64()).collect()
+}
+
+/// `max_rel_err` of an array against a fixture tensor, after checking the shape.
+pub fn rel_err<T: Scalar, D: Dimension>(a: &ndarray::Array<T, D>, e: &Tensor) -> f64 {
+    assert_eq!(a.shape(), e.shape.as_slice(), "shape mismatch");
+    dsgs_testkit::max_rel_err(&to_f64(a), &e.data)
+}
+
+/// Per-channel mean and standard deviation over H*W with the unbiased variance plus 1e-5 (the
+/// AdaIN statistics of the oracle), and the gradient of `sum(gm*mean) + sum(gs*std)` w.r.t. x.
+pub fn mean_std(x: ArrayView4<f64>) -> (Vec<f64>, Vec<f64>) {
+    let (n, c, h, w) = x.dim();
+    let hw = (h * w) as f64;
+    let mut m = vec![0.0; n * c];
+    let mut s = vec![0.0; n * c];
+    for i in 0..n {
+        for j in 0..c {
+            let p = x.slice(ndarray::s![i, j, .., ..]);
+            let mean = p.sum() / hw;
+            let var = p.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / (hw - 1.0);
+            m[i * c + j] = mean;
+            s[i * c + j] = (var + 1e-5).sqrt();
+        }
+    }
+    (m, s)
+}
+
+/// The cotangent on `x` of `sum(gm * mean(x)) + sum(gs * std(x))` (statistics as in [`mean_std`]).
+pub fn mean_std_backward(x: ArrayView4<f64>, gm: &[f64], gs: &[f64]) -> Array4<f64> {
+    let (n, c, h, w) = x.dim();
+    let hw = (h * w) as f64;
+    let (m, s) = mean_std(x);
+    let mut g = Array4::zeros(x.dim());
+    for i in 0..n {
+        for j in 0..c {
+            let k = i * c + j;
+            for y in 0..h {
+                for xx in 0..w {
+                    let d = x[[i, j, y, xx]] - m[k];
+                    g[[i, j, y, xx]] = gm[k] / hw + gs[k] * d / ((hw - 1.0) * s[k]);
+                }
+            }
+        }
+    }
+    g
+}

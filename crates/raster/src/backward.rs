@@ -135,7 +135,7 @@ pub fn rasterize_backward_with_budget<T: Real>(
     let n = splats.len();
     let d = splats.channel_count;
     let (width, height) = (bins.width(), bins.height());
-    bins.check(width, height, n)?;
+    bins.check(n)?;
     check_len("background", background.len(), d)?;
     let pixels = width as usize * height as usize;
     check_len("v_image", cot.image.len(), pixels * d)?;

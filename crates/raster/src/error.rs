@@ -16,16 +16,9 @@ pub enum RasterError {
     /// More Gaussians than the `u32` indices of the tile lists can address.
     #[error("{0} Gaussians exceed the rasterizer's limit of 2^32 - 1")]
     TooManyGaussians(usize),
-    /// The tile binning given to the backward pass was built for another image or Gaussian set.
-    #[error("tile bins were built for {bins_width}x{bins_height} and {bins_count} Gaussians, not {width}x{height} and {count}")]
-    BinsMismatch {
-        bins_width: u32,
-        bins_height: u32,
-        bins_count: usize,
-        width: u32,
-        height: u32,
-        count: usize,
-    },
+    /// The tile binning given to a pass was built for another set of Gaussians.
+    #[error("tile bins were built for {bins_count} Gaussians, not {count}")]
+    BinsMismatch { bins_count: usize, count: usize },
     /// A problem in the scene or projection given to the camera-level renderer.
     #[error("{0}")]
     Scene(String),

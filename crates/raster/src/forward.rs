@@ -129,7 +129,7 @@ pub fn rasterize_binned<T: Real>(
 ) -> Result<Rasterized<T>, RasterError> {
     splats.validate()?;
     let (width, height) = (bins.width(), bins.height());
-    bins.check(width, height, splats.len())?;
+    bins.check(splats.len())?;
     let d = splats.channel_count;
     check_len("background", background.len(), d)?;
 

@@ -224,16 +224,13 @@ impl TileBins {
             + self.gaussian_ids.len() * std::mem::size_of::<u32>()
     }
 
-    pub(crate) fn check(&self, width: u32, height: u32, count: usize) -> Result<(), RasterError> {
-        if self.width == width && self.height == height && self.gaussian_count == count {
+    /// `Ok` when the bins were built for `count` Gaussians.
+    pub(crate) fn check(&self, count: usize) -> Result<(), RasterError> {
+        if self.gaussian_count == count {
             Ok(())
         } else {
             Err(RasterError::BinsMismatch {
-                bins_width: self.width,
-                bins_height: self.height,
                 bins_count: self.gaussian_count,
-                width,
-                height,
                 count,
             })
         }

@@ -135,3 +135,204 @@ pub fn logit_grads<T: Real>(v_opacities: &[T], logits: &[f64]) -> Vec<f64> {
         })
         .collect()
 }
+
+/// A scene at the rasterizer level, in `f64`, owning its arrays.
+#[derive(Clone, Debug)]
+pub struct Scene2d {
+    pub width: u32,
+    pub height: u32,
+    pub channel_count: usize,
+    pub means2d: Vec<[f64; 2]>,
+    pub conics: Vec<[f64; 3]>,
+    pub depths: Vec<f64>,
+    pub radii: Vec<[u32; 2]>,
+    pub opacities: Vec<f64>,
+    pub channels: Vec<f64>,
+    pub background: Vec<f64>,
+}
+
+impl Scene2d {
+    pub fn splats(&self) -> Splats<'_, f64> {
+        Splats {
+            means2d: &self.means2d,
+            conics: &self.conics,
+            depths: &self.depths,
+            radii: &self.radii,
+            opacities: &self.opacities,
+            channels: &self.channels,
+            channel_count: self.channel_count,
+        }
+    }
+}
+
+/// What the dense reference returns: the three images and, for the property tests, how close the
+/// scene comes to the rasterizer's discontinuities.
+pub struct DenseResult {
+    pub image: Vec<f64>,
+    pub alpha: Vec<f64>,
+    pub depth: Vec<f64>,
+    pub blended: Vec<u32>,
+    /// Smallest `|ln(raw alpha) - ln(1/255)|` over the Gaussian-pixel pairs a pixel evaluated
+    /// (up to and including the one it stopped at).
+    pub alpha_min_margin: f64,
+    /// Smallest `|ln(raw alpha) - ln(0.999)|` over the same pairs.
+    pub alpha_max_margin: f64,
+    /// Smallest `|ln(T_next) - ln(1e-4)| / max_j (alpha_j / (1 - alpha_j))` over the steps a pixel
+    /// took (`j` over the Gaussians blended so far and the candidate). Changing one Gaussian's
+    /// `ln alpha` by `delta` moves `ln T_next` by at most `delta alpha_j / (1 - alpha_j)`, so the
+    /// stop decisions cannot change for any `delta` below this margin.
+    pub transmittance_margin_per_unit: f64,
+}
+
+/// A direct, dense transcription of the oracle's `rasterize` (global stable depth sort, per pixel
+/// front-to-back over every Gaussian, with its tile mask): an independent reference for random
+/// scenes, and the source of the discontinuity margins used by the property tests.
+pub fn dense_reference(s: &Scene2d) -> DenseResult {
+    let (w, h, d) = (s.width as usize, s.height as usize, s.channel_count);
+    let n = s.means2d.len();
+    let mut order: Vec<usize> = (0..n).collect();
+    order.sort_by(|&i, &j| s.depths[i].partial_cmp(&s.depths[j]).unwrap());
+    let tiles_x = w.div_ceil(16) as f64;
+    let tiles_y = h.div_ceil(16) as f64;
+    let boxes: Vec<Option<[f64; 4]>> = (0..n)
+        .map(|g| {
+            let [rx, ry] = s.radii[g];
+            if rx == 0 || ry == 0 {
+                return None;
+            }
+            let [mx, my] = s.means2d[g];
+            let lo_x = (mx / 16.0 - rx as f64 / 16.0).floor().clamp(0.0, tiles_x);
+            let hi_x = (mx / 16.0 + rx as f64 / 16.0).ceil().clamp(0.0, tiles_x);
+            let lo_y = (my / 16.0 - ry as f64 / 16.0).floor().clamp(0.0, tiles_y);
+            let hi_y = (my / 16.0 + ry as f64 / 16.0).ceil().clamp(0.0, tiles_y);
+            Some([lo_x, hi_x, lo_y, hi_y])
+        })
+        .collect();
+    let ln_min = (1.0f64 / 255.0).ln();
+    let ln_max = 0.999f64.ln();
+    let ln_t = 1e-4f64.ln();
+    let mut r = DenseResult {
+        image: vec![0.0; w * h * d],
+        alpha: vec![0.0; w * h],
+        depth: vec![0.0; w * h],
+        blended: vec![0; w * h],
+        alpha_min_margin: f64::INFINITY,
+        alpha_max_margin: f64::INFINITY,
+        transmittance_margin_per_unit: f64::INFINITY,
+    };
+    for y in 0..h {
+        for x in 0..w {
+            let p = y * w + x;
+            let (tx, ty) = ((x / 16) as f64, (y / 16) as f64);
+            let (cx, cy) = (x as f64 + 0.5, y as f64 + 0.5);
+            let mut t = 1.0;
+            let mut worst_ratio = 0.0f64;
+            for &g in &order {
+                let Some([lx, hx, ly, hy]) = boxes[g] else {
+                    continue;
+                };
+                if !(tx >= lx && tx < hx && ty >= ly && ty < hy) {
+                    continue;
+                }
+                let dx = s.means2d[g][0] - cx;
+                let dy = s.means2d[g][1] - cy;
+                let [a, b, c] = s.conics[g];
+                let sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy;
+                if sigma < 0.0 {
+                    continue;
+                }
+                let raw = s.opacities[g] * (-sigma).exp();
+                let ln_raw = raw.ln();
+                r.alpha_min_margin = r.alpha_min_margin.min((ln_raw - ln_min).abs());
+                r.alpha_max_margin = r.alpha_max_margin.min((ln_raw - ln_max).abs());
+                let alpha = raw.min(0.999);
+                if alpha < 1.0 / 255.0 {
+                    continue;
+                }
+                let next = t * (1.0 - alpha);
+                worst_ratio = worst_ratio.max(alpha / (1.0 - alpha));
+                r.transmittance_margin_per_unit = r
+                    .transmittance_margin_per_unit
+                    .min((next.ln() - ln_t).abs() / worst_ratio);
+                if next <= 1e-4 {
+                    break;
+                }
+                let wgt = alpha * t;
+                for k in 0..d {
+                    r.image[p * d + k] += wgt * s.channels[g * d + k];
+                }
+                r.depth[p] += wgt * s.depths[g];
+                r.blended[p] += 1;
+                t = next;
+            }
+            for k in 0..d {
+                r.image[p * d + k] += t * s.background[k];
+            }
+            r.alpha[p] = 1.0 - t;
+        }
+    }
+    r
+}
+
+/// A small deterministic generator (SplitMix64) for test values derived from a proptest seed.
+pub struct Rng(pub u64);
+
+impl Rng {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in `[lo, hi)`.
+    pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * ((self.next_u64() >> 11) as f64 / (1u64 << 53) as f64)
+    }
+
+    pub fn vec(&mut self, n: usize, lo: f64, hi: f64) -> Vec<f64> {
+        (0..n).map(|_| self.uniform(lo, hi)).collect()
+    }
+}
+
+/// A random rasterizer-level scene: 2D covariances with eigenvalues in `[1, 20]` px^2 (so the conic
+/// is well conditioned), radii `ceil(3.5 sqrt(cov_xx))` (the box always contains the region where
+/// alpha can reach 1/255, which ends at `sqrt(2 ln 255) = 3.33` standard deviations), means up to
+/// 20% outside the image, depths in `[1, 10]`, opacities in `[0.05, 0.9999]`.
+pub fn random_scene(rng: &mut Rng, n: usize, width: u32, height: u32, d: usize) -> Scene2d {
+    let mut s = Scene2d {
+        width,
+        height,
+        channel_count: d,
+        means2d: vec![],
+        conics: vec![],
+        depths: vec![],
+        radii: vec![],
+        opacities: vec![],
+        channels: rng.vec(n * d, 0.0, 1.0),
+        background: rng.vec(d, 0.0, 1.0),
+    };
+    for _ in 0..n {
+        let (w, h) = (width as f64, height as f64);
+        s.means2d
+            .push([rng.uniform(-0.2 * w, 1.2 * w), rng.uniform(-0.2 * h, 1.2 * h)]);
+        let (l1, l2) = (rng.uniform(1.0, 20.0), rng.uniform(1.0, 20.0));
+        let th = rng.uniform(0.0, std::f64::consts::PI);
+        let (c, sn) = (th.cos(), th.sin());
+        let (xx, xy, yy) = (
+            l1 * c * c + l2 * sn * sn,
+            (l1 - l2) * c * sn,
+            l1 * sn * sn + l2 * c * c,
+        );
+        let det = xx * yy - xy * xy;
+        s.conics.push([yy / det, -xy / det, xx / det]);
+        s.radii.push([
+            (3.5 * xx.sqrt()).ceil() as u32,
+            (3.5 * yy.sqrt()).ceil() as u32,
+        ]);
+        s.depths.push(rng.uniform(1.0, 10.0));
+        s.opacities.push(rng.uniform(0.05, 0.9999));
+    }
+    s
+}

@@ -80,3 +80,86 @@ impl Camera {
         self.rotation().transpose() * DVec3::Z
     }
 }
+
+impl Intrinsics {
+    /// Horizontal field of view in radians: `2 atan(width / (2 fx))`.
+    pub fn fov_x(&self) -> f64 {
+        2.0 * (0.5 * self.width as f64 / self.fx).atan()
+    }
+
+    /// Vertical field of view in radians: `2 atan(height / (2 fy))`.
+    pub fn fov_y(&self) -> f64 {
+        2.0 * (0.5 * self.height as f64 / self.fy).atan()
+    }
+
+    /// The intrinsics of the same camera imaging onto `width x height` pixels. With pixel
+    /// centres at `i + 0.5`, the continuous image coordinate scales exactly with the image
+    /// (pixel edge 0 stays 0, edge `W` becomes `W'`), so `fx' = fx sx`, `cx' = cx sx` with
+    /// `sx = W' / W` (and likewise in y).
+    pub fn resized(&self, width: u32, height: u32) -> Intrinsics {
+        let sx = width as f64 / self.width as f64;
+        let sy = height as f64 / self.height as f64;
+        Intrinsics {
+            fx: self.fx * sx,
+            fy: self.fy * sy,
+            cx: self.cx * sx,
+            cy: self.cy * sy,
+            width,
+            height,
+        }
+    }
+
+    /// The intrinsics for an image scaled by `factor` (e.g. 0.125 for an `images_8` folder);
+    /// the pixel size is rounded to the nearest integer (at least 1) and the focal lengths and
+    /// principal point scale by the exact ratio of the new to the old size.
+    pub fn scaled(&self, factor: f64) -> Intrinsics {
+        let w = ((self.width as f64 * factor).round() as u32).max(1);
+        let h = ((self.height as f64 * factor).round() as u32).max(1);
+        self.resized(w, h)
+    }
+}
+
+impl Camera {
+    /// The same pose imaging onto `width x height` pixels (see [`Intrinsics::resized`]).
+    pub fn resized(&self, width: u32, height: u32) -> Camera {
+        Camera::new(
+            self.intrinsics.resized(width, height),
+            self.camera_from_world,
+        )
+    }
+
+    /// The same pose with the image scaled by `factor` (see [`Intrinsics::scaled`]).
+    pub fn scaled(&self, factor: f64) -> Camera {
+        Camera::new(self.intrinsics.scaled(factor), self.camera_from_world)
+    }
+
+    /// Horizontal field of view in radians.
+    pub fn fov_x(&self) -> f64 {
+        self.intrinsics.fov_x()
+    }
+
+    /// Vertical field of view in radians.
+    pub fn fov_y(&self) -> f64 {
+        self.intrinsics.fov_y()
+    }
+
+    /// A camera at `center` (world) with world-to-camera rotation `camera_from_world_rot`.
+    pub fn from_rotation_center(
+        intrinsics: Intrinsics,
+        camera_from_world_rot: DMat3,
+        center: DVec3,
+    ) -> Camera {
+        let t = -(camera_from_world_rot * center);
+        let mut m = DMat4::from_mat3(camera_from_world_rot);
+        m.w_axis = t.extend(1.0);
+        Camera::new(intrinsics, m)
+    }
+
+    /// Projects a world point to continuous pixel coordinates and its depth (camera z):
+    /// `(fx x / z + cx, fy y / z + cy, z)`.
+    pub fn project_point(&self, world: DVec3) -> (f64, f64, f64) {
+        let p = self.camera_from_world.transform_point3(world);
+        let k = &self.intrinsics;
+        (k.fx * p.x / p.z + k.cx, k.fy * p.y / p.z + k.cy, p.z)
+    }
+}

@@ -5,9 +5,14 @@
 //! z forward), pixel centres sit at `(x + 0.5, y + 0.5)`, quaternions are `(w, x, y, z)`.
 
 pub mod camera;
+pub mod camera_path;
+pub mod project;
 pub mod real;
 pub mod scene;
+pub mod sh;
 
 pub use camera::{Camera, Intrinsics};
+pub use project::{project, project_backward, ProjectSettings, Projected, ProjectionGrads};
 pub use real::Real;
-pub use scene::FeatureGaussians;
+pub use scene::{scene_extent_from_cameras, FeatureGaussians, SceneError};
+pub use sh::{sh_colors, sh_colors_backward};

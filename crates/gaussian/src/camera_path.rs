@@ -1,0 +1,334 @@
+//! Camera paths for rendering videos: interpolation through keyframe cameras and orbits.
+//!
+//! Interpolation is piecewise between consecutive keyframes: rotations (world-from-camera, as
+//! unit quaternions) are slerped along the shorter arc, camera centres and intrinsics are lerped.
+//! Orbits circle a centre at a fixed radius and elevation above the plane orthogonal to `up`,
+//! every camera looking at the centre with its image "up" (OpenCV -y) along the world `up`.
+
+use glam::{DMat3, DQuat, DVec3};
+
+use crate::camera::{Camera, Intrinsics};
+
+/// An impossible camera path request.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CameraPathError {
+    #[error("a camera path needs at least one keyframe")]
+    NoKeyframes,
+    #[error("orbit radius must be positive and finite, got {0}")]
+    Radius(f64),
+    #[error("orbit elevation must lie strictly between -90 and 90 degrees, got {0} rad")]
+    Elevation(f64),
+    #[error("orbit up axis must be a finite non-zero vector, got {0:?}")]
+    Up(DVec3),
+    #[error("orbit start camera sits on the orbit axis through the centre")]
+    OnAxis,
+}
+
+fn lerp(a: f64, b: f64, s: f64) -> f64 {
+    a + (b - a) * s
+}
+
+fn lerp_intrinsics(a: &Intrinsics, b: &Intrinsics, s: f64) -> Intrinsics {
+    Intrinsics {
+        fx: lerp(a.fx, b.fx, s),
+        fy: lerp(a.fy, b.fy, s),
+        cx: lerp(a.cx, b.cx, s),
+        cy: lerp(a.cy, b.cy, s),
+        width: lerp(a.width as f64, b.width as f64, s).round() as u32,
+        height: lerp(a.height as f64, b.height as f64, s).round() as u32,
+    }
+}
+
+/// The camera a fraction `s` in `[0, 1]` of the way from `a` to `b`.
+pub fn interpolate_pair(a: &Camera, b: &Camera, s: f64) -> Camera {
+    let qa = DQuat::from_mat3(&a.rotation().transpose()).normalize();
+    let qb = DQuat::from_mat3(&b.rotation().transpose()).normalize();
+    let world_from_camera_rot = DMat3::from_quat(qa.slerp(qb, s).normalize());
+    let center = a.center().lerp(b.center(), s);
+    Camera::from_rotation_center(
+        lerp_intrinsics(&a.intrinsics, &b.intrinsics, s),
+        world_from_camera_rot.transpose(),
+        center,
+    )
+}
+
+/// `n_frames` cameras evenly spaced in the keyframe parameter: frame `f` sits at
+/// `t = f (K - 1) / (n_frames - 1)` (keyframe `floor(t)`, fraction `t - floor(t)`), so the first
+/// and last frames are the first and last keyframes, and a frame that lands on a keyframe
+/// reproduces it exactly. Image sizes are lerped and rounded (they stay fixed when all
+/// keyframes share one size).
+pub fn interpolate(keyframes: &[Camera], n_frames: usize) -> Result<Vec<Camera>, CameraPathError> {
+    let k = keyframes.len();
+    if k == 0 {
+        return Err(CameraPathError::NoKeyframes);
+    }
+    if k == 1 || n_frames <= 1 {
+        return Ok(vec![keyframes[0]; n_frames]);
+    }
+    Ok((0..n_frames)
+        .map(|f| {
+            let t = f as f64 * (k - 1) as f64 / (n_frames - 1) as f64;
+            let seg = (t.floor() as usize).min(k - 2);
+            let s = t - seg as f64;
+            if s == 0.0 {
+                keyframes[seg]
+            } else if s == 1.0 {
+                keyframes[seg + 1]
+            } else {
+                interpolate_pair(&keyframes[seg], &keyframes[seg + 1], s)
+            }
+        })
+        .collect())
+}
+
+/// A camera at `eye` looking at `target`, image up along `up` (OpenCV axes: z towards the
+/// target, y = image down, x = image right). `None` when `up` is parallel to the view axis.
+pub fn look_at(intrinsics: Intrinsics, eye: DVec3, target: DVec3, up: DVec3) -> Option<Camera> {
+    let z = (target - eye).try_normalize()?;
+    let x = (-up).cross(z).try_normalize()?;
+    let y = z.cross(x);
+    let world_from_camera_rot = DMat3::from_cols(x, y, z);
+    Some(Camera::from_rotation_center(
+        intrinsics,
+        world_from_camera_rot.transpose(),
+        eye,
+    ))
+}
+
+/// `n_frames` cameras on a circle around `center` (angles `2 pi f / n_frames`, so the path
+/// loops without repeating a frame) at distance `radius` and elevation `elevation` (radians)
+/// above the plane orthogonal to `up`, each looking at `center`. The first camera lies in the
+/// direction `up.any_orthonormal_vector()` from the axis; use [`orbit_from`] to start at a
+/// given camera instead.
+pub fn orbit(
+    intrinsics: Intrinsics,
+    center: DVec3,
+    radius: f64,
+    elevation: f64,
+    n_frames: usize,
+    up: DVec3,
+) -> Result<Vec<Camera>, CameraPathError> {
+    let up_n = check_up(up)?;
+    orbit_with_start(
+        intrinsics,
+        center,
+        radius,
+        elevation,
+        n_frames,
+        up_n,
+        up_n.any_orthonormal_vector(),
+    )
+}
+
+/// An orbit around `center` that starts at `start`'s position (its radius and elevation come
+/// from that position) and uses `start`'s intrinsics.
+pub fn orbit_from(
+    start: &Camera,
+    center: DVec3,
+    n_frames: usize,
+    up: DVec3,
+) -> Result<Vec<Camera>, CameraPathError> {
+    let up_n = check_up(up)?;
+    let offset = start.center() - center;
+    let height = offset.dot(up_n);
+    let horizontal = offset - height * up_n;
+    let e1 = horizontal.try_normalize().ok_or(CameraPathError::OnAxis)?;
+    let radius = offset.length();
+    let elevation = height.atan2(horizontal.length());
+    orbit_with_start(
+        start.intrinsics,
+        center,
+        radius,
+        elevation,
+        n_frames,
+        up_n,
+        e1,
+    )
+}
+
+fn check_up(up: DVec3) -> Result<DVec3, CameraPathError> {
+    up.try_normalize().ok_or(CameraPathError::Up(up))
+}
+
+fn orbit_with_start(
+    intrinsics: Intrinsics,
+    center: DVec3,
+    radius: f64,
+    elevation: f64,
+    n_frames: usize,
+    up: DVec3,
+    e1: DVec3,
+) -> Result<Vec<Camera>, CameraPathError> {
+    if !(radius.is_finite() && radius > 0.0) {
+        return Err(CameraPathError::Radius(radius));
+    }
+    if elevation.is_nan() || elevation.abs() >= std::f64::consts::FRAC_PI_2 {
+        return Err(CameraPathError::Elevation(elevation));
+    }
+    let e2 = up.cross(e1);
+    let (sin_e, cos_e) = elevation.sin_cos();
+    (0..n_frames)
+        .map(|f| {
+            let theta = std::f64::consts::TAU * f as f64 / n_frames as f64;
+            let (s, c) = theta.sin_cos();
+            let eye = center + radius * (cos_e * (c * e1 + s * e2) + sin_e * up);
+            // |elevation| < 90 degrees keeps the view axis off `up`, so look_at succeeds.
+            look_at(intrinsics, eye, center, up).ok_or(CameraPathError::Elevation(elevation))
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::DMat4;
+
+    fn intr() -> Intrinsics {
+        Intrinsics {
+            fx: 50.0,
+            fy: 55.0,
+            cx: 31.5,
+            cy: 24.0,
+            width: 64,
+            height: 48,
+        }
+    }
+
+    fn cam(axis: DVec3, angle: f64, center: DVec3, fx: f64) -> Camera {
+        let rot = DMat3::from_axis_angle(axis.normalize(), angle);
+        let mut k = intr();
+        k.fx = fx;
+        Camera::from_rotation_center(k, rot, center)
+    }
+
+    fn mat_close(a: DMat4, b: DMat4, tol: f64) -> bool {
+        a.to_cols_array()
+            .iter()
+            .zip(b.to_cols_array())
+            .all(|(x, y)| (x - y).abs() <= tol)
+    }
+
+    #[test]
+    fn interpolation_reproduces_keyframes() {
+        let keys = [
+            cam(
+                DVec3::new(0.2, 1.0, 0.1),
+                0.3,
+                DVec3::new(1.0, 2.0, 3.0),
+                50.0,
+            ),
+            cam(
+                DVec3::new(-0.4, 0.3, 1.0),
+                1.7,
+                DVec3::new(-1.0, 0.5, 2.0),
+                60.0,
+            ),
+            cam(
+                DVec3::new(1.0, 0.0, 0.0),
+                -2.5,
+                DVec3::new(0.0, 0.0, -4.0),
+                40.0,
+            ),
+        ];
+        // 9 frames over 2 segments: frames 0, 4, 8 land on keyframes.
+        let path = interpolate(&keys, 9).unwrap();
+        assert_eq!(path.len(), 9);
+        assert_eq!(path[0], keys[0]);
+        assert_eq!(path[4], keys[1]);
+        assert_eq!(path[8], keys[2]);
+        // Interpolating a pair at its ends reproduces the ends (up to rounding).
+        for (a, b) in [(keys[0], keys[1]), (keys[1], keys[2])] {
+            let p0 = interpolate_pair(&a, &b, 0.0);
+            let p1 = interpolate_pair(&a, &b, 1.0);
+            assert!(mat_close(p0.camera_from_world, a.camera_from_world, 1e-12));
+            assert!(mat_close(p1.camera_from_world, b.camera_from_world, 1e-12));
+            assert!((p1.intrinsics.fx - b.intrinsics.fx).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn interpolation_midpoint_is_halfway() {
+        let a = cam(DVec3::Y, 0.2, DVec3::new(0.0, 0.0, 0.0), 50.0);
+        let b = cam(DVec3::Y, 1.0, DVec3::new(2.0, 0.0, 4.0), 70.0);
+        let m = interpolate_pair(&a, &b, 0.5);
+        // Rotation about a common axis: the midpoint is the mean angle.
+        let expect = DMat3::from_axis_angle(DVec3::Y, 0.6);
+        let r = m.rotation();
+        for (x, y) in r.to_cols_array().iter().zip(expect.to_cols_array()) {
+            assert!((x - y).abs() < 1e-12);
+        }
+        assert!((m.center() - DVec3::new(1.0, 0.0, 2.0)).length() < 1e-12);
+        assert!((m.intrinsics.fx - 60.0).abs() < 1e-12);
+        // Every interpolated pose stays a rigid transform.
+        let rtr = r.transpose() * r;
+        assert!((rtr - DMat3::IDENTITY).abs_diff_eq(DMat3::ZERO, 1e-12));
+    }
+
+    #[test]
+    fn interpolation_edge_cases() {
+        assert_eq!(interpolate(&[], 5), Err(CameraPathError::NoKeyframes));
+        let a = cam(DVec3::Z, 0.1, DVec3::ONE, 50.0);
+        assert_eq!(interpolate(&[a], 3).unwrap(), vec![a; 3]);
+        assert!(interpolate(&[a, a], 0).unwrap().is_empty());
+    }
+
+    #[test]
+    fn orbit_cameras_look_at_the_centre() {
+        let center = DVec3::new(0.5, -1.0, 2.0);
+        let up = DVec3::new(0.0, -1.0, 0.2);
+        let path = orbit(intr(), center, 3.0, 0.4, 12, up).unwrap();
+        assert_eq!(path.len(), 12);
+        let up_n = up.normalize();
+        for c in &path {
+            let (u, v, z) = c.project_point(center);
+            assert!((u - intr().cx).abs() < 1e-9, "u = {u}");
+            assert!((v - intr().cy).abs() < 1e-9, "v = {v}");
+            assert!((z - 3.0).abs() < 1e-12);
+            let off = c.center() - center;
+            assert!((off.length() - 3.0).abs() < 1e-12);
+            assert!((off.normalize().dot(up_n) - 0.4f64.sin()).abs() < 1e-12);
+            // A point above the centre (along up) appears above it in the image (smaller v).
+            let (_, v_up, _) = c.project_point(center + 0.1 * up_n);
+            assert!(v_up < v);
+        }
+        // Consecutive cameras are 30 degrees apart around the axis.
+        let a = path[0].center() - center;
+        let b = path[1].center() - center;
+        let ha = a - a.dot(up_n) * up_n;
+        let hb = b - b.dot(up_n) * up_n;
+        assert!((ha.angle_between(hb) - std::f64::consts::TAU / 12.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn orbit_from_starts_at_the_camera() {
+        let center = DVec3::new(0.0, 0.0, 0.0);
+        let start = look_at(intr(), DVec3::new(3.0, 1.0, 0.5), center, DVec3::Z).unwrap();
+        let path = orbit_from(&start, center, 8, DVec3::Z).unwrap();
+        assert!(mat_close(
+            path[0].camera_from_world,
+            start.camera_from_world,
+            1e-12
+        ));
+    }
+
+    #[test]
+    fn orbit_rejects_bad_input() {
+        let c = DVec3::ZERO;
+        assert!(matches!(
+            orbit(intr(), c, -1.0, 0.0, 4, DVec3::Y),
+            Err(CameraPathError::Radius(_))
+        ));
+        assert!(matches!(
+            orbit(intr(), c, 1.0, 1.6, 4, DVec3::Y),
+            Err(CameraPathError::Elevation(_))
+        ));
+        assert!(matches!(
+            orbit(intr(), c, 1.0, 0.0, 4, DVec3::ZERO),
+            Err(CameraPathError::Up(_))
+        ));
+        assert!(matches!(
+            orbit(intr(), c, 1.0, f64::NAN, 4, DVec3::Y),
+            Err(CameraPathError::Elevation(_))
+        ));
+    }
+}

@@ -1,0 +1,269 @@
+//! View-dependent colour from real spherical harmonics up to degree 3, forward and backward.
+//!
+//! Convention: gsplat's `_spherical_harmonics` with the basis of `_eval_sh_bases_fast` (Sloan,
+//! "Efficient Spherical Harmonic Evaluation", JCGT 2013), as pinned by the oracle:
+//!
+//! * the view direction is `d = mean - camera_centre`, normalised as `d / max(|d|, 1e-12)`;
+//! * `raw = sum_k basis_k(d) sh_k` over the first `(degree + 1)^2` coefficients (the others are
+//!   ignored, so a scene stored at degree 3 can render at a lower active degree);
+//! * `colour = max(raw + 0.5, 0)`; the backward passes the gradient where `raw + 0.5 >= 0`
+//!   (PyTorch's `clamp_min` backward).
+//!
+//! The basis polynomials are differentiated as polynomials in `(x, y, z)` and the result is
+//! chained through the normalisation, exactly as automatic differentiation of the reference does.
+//! SH coefficients are Gaussian-major: `sh[n * coeffs_per_gaussian + k]` is an RGB triple.
+
+use rayon::prelude::*;
+
+use crate::Real;
+
+/// Number of basis functions of a degree: `(degree + 1)^2`.
+pub const fn num_bases(degree: usize) -> usize {
+    (degree + 1) * (degree + 1)
+}
+
+// Basis constants, named after their role in the reference.
+const C0: f64 = 0.2820947917738781;
+const C1: f64 = 0.48860251190292;
+const C2_ZX: f64 = 1.092548430592079;
+const C2_XY: f64 = 0.5462742152960395;
+const C2_Z2: f64 = 0.9461746957575601;
+const C2_Z0: f64 = 0.3153915652525201;
+const C3_C: f64 = 2.285228997322329;
+const C3_C0: f64 = 0.4570457994644658;
+const C3_B: f64 = 1.445305721320277;
+const C3_A: f64 = 0.5900435899266435;
+const C3_Z3: f64 = 1.865881662950577;
+const C3_Z1: f64 = 1.119528997770346;
+
+/// The first `nb` (1, 4, 9 or 16) basis functions at the direction `(x, y, z)`; the rest are 0.
+#[inline(always)]
+pub fn eval_bases<T: Real>(nb: usize, [x, y, z]: [T; 3]) -> [T; 16] {
+    let l = T::lit;
+    let mut r = [T::zero(); 16];
+    r[0] = l(C0);
+    if nb <= 1 {
+        return r;
+    }
+    r[1] = -l(C1) * y;
+    r[2] = l(C1) * z;
+    r[3] = -l(C1) * x;
+    if nb <= 4 {
+        return r;
+    }
+    let z2 = z * z;
+    let fc1 = x * x - y * y;
+    let fs1 = l(2.0) * x * y;
+    let tmp_b = -l(C2_ZX) * z;
+    r[4] = l(C2_XY) * fs1;
+    r[5] = tmp_b * y;
+    r[6] = l(C2_Z2) * z2 - l(C2_Z0);
+    r[7] = tmp_b * x;
+    r[8] = l(C2_XY) * fc1;
+    if nb <= 9 {
+        return r;
+    }
+    let tmp_c = -l(C3_C) * z2 + l(C3_C0);
+    let tmp_b = l(C3_B) * z;
+    let fc2 = x * fc1 - y * fs1;
+    let fs2 = x * fs1 + y * fc1;
+    r[9] = -l(C3_A) * fs2;
+    r[10] = tmp_b * fs1;
+    r[11] = tmp_c * y;
+    r[12] = z * (l(C3_Z3) * z2 - l(C3_Z1));
+    r[13] = tmp_c * x;
+    r[14] = tmp_b * fc1;
+    r[15] = -l(C3_A) * fc2;
+    r
+}
+
+/// `sum_k g[k] * grad basis_k(x, y, z)` over the first `nb` basis functions, with each basis
+/// function differentiated as a polynomial in `(x, y, z)`.
+#[inline(always)]
+pub fn bases_vjp<T: Real>(nb: usize, [x, y, z]: [T; 3], g: &[T; 16]) -> [T; 3] {
+    let l = T::lit;
+    let two = l(2.0);
+    let (mut gx, mut gy, mut gz) = (T::zero(), T::zero(), T::zero());
+    if nb <= 1 {
+        return [gx, gy, gz];
+    }
+    // r1 = -C1 y, r2 = C1 z, r3 = -C1 x.
+    gy -= l(C1) * g[1];
+    gz += l(C1) * g[2];
+    gx -= l(C1) * g[3];
+    if nb <= 4 {
+        return [gx, gy, gz];
+    }
+    // r4 = C2_XY 2xy.
+    gx += l(C2_XY) * two * y * g[4];
+    gy += l(C2_XY) * two * x * g[4];
+    // r5 = -C2_ZX z y.
+    gy -= l(C2_ZX) * z * g[5];
+    gz -= l(C2_ZX) * y * g[5];
+    // r6 = C2_Z2 z^2 - C2_Z0.
+    gz += l(C2_Z2) * two * z * g[6];
+    // r7 = -C2_ZX z x.
+    gx -= l(C2_ZX) * z * g[7];
+    gz -= l(C2_ZX) * x * g[7];
+    // r8 = C2_XY (x^2 - y^2).
+    gx += l(C2_XY) * two * x * g[8];
+    gy -= l(C2_XY) * two * y * g[8];
+    if nb <= 9 {
+        return [gx, gy, gz];
+    }
+    let three = l(3.0);
+    let z2 = z * z;
+    let fc1 = x * x - y * y;
+    let fs1 = two * x * y;
+    let tmp_c = -l(C3_C) * z2 + l(C3_C0);
+    let d_tmp_c_dz = -two * l(C3_C) * z;
+    let tmp_b = l(C3_B) * z;
+    // fc2 = x^3 - 3 x y^2, fs2 = 3 x^2 y - y^3.
+    let d_fc2 = [three * fc1, -three * fs1];
+    let d_fs2 = [three * fs1, three * fc1];
+    // r9 = -C3_A fs2.
+    gx -= l(C3_A) * d_fs2[0] * g[9];
+    gy -= l(C3_A) * d_fs2[1] * g[9];
+    // r10 = C3_B z 2xy.
+    gx += tmp_b * two * y * g[10];
+    gy += tmp_b * two * x * g[10];
+    gz += l(C3_B) * fs1 * g[10];
+    // r11 = tmp_c y.
+    gy += tmp_c * g[11];
+    gz += d_tmp_c_dz * y * g[11];
+    // r12 = C3_Z3 z^3 - C3_Z1 z.
+    gz += (three * l(C3_Z3) * z2 - l(C3_Z1)) * g[12];
+    // r13 = tmp_c x.
+    gx += tmp_c * g[13];
+    gz += d_tmp_c_dz * x * g[13];
+    // r14 = C3_B z (x^2 - y^2).
+    gx += tmp_b * two * x * g[14];
+    gy -= tmp_b * two * y * g[14];
+    gz += l(C3_B) * fc1 * g[14];
+    // r15 = -C3_A fc2.
+    gx -= l(C3_A) * d_fc2[0] * g[15];
+    gy -= l(C3_A) * d_fc2[1] * g[15];
+    [gx, gy, gz]
+}
+
+/// `d / max(|d|, 1e-12)`, the divisor, and whether the norm was clamped.
+#[inline(always)]
+fn normalize_dir<T: Real>(d: [T; 3]) -> ([T; 3], T, bool) {
+    let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    let eps = T::lit(1e-12);
+    let clamped = norm < eps;
+    let denom = if clamped { eps } else { norm };
+    (d.map(|v| v / denom), denom, clamped)
+}
+
+fn check_args(degree: usize, coeffs_per_gaussian: usize, sh_len: usize, n: usize) -> usize {
+    assert!(degree <= 3, "SH degree {degree} is not supported (0..=3)");
+    let nb = num_bases(degree);
+    assert!(
+        nb <= coeffs_per_gaussian,
+        "SH degree {degree} needs {nb} coefficients per Gaussian, the scene stores {coeffs_per_gaussian}"
+    );
+    assert_eq!(
+        sh_len,
+        n * coeffs_per_gaussian,
+        "{sh_len} SH coefficients for {n} Gaussians with {coeffs_per_gaussian} each"
+    );
+    nb
+}
+
+const MIN_CHUNK: usize = 1024;
+
+/// Colours of Gaussians seen from `camera_center`, with SH evaluated to `degree`.
+///
+/// # Panics
+/// If `degree > 3`, `(degree + 1)^2 > coeffs_per_gaussian`, or
+/// `sh.len() != means.len() * coeffs_per_gaussian`.
+pub fn sh_colors<T: Real>(
+    degree: usize,
+    coeffs_per_gaussian: usize,
+    sh: &[[T; 3]],
+    means: &[[T; 3]],
+    camera_center: [T; 3],
+) -> Vec<[T; 3]> {
+    let nb = check_args(degree, coeffs_per_gaussian, sh.len(), means.len());
+    let half = T::lit(0.5);
+    means
+        .par_iter()
+        .zip(sh.par_chunks(coeffs_per_gaussian))
+        .with_min_len(MIN_CHUNK)
+        .map(|(m, coeffs)| {
+            let dir = [0, 1, 2].map(|a| m[a] - camera_center[a]);
+            let (u, _, _) = normalize_dir(dir);
+            let b = eval_bases(nb, u);
+            [0, 1, 2].map(|c| {
+                let raw = (0..nb).fold(T::zero(), |acc, k| acc + b[k] * coeffs[k][c]);
+                (raw + half).max(T::zero())
+            })
+        })
+        .collect()
+}
+
+/// The backward of [`sh_colors`]: given the cotangent of the colours, the gradients with
+/// respect to the SH coefficients (zero beyond the active degree) and to the means (through
+/// the view direction).
+///
+/// # Panics
+/// As [`sh_colors`], and if `v_colors.len() != means.len()`.
+pub fn sh_colors_backward<T: Real>(
+    degree: usize,
+    coeffs_per_gaussian: usize,
+    sh: &[[T; 3]],
+    means: &[[T; 3]],
+    camera_center: [T; 3],
+    v_colors: &[[T; 3]],
+) -> (Vec<[T; 3]>, Vec<[T; 3]>) {
+    let n = means.len();
+    let nb = check_args(degree, coeffs_per_gaussian, sh.len(), n);
+    assert_eq!(
+        v_colors.len(),
+        n,
+        "{} colour cotangents for {n} Gaussians",
+        v_colors.len()
+    );
+    let zero = T::zero();
+    let half = T::lit(0.5);
+    let mut d_sh = vec![[zero; 3]; sh.len()];
+    let mut d_means = vec![[zero; 3]; n];
+    if coeffs_per_gaussian == 0 {
+        return (d_sh, d_means);
+    }
+    d_sh.par_chunks_mut(coeffs_per_gaussian)
+        .zip(d_means.par_iter_mut())
+        .enumerate()
+        .with_min_len(MIN_CHUNK)
+        .for_each(|(i, (d_coeffs, d_mean))| {
+            let coeffs = &sh[i * coeffs_per_gaussian..(i + 1) * coeffs_per_gaussian];
+            let m = &means[i];
+            let dir = [0, 1, 2].map(|a| m[a] - camera_center[a]);
+            let (u, denom, clamped) = normalize_dir(dir);
+            let b = eval_bases(nb, u);
+            // The colour cotangent where the clamp at 0 passes it.
+            let v = [0, 1, 2].map(|c| {
+                let raw = (0..nb).fold(zero, |acc, k| acc + b[k] * coeffs[k][c]);
+                if raw + half >= zero {
+                    v_colors[i][c]
+                } else {
+                    zero
+                }
+            });
+            let mut g_basis = [zero; 16];
+            for k in 0..nb {
+                d_coeffs[k] = [0, 1, 2].map(|c| b[k] * v[c]);
+                g_basis[k] = coeffs[k][0] * v[0] + coeffs[k][1] * v[1] + coeffs[k][2] * v[2];
+            }
+            let g_u = bases_vjp(nb, u, &g_basis);
+            // u = d / max(|d|, eps): (I - u u^T) / |d| unless the norm was clamped.
+            *d_mean = if clamped {
+                g_u.map(|g| g / denom)
+            } else {
+                let dot = u[0] * g_u[0] + u[1] * g_u[1] + u[2] * g_u[2];
+                [0, 1, 2].map(|a| (g_u[a] - u[a] * dot) / denom)
+            };
+        });
+    (d_sh, d_means)
+}

@@ -6,6 +6,9 @@
 //!   (accumulated and alpha-normalised) and a per-pixel count of blended Gaussians.
 //! * [`rasterize_backward`] returns exact gradients with respect to all of those inputs and the
 //!   background, from cotangents on the channel, alpha and depth images.
+//! * [`render`] and [`render_backward`] chain projection, SH colour and/or features, and the
+//!   rasterizer, from a camera and a [`gaussian::FeatureGaussians`] scene to gradients of every
+//!   scene parameter.
 //! * [`stats`] computes the densification statistics (screen radii, NDC gradient norms).
 //!
 //! Conventions are those of the oracle (`gen_fixtures.py`), documented in [`blend`] and [`tiles`].
@@ -16,6 +19,7 @@ pub mod backward;
 pub mod blend;
 pub mod error;
 pub mod forward;
+pub mod render;
 pub mod stats;
 pub mod tiles;
 
@@ -25,5 +29,6 @@ pub use backward::{
 };
 pub use error::RasterError;
 pub use forward::{rasterize, rasterize_binned, Rasterized, Splats};
+pub use render::{render, render_backward, Channels, Render, RenderOptions, SceneGrads};
 pub use stats::{ndc_grad_norms, screen_radii, DensificationStats};
 pub use tiles::{tile_grid, tile_rect, TileBins, TileRect};

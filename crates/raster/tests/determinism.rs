@@ -129,7 +129,13 @@ fn inconsistent_inputs_are_errors_naming_the_array() {
 
     let splats = s.splats();
     let err = rasterize(&splats, 40, 30, &s.background[..2]).unwrap_err();
-    assert!(matches!(err, RasterError::Length { array: "background", .. }));
+    assert!(matches!(
+        err,
+        RasterError::Length {
+            array: "background",
+            ..
+        }
+    ));
     let err = rasterize(&splats, 0, 30, &s.background).unwrap_err();
     assert!(matches!(err, RasterError::EmptyImage { .. }));
 
@@ -141,7 +147,13 @@ fn inconsistent_inputs_are_errors_naming_the_array() {
         depth: None,
     };
     let err = rasterize_backward(&splats, &out.bins, &s.background, &cot).unwrap_err();
-    assert!(matches!(err, RasterError::Length { array: "v_image", .. }));
+    assert!(matches!(
+        err,
+        RasterError::Length {
+            array: "v_image",
+            ..
+        }
+    ));
     let fewer = random_scene(&mut Rng(3), 9, 40, 30, 3);
     let other = rasterize(&fewer.splats(), 40, 30, &fewer.background).unwrap();
     let v = vec![0.0; 40 * 30 * 3];

@@ -315,8 +315,10 @@ pub fn random_scene(rng: &mut Rng, n: usize, width: u32, height: u32, d: usize) 
     };
     for _ in 0..n {
         let (w, h) = (width as f64, height as f64);
-        s.means2d
-            .push([rng.uniform(-0.2 * w, 1.2 * w), rng.uniform(-0.2 * h, 1.2 * h)]);
+        s.means2d.push([
+            rng.uniform(-0.2 * w, 1.2 * w),
+            rng.uniform(-0.2 * h, 1.2 * h),
+        ]);
         let (l1, l2) = (rng.uniform(1.0, 20.0), rng.uniform(1.0, 20.0));
         let th = rng.uniform(0.0, std::f64::consts::PI);
         let (c, sn) = (th.cos(), th.sin());
@@ -335,4 +337,61 @@ pub fn random_scene(rng: &mut Rng, n: usize, width: u32, height: u32, d: usize) 
         s.opacities.push(rng.uniform(0.05, 0.9999));
     }
     s
+}
+
+/// One oracle case at the camera level: the camera and the scene before projection.
+pub struct SceneCase {
+    pub camera: gaussian::Camera,
+    pub scene: gaussian::FeatureGaussians<f64>,
+    pub channels: raster::Channels,
+    pub background: Vec<f64>,
+}
+
+impl SceneCase {
+    pub fn load(f: &Fixture, name: &str) -> SceneCase {
+        use glam::DMat4;
+        let g = |k: &str| f.get(&format!("{name}.{k}"));
+        let size = &g("size_wh").data;
+        let k = &g("K").data;
+        let intrinsics = gaussian::Intrinsics {
+            fx: k[0],
+            fy: k[4],
+            cx: k[2],
+            cy: k[5],
+            width: size[0] as u32,
+            height: size[1] as u32,
+        };
+        // `viewmat` is stored row-major; glam takes columns.
+        let v: [f64; 16] = g("viewmat").data.clone().try_into().unwrap();
+        let camera_from_world = DMat4::from_cols_array(&v).transpose();
+        let camera = gaussian::Camera::new(intrinsics, camera_from_world);
+        let n = g("means").shape[0];
+        let mut scene = gaussian::FeatureGaussians::<f64> {
+            means: rows(&g("means").data),
+            log_scales: rows(&g("log_scales").data),
+            quats: rows(&g("quats").data),
+            opacity_logits: g("opacity_logits").data.clone(),
+            ..Default::default()
+        };
+        let channels;
+        if f.has(&format!("{name}.sh_coeffs")) {
+            let degree = g("sh_degree").scalar() as usize;
+            scene.sh_degree = degree;
+            scene.sh = rows(&g("sh_coeffs").data);
+            assert_eq!(scene.sh.len(), n * (degree + 1) * (degree + 1));
+            channels = raster::Channels::Color { sh_degree: degree };
+        } else {
+            let feats = g("features");
+            scene.feature_dim = feats.shape[1];
+            scene.features = feats.data.clone();
+            scene.sh = vec![[0.0; 3]; n];
+            channels = raster::Channels::Features;
+        }
+        SceneCase {
+            camera,
+            scene,
+            channels,
+            background: g("background").data.clone(),
+        }
+    }
 }

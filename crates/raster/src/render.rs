@@ -1,0 +1,356 @@
+//! The camera-level renderer: projection (EWA), colour from spherical harmonics and/or learnable
+//! features, rasterization, and the exact backward of the whole chain to the scene parameters.
+//!
+//! Forward: `project` gives 2D means, conics, depths and radii; opacities are
+//! `sigmoid(opacity_logits)`; the blended channels are chosen by [`Channels`] (SH colour at an
+//! active degree, the feature vectors, or colour then features concatenated); then
+//! [`crate::rasterize`]. Backward: [`crate::rasterize_backward`], then the sigmoid, the SH colour
+//! backward (which also reaches the means through the view direction) and `project_backward`.
+//! Conventions are the oracle's throughout (see the `gaussian` and `raster` module docs).
+//!
+//! Memory beyond the rasterizer's: per Gaussian, the projection (6 reals and 2 `u32`), the opacity,
+//! the SH colour (3 reals, when colour is rendered) and, when colour and features are both
+//! rendered, the concatenated channel rows (`3 + F` reals, rebuilt in the backward pass).
+
+use std::borrow::Cow;
+
+use gaussian::{project, project_backward, sh_colors, sh_colors_backward};
+use gaussian::{Camera, FeatureGaussians, ProjectSettings, Projected, Real};
+
+use crate::backward::{rasterize_backward, Cotangents};
+use crate::error::{check_len, RasterError};
+use crate::forward::{rasterize, Rasterized, Splats};
+use crate::stats::ndc_grad_norms;
+
+/// Which per-Gaussian values are blended into the image's channels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Channels {
+    /// RGB from the SH coefficients evaluated up to `sh_degree` (at most the scene's degree).
+    Color { sh_degree: usize },
+    /// The scene's feature vectors (`feature_dim` channels).
+    Features,
+    /// RGB (as [`Channels::Color`]) followed by the features: `3 + feature_dim` channels.
+    ColorAndFeatures { sh_degree: usize },
+}
+
+impl Channels {
+    /// The active SH degree, when colour is rendered.
+    pub fn sh_degree(&self) -> Option<usize> {
+        match *self {
+            Channels::Color { sh_degree } | Channels::ColorAndFeatures { sh_degree } => {
+                Some(sh_degree)
+            }
+            Channels::Features => None,
+        }
+    }
+
+    /// Whether the features are rendered.
+    pub fn has_features(&self) -> bool {
+        !matches!(self, Channels::Color { .. })
+    }
+
+    /// Number of image channels for a scene with `feature_dim` features.
+    pub fn count(&self, feature_dim: usize) -> usize {
+        match self {
+            Channels::Color { .. } => 3,
+            Channels::Features => feature_dim,
+            Channels::ColorAndFeatures { .. } => 3 + feature_dim,
+        }
+    }
+}
+
+/// What to render and how.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RenderOptions<T> {
+    pub channels: Channels,
+    /// One value per image channel.
+    pub background: Vec<T>,
+    pub projection: ProjectSettings,
+}
+
+impl<T: Real> RenderOptions<T> {
+    /// Options with the default projection settings.
+    pub fn new(channels: Channels, background: Vec<T>) -> Self {
+        RenderOptions {
+            channels,
+            background,
+            projection: ProjectSettings::default(),
+        }
+    }
+}
+
+/// A rendered view and what its backward pass needs.
+#[derive(Clone, Debug)]
+pub struct Render<T> {
+    /// The projected Gaussians (radii `[0, 0]` for culled ones).
+    pub projected: Projected<T>,
+    /// `sigmoid(opacity_logits)`.
+    pub opacities: Vec<T>,
+    /// SH colours, when colour is rendered.
+    pub colors: Option<Vec<[T; 3]>>,
+    /// Image, alpha, depth, blend counts and tile bins.
+    pub raster: Rasterized<T>,
+}
+
+impl<T: Real> Render<T> {
+    /// Per-Gaussian screen radius `max(rx, ry)` in pixels for this view (0 when culled).
+    pub fn screen_radii(&self) -> Vec<u32> {
+        crate::stats::screen_radii(&self.projected.radii)
+    }
+}
+
+/// Gradients of a loss with respect to the scene parameters, for one rendered view.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SceneGrads<T> {
+    pub means: Vec<[T; 3]>,
+    /// With respect to the unnormalised quaternions.
+    pub quats: Vec<[T; 4]>,
+    pub log_scales: Vec<[T; 3]>,
+    pub opacity_logits: Vec<T>,
+    /// Same layout as the scene's `sh` (zero beyond the active degree, or everywhere when colour
+    /// was not rendered).
+    pub sh: Vec<[T; 3]>,
+    /// Same layout as the scene's `features` (zero when features were not rendered).
+    pub features: Vec<T>,
+    /// With respect to the background, one value per channel.
+    pub background: Vec<T>,
+    /// With respect to the projected 2D means, in pixels.
+    pub means2d: Vec<[T; 2]>,
+    /// The densification statistic of this view: `|| (g_x W/2, g_y H/2) ||` of `means2d`
+    /// (see [`crate::stats`]); accumulate it only for visible Gaussians.
+    pub ndc_grad_norms: Vec<T>,
+}
+
+fn scene_err(msg: String) -> RasterError {
+    RasterError::Scene(msg)
+}
+
+/// Checks the scene arrays needed by `channels` and returns the channel count.
+fn validate<T: Real>(
+    scene: &FeatureGaussians<T>,
+    opts: &RenderOptions<T>,
+) -> Result<usize, RasterError> {
+    let n = scene.len();
+    check_len("log_scales", scene.log_scales.len(), n)?;
+    check_len("quats", scene.quats.len(), n)?;
+    check_len("opacity_logits", scene.opacity_logits.len(), n)?;
+    if let Some(degree) = opts.channels.sh_degree() {
+        if degree > scene.sh_degree {
+            return Err(scene_err(format!(
+                "active SH degree {degree} exceeds the scene's degree {}",
+                scene.sh_degree
+            )));
+        }
+        if scene.sh_degree > 3 {
+            return Err(scene_err(format!(
+                "SH degree {} is not supported (0..=3)",
+                scene.sh_degree
+            )));
+        }
+        check_len("sh", scene.sh.len(), n * scene.sh_coeffs_per_gaussian())?;
+    }
+    if opts.channels.has_features() {
+        check_len("features", scene.features.len(), n * scene.feature_dim)?;
+    }
+    let d = opts.channels.count(scene.feature_dim);
+    check_len("background", opts.background.len(), d)?;
+    Ok(d)
+}
+
+fn camera_center<T: Real>(camera: &Camera) -> [T; 3] {
+    let c = camera.center();
+    [T::lit(c.x), T::lit(c.y), T::lit(c.z)]
+}
+
+fn sigmoid<T: Real>(x: T) -> T {
+    T::one() / (T::one() + (-x).exp())
+}
+
+/// The `N x D` channel rows for `channels`: borrowed features, or the colours (one per Gaussian
+/// whenever colour is rendered) followed by the features.
+fn channel_rows<'a, T: Real>(
+    channels: Channels,
+    scene: &'a FeatureGaussians<T>,
+    colors: &[[T; 3]],
+) -> Cow<'a, [T]> {
+    let c = colors;
+    match channels {
+        Channels::Features => Cow::Borrowed(&scene.features),
+        Channels::Color { .. } => Cow::Owned(c.iter().flatten().copied().collect()),
+        Channels::ColorAndFeatures { .. } => {
+            let f = scene.feature_dim;
+            let mut rows = Vec::with_capacity(c.len() * (3 + f));
+            for (i, rgb) in c.iter().enumerate() {
+                rows.extend_from_slice(rgb);
+                rows.extend_from_slice(&scene.features[i * f..(i + 1) * f]);
+            }
+            Cow::Owned(rows)
+        }
+    }
+}
+
+/// Renders `scene` from `camera`.
+pub fn render<T: Real>(
+    camera: &Camera,
+    scene: &FeatureGaussians<T>,
+    opts: &RenderOptions<T>,
+) -> Result<Render<T>, RasterError> {
+    let d = validate(scene, opts)?;
+    let projected = project(
+        camera,
+        &scene.means,
+        &scene.quats,
+        &scene.log_scales,
+        &opts.projection,
+    );
+    let opacities: Vec<T> = scene.opacity_logits.iter().map(|&x| sigmoid(x)).collect();
+    let colors = opts.channels.sh_degree().map(|degree| {
+        sh_colors(
+            degree,
+            scene.sh_coeffs_per_gaussian(),
+            &scene.sh,
+            &scene.means,
+            camera_center(camera),
+        )
+    });
+    let rows = channel_rows(opts.channels, scene, colors.as_deref().unwrap_or(&[]));
+    let splats = Splats {
+        means2d: &projected.means2d,
+        conics: &projected.conics,
+        depths: &projected.depths,
+        radii: &projected.radii,
+        opacities: &opacities,
+        channels: &rows,
+        channel_count: d,
+    };
+    let k = &camera.intrinsics;
+    let raster = rasterize(&splats, k.width, k.height, &opts.background)?;
+    drop(rows);
+    Ok(Render {
+        projected,
+        opacities,
+        colors,
+        raster,
+    })
+}
+
+/// Gradients of the loss `sum v_image image + sum v_alpha alpha + sum v_depth depth` (the images
+/// of `render`, from the same camera, scene and options) with respect to the scene parameters
+/// and the background. `depth` is the accumulated depth `sum_i w_i z_i`; see
+/// [`crate::fold_normalized_depth_cotangent`] for a cotangent on the normalised depth.
+pub fn render_backward<T: Real>(
+    camera: &Camera,
+    scene: &FeatureGaussians<T>,
+    opts: &RenderOptions<T>,
+    render: &Render<T>,
+    v_image: &[T],
+    v_alpha: Option<&[T]>,
+    v_depth: Option<&[T]>,
+) -> Result<SceneGrads<T>, RasterError> {
+    let d = validate(scene, opts)?;
+    let n = scene.len();
+    check_len("render.opacities", render.opacities.len(), n)?;
+    check_len("render.projected", render.projected.means2d.len(), n)?;
+    if opts.channels.sh_degree().is_some() != render.colors.is_some() {
+        return Err(scene_err(
+            "the render was made with other channel options".to_string(),
+        ));
+    }
+    if let Some(c) = &render.colors {
+        check_len("render.colors", c.len(), n)?;
+    }
+    let rows = channel_rows(
+        opts.channels,
+        scene,
+        render.colors.as_deref().unwrap_or(&[]),
+    );
+    let p = &render.projected;
+    let splats = Splats {
+        means2d: &p.means2d,
+        conics: &p.conics,
+        depths: &p.depths,
+        radii: &p.radii,
+        opacities: &render.opacities,
+        channels: &rows,
+        channel_count: d,
+    };
+    let cot = Cotangents {
+        image: v_image,
+        alpha: v_alpha,
+        depth: v_depth,
+    };
+    let g = rasterize_backward(&splats, &render.raster.bins, &opts.background, &cot)?;
+    drop(rows);
+
+    let opacity_logits = g
+        .opacities
+        .iter()
+        .zip(&render.opacities)
+        .map(|(&v, &o)| v * o * (T::one() - o))
+        .collect();
+
+    // Split the channel gradients into colour and feature parts.
+    let f = scene.feature_dim;
+    let color_offset = match opts.channels {
+        Channels::Features => None,
+        _ => Some(0),
+    };
+    let feature_offset = match opts.channels {
+        Channels::Color { .. } => None,
+        Channels::Features => Some(0),
+        Channels::ColorAndFeatures { .. } => Some(3),
+    };
+    let mut features = vec![T::zero(); scene.features.len()];
+    if let Some(off) = feature_offset {
+        for (i, dst) in features.chunks_exact_mut(f.max(1)).enumerate().take(n) {
+            dst.copy_from_slice(&g.channels[i * d + off..i * d + off + f]);
+        }
+    }
+    let proj = project_backward(
+        camera,
+        &scene.means,
+        &scene.quats,
+        &scene.log_scales,
+        &opts.projection,
+        p,
+        &g.means2d,
+        &g.conics,
+        &g.depths,
+    );
+    let mut means = proj.means;
+    let sh = match (color_offset, opts.channels.sh_degree()) {
+        (Some(off), Some(degree)) => {
+            let v_colors: Vec<[T; 3]> = (0..n)
+                .map(|i| std::array::from_fn(|c| g.channels[i * d + off + c]))
+                .collect();
+            let (d_sh, d_means) = sh_colors_backward(
+                degree,
+                scene.sh_coeffs_per_gaussian(),
+                &scene.sh,
+                &scene.means,
+                camera_center(camera),
+                &v_colors,
+            );
+            for (m, dm) in means.iter_mut().zip(&d_means) {
+                for a in 0..3 {
+                    m[a] += dm[a];
+                }
+            }
+            d_sh
+        }
+        _ => vec![[T::zero(); 3]; scene.sh.len()],
+    };
+    let k = &camera.intrinsics;
+    let ndc_grad_norms = ndc_grad_norms(&g.means2d, k.width, k.height);
+    Ok(SceneGrads {
+        means,
+        quats: proj.quats,
+        log_scales: proj.log_scales,
+        opacity_logits,
+        sh,
+        features,
+        background: g.background,
+        means2d: g.means2d,
+        ndc_grad_norms,
+    })
+}

@@ -6,6 +6,8 @@
 
 pub mod camera;
 pub mod camera_path;
+pub mod npy;
+pub mod ply;
 pub mod project;
 pub mod real;
 pub mod scene;

@@ -161,12 +161,12 @@ fn sequential_groups(idx: &[usize], what: &str) -> Result<Vec<Vec<usize>>, NetEr
     Ok(groups)
 }
 
+/// A conv of the named layouts: level `K`, index `J` within the level, key prefix.
+type Numbered = (usize, usize, String);
+
 /// Numbered levels from `(K, J)` pairs: requires K = 1..L and J = 1..n within each level.
-fn named_levels(
-    pairs: &[(usize, usize, String)],
-    what: &str,
-) -> Result<Vec<Vec<(usize, usize, String)>>, NetError> {
-    let mut levels: Vec<Vec<(usize, usize, String)>> = Vec::new();
+fn named_levels(pairs: &[Numbered], what: &str) -> Result<Vec<Vec<Numbered>>, NetError> {
+    let mut levels: Vec<Vec<Numbered>> = Vec::new();
     let mut sorted = pairs.to_vec();
     sorted.sort();
     for (k, j, p) in sorted {
@@ -240,7 +240,7 @@ pub(crate) fn encoder_spec(
                     name: format!("{strip}conv0.weight"),
                 });
             }
-            let pairs: Vec<(usize, usize, String)> = ps
+            let pairs: Vec<Numbered> = ps
                 .iter()
                 .filter(|p| !p.ends_with("_aux") && p.as_str() != "conv0")
                 .map(|p| {
@@ -328,7 +328,7 @@ pub(crate) fn decoder_spec(
                     "{what}: found `conv0`, the encoder's input conv (is this an encoder?)"
                 )));
             }
-            let pairs: Vec<(usize, usize, String)> = ps
+            let pairs: Vec<Numbered> = ps
                 .iter()
                 .filter(|p| !p.ends_with("_aux"))
                 .map(|p| {

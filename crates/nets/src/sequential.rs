@@ -89,6 +89,9 @@ pub(crate) fn check_shapes<T: Scalar>(
     Ok(outs)
 }
 
+/// The outputs of a forward run and, when requested, its tape.
+pub(crate) type ForwardResult<T> = Result<(Vec<Array4<T>>, Option<Tape<T>>), NetError>;
+
 /// Runs a program forward. Returns its outputs and, when `tape` is set, what backward needs
 /// (conv inputs only when `keep_conv_inputs`).
 pub(crate) fn forward<T: Scalar>(
@@ -97,7 +100,7 @@ pub(crate) fn forward<T: Scalar>(
     tape: bool,
     keep_conv_inputs: bool,
     what: &str,
-) -> Result<(Vec<Array4<T>>, Option<Tape<T>>), NetError> {
+) -> ForwardResult<T> {
     let output_dims = check_shapes(steps, x.dim(), what)?;
     let mut saved = Vec::with_capacity(if tape { steps.len() } else { 0 });
     let mut outputs = Vec::new();

@@ -103,3 +103,52 @@ pub fn mean_std_backward(x: ArrayView4<f64>, gm: &[f64], gs: &[f64]) -> Array4<f
     }
     g
 }
+
+/// A small deterministic generator (splitmix64) for test tensors.
+pub struct TestRng(u64);
+
+impl TestRng {
+    pub fn new(seed: u64) -> TestRng {
+        TestRng(seed ^ 0x9E37_79B9_7F4A_7C15)
+    }
+
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in `[-1, 1)`.
+    pub fn uniform(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    }
+
+    pub fn array4(&mut self, dim: (usize, usize, usize, usize)) -> Array4<f64> {
+        Array4::from_shape_simple_fn(dim, || self.uniform())
+    }
+
+    pub fn array1(&mut self, n: usize) -> ndarray::Array1<f64> {
+        ndarray::Array1::from_shape_simple_fn(n, || self.uniform())
+    }
+
+    /// A random conv tensor pair `{name}.weight [o, c, k, k]` (He-like scale) and `{name}.bias`.
+    pub fn conv_into(&mut self, sd: &mut StateDict, name: &str, o: usize, c: usize, k: usize) {
+        let scale = (2.0 / (c * k * k) as f64).sqrt();
+        let w: Vec<f32> = (0..o * c * k * k)
+            .map(|_| (self.uniform() * scale * 1.7) as f32)
+            .collect();
+        let b: Vec<f32> = (0..o).map(|_| (self.uniform() * 0.1) as f32).collect();
+        sd.insert(
+            format!("{name}.weight"),
+            TensorF32::new(vec![o, c, k, k], w).unwrap(),
+        );
+        sd.insert(format!("{name}.bias"), TensorF32::new(vec![o], b).unwrap());
+    }
+}
+
+/// `sum(a * b)`.
+pub fn dot<D: Dimension>(a: &ndarray::Array<f64, D>, b: &ndarray::Array<f64, D>) -> f64 {
+    a.iter().zip(b.iter()).map(|(x, y)| x * y).sum()
+}

@@ -6,6 +6,7 @@
 
 pub mod camera;
 pub mod camera_path;
+pub mod dataset;
 pub mod npy;
 pub mod ply;
 pub mod project;
@@ -14,6 +15,8 @@ pub mod scene;
 pub mod sh;
 
 pub use camera::{Camera, Intrinsics};
+pub use dataset::{Dataset, DatasetError, LoadOptions, Resolution};
+pub use ply::{load_ply, save_ply, PlyError};
 pub use project::{project, project_backward, ProjectSettings, Projected, ProjectionGrads};
 pub use real::Real;
 pub use scene::{scene_extent_from_cameras, FeatureGaussians, SceneError};

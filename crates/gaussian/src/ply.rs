@@ -285,6 +285,11 @@ fn header_err(path: &Path, line: usize, problem: impl Into<String>) -> PlyError 
     )
 }
 
+/// Whether `s` is a non-empty run of printable, non-space ASCII characters.
+fn is_plain_word(s: &str) -> bool {
+    !s.is_empty() && s.bytes().all(|b| b.is_ascii_graphic())
+}
+
 fn parse_header(bytes: &[u8], path: &Path) -> Result<Header, PlyError> {
     let mut pos = 0usize;
     let mut line_no = 0usize;
@@ -362,6 +367,13 @@ fn parse_header(bytes: &[u8], path: &Path) -> Result<Header, PlyError> {
                         format!("element `{name}` has an invalid count `{count}`"),
                     )
                 })?;
+                if !is_plain_word(name) {
+                    return Err(header_err(
+                        path,
+                        line_no,
+                        format!("element name {name:?} is not printable ASCII"),
+                    ));
+                }
                 if elements.iter().any(|e| e.name == name) {
                     return Err(header_err(
                         path,
@@ -411,6 +423,13 @@ fn parse_header(bytes: &[u8], path: &Path) -> Result<Header, PlyError> {
                         ))
                     }
                 };
+                if !is_plain_word(name) {
+                    return Err(header_err(
+                        path,
+                        line_no,
+                        format!("property name {name:?} is not printable ASCII"),
+                    ));
+                }
                 if element.props.iter().any(|p| p.name == name) {
                     return Err(header_err(
                         path,
@@ -881,7 +900,7 @@ pub fn encode_ply<T: Real>(
                 "extra property `{}` clashes with another property",
                 e.name
             ))
-        } else if e.name.is_empty() || e.name.bytes().any(|b| !b.is_ascii_graphic()) {
+        } else if !is_plain_word(&e.name) {
             Some(format!(
                 "extra property name {:?} is not a single printable word",
                 e.name

@@ -1,0 +1,220 @@
+//! NeRF-synthetic scenes (`transforms_{train,val,test}.json`).
+//!
+//! Convention (as written by the NeRF Blender scripts and read by 3DGS): `camera_angle_x` is
+//! the horizontal field of view in radians; each frame has a `file_path` relative to the
+//! scene folder, usually without extension (`.png` is then appended), and a
+//! `transform_matrix`, the 4x4 camera-to-world transform in OpenGL camera axes (x right, y up,
+//! z backward). Focal lengths are `fx = W / (2 tan(camera_angle_x / 2))` and `fy = fx` (or from
+//! `camera_angle_y` when present); the principal point is the image centre. The optional
+//! instant-ngp keys `fl_x`, `fl_y`, `cx`, `cy` (with `w`, `h`) override these. Images are RGBA
+//! and are composited onto [`LoadOptions::background`](super::LoadOptions::background).
+
+use std::path::{Path, PathBuf};
+
+use glam::DMat4;
+use serde::Deserialize;
+
+use super::{check_rigid, images, Dataset, DatasetError, DatasetKind, LoadOptions, Resolution};
+use crate::{Camera, Intrinsics};
+
+/// The contents of a `transforms_*.json` file.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+pub struct Transforms {
+    pub camera_angle_x: Option<f64>,
+    pub camera_angle_y: Option<f64>,
+    pub fl_x: Option<f64>,
+    pub fl_y: Option<f64>,
+    pub cx: Option<f64>,
+    pub cy: Option<f64>,
+    pub w: Option<f64>,
+    pub h: Option<f64>,
+    pub frames: Vec<Frame>,
+}
+
+/// One frame of a `transforms_*.json` file.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+pub struct Frame {
+    pub file_path: String,
+    /// Camera-to-world in OpenGL camera axes, row-major.
+    pub transform_matrix: Vec<Vec<f64>>,
+}
+
+fn malformed(path: &Path, problem: String) -> DatasetError {
+    DatasetError::Malformed {
+        path: path.to_path_buf(),
+        problem,
+    }
+}
+
+/// Parses and checks a `transforms_*.json` text. `path` only names the source in errors.
+pub fn parse_transforms(text: &str, path: &Path) -> Result<Transforms, DatasetError> {
+    let t: Transforms =
+        serde_json::from_str(text).map_err(|e| malformed(path, format!("invalid JSON: {e}")))?;
+    if t.frames.is_empty() {
+        return Err(malformed(path, "no frames".into()));
+    }
+    if t.camera_angle_x.is_none() && t.fl_x.is_none() {
+        return Err(malformed(
+            path,
+            "neither `camera_angle_x` nor `fl_x` gives the focal length".into(),
+        ));
+    }
+    for (key, v) in [
+        ("camera_angle_x", t.camera_angle_x),
+        ("camera_angle_y", t.camera_angle_y),
+    ] {
+        if let Some(a) = v {
+            if !(a > 0.0 && a < std::f64::consts::PI) {
+                return Err(malformed(
+                    path,
+                    format!("`{key}` = {a} is not an angle in (0, pi)"),
+                ));
+            }
+        }
+    }
+    for (key, v) in [("fl_x", t.fl_x), ("fl_y", t.fl_y), ("w", t.w), ("h", t.h)] {
+        if let Some(x) = v {
+            if !(x > 0.0 && x.is_finite()) {
+                return Err(malformed(path, format!("`{key}` = {x} must be positive")));
+            }
+        }
+    }
+    for (i, f) in t.frames.iter().enumerate() {
+        frame_matrix(f)
+            .map_err(|p| malformed(path, format!("frame {i} (`{}`): {p}", f.file_path)))?;
+    }
+    Ok(t)
+}
+
+/// The frame's camera-to-world matrix (3x4 or 4x4 rows), checked to be rigid.
+pub fn frame_matrix(frame: &Frame) -> Result<DMat4, String> {
+    let rows = &frame.transform_matrix;
+    if !(rows.len() == 4 || rows.len() == 3) || rows.iter().any(|r| r.len() != 4) {
+        return Err("`transform_matrix` is not a 4x4 (or 3x4) matrix".into());
+    }
+    let mut a = [[0.0; 4]; 4];
+    a[3] = [0.0, 0.0, 0.0, 1.0];
+    for (r, row) in rows.iter().enumerate() {
+        a[r].copy_from_slice(row);
+    }
+    // `from_cols_array_2d` takes columns; the JSON holds rows.
+    let m = DMat4::from_cols_array_2d(&a).transpose();
+    check_rigid(&m)?;
+    Ok(m)
+}
+
+/// The image file of a frame: `dir/file_path` if it names a file with an extension, else
+/// `dir/file_path.png`.
+fn frame_image(dir: &Path, frame: &Frame) -> Option<PathBuf> {
+    let rel = frame.file_path.trim_start_matches("./");
+    let p = dir.join(rel);
+    if p.extension().is_some() && p.is_file() {
+        return Some(p);
+    }
+    let png = dir.join(format!("{rel}.png"));
+    png.is_file().then_some(png)
+}
+
+impl Transforms {
+    /// The intrinsics for an image file of `width x height` pixels.
+    pub fn intrinsics(&self, width: u32, height: u32) -> Intrinsics {
+        // Sizes the JSON's own intrinsics refer to (the image size unless `w`, `h` are given).
+        let (w, h) = match (self.w, self.h) {
+            (Some(w), Some(h)) => (w, h),
+            _ => (width as f64, height as f64),
+        };
+        let fx = match (self.fl_x, self.camera_angle_x) {
+            (Some(f), _) => f,
+            (None, Some(a)) => 0.5 * w / (0.5 * a).tan(),
+            (None, None) => w, // excluded by parse_transforms
+        };
+        let fy = match (self.fl_y, self.camera_angle_y) {
+            (Some(f), _) => f,
+            (None, Some(a)) => 0.5 * h / (0.5 * a).tan(),
+            (None, None) => fx,
+        };
+        let at_json_size = Intrinsics {
+            fx,
+            fy,
+            cx: self.cx.unwrap_or(0.5 * w),
+            cy: self.cy.unwrap_or(0.5 * h),
+            width: w.round() as u32,
+            height: h.round() as u32,
+        };
+        if (at_json_size.width, at_json_size.height) == (width, height) {
+            at_json_size
+        } else {
+            at_json_size.resized(width, height)
+        }
+    }
+}
+
+pub(super) fn load(
+    dir: &Path,
+    split: &str,
+    options: &LoadOptions,
+) -> Result<Dataset, DatasetError> {
+    let json = dir.join(format!("transforms_{split}.json"));
+    let text = std::fs::read_to_string(&json).map_err(|source| DatasetError::Io {
+        path: json.clone(),
+        source,
+    })?;
+    let t = parse_transforms(&text, &json)?;
+    let mut warnings = Vec::new();
+    let factor = match options.resolution {
+        Resolution::Full => 1.0,
+        Resolution::Downscale(f) if f.is_finite() && f > 0.0 => f,
+        Resolution::Folder(n) if n >= 1 => {
+            warnings.push(format!(
+                "NeRF-synthetic scenes have no images_{n} folder; images are resized on load by 1/{n} instead"
+            ));
+            n as f64
+        }
+        other => {
+            return Err(malformed(
+                dir,
+                format!("invalid resolution choice {other:?}"),
+            ))
+        }
+    };
+    let mut cameras = Vec::with_capacity(t.frames.len());
+    let mut paths = Vec::with_capacity(t.frames.len());
+    let mut names = Vec::with_capacity(t.frames.len());
+    for (i, frame) in t.frames.iter().enumerate() {
+        let path = frame_image(dir, frame).ok_or_else(|| {
+            malformed(
+                &json,
+                format!(
+                    "frame {i}: image `{}` (or with .png) not found",
+                    frame.file_path
+                ),
+            )
+        })?;
+        let (w, h) = images::image_size(&path)?;
+        let world_from_gl_camera =
+            frame_matrix(frame).map_err(|p| malformed(&json, format!("frame {i}: {p}")))?;
+        let cam = Camera::from_opengl_world_from_camera(t.intrinsics(w, h), world_from_gl_camera);
+        cameras.push(if factor == 1.0 {
+            cam
+        } else {
+            cam.scaled(1.0 / factor)
+        });
+        names.push(
+            path.file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+        );
+        paths.push(path);
+    }
+    Ok(Dataset {
+        kind: DatasetKind::NerfSynthetic,
+        distortions: vec![None; cameras.len()],
+        cameras,
+        image_paths: paths,
+        names,
+        points: None,
+        near_far: None,
+        background: options.background,
+        warnings,
+    })
+}

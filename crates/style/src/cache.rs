@@ -3,7 +3,7 @@
 //!
 //! Entries are keyed by [`StyleKey`]: a tag naming the encoder (its variant and weights, since
 //! statistics depend on both) together with either a 64-bit FNV-1a hash of the image's shape and
-//! `f32` bit patterns (content addressing: the same pixels give the same key wherever they came
+//! pixel bit patterns (content addressing: the same pixels give the same key wherever they came
 //! from) or a file path. The cache is thread-safe; statistics are shared as `Arc`s.
 
 use std::collections::HashMap;
@@ -67,15 +67,22 @@ fn fnv1a(bytes: impl Iterator<Item = u8>, mut h: u64) -> u64 {
 }
 
 impl StyleKey {
-    /// A key from the image's pixels (`[N, 3, H, W]`, any layout) and an encoder tag.
-    pub fn from_image(encoder: &str, image: &Array4<f32>) -> StyleKey {
+    /// A key from the image's pixels (`[N, 3, H, W]`, any layout) and an encoder tag. Pixels are
+    /// hashed as the bit patterns of their exact `f64` values, so an `f32` image and its `f64`
+    /// copy share a key.
+    pub fn from_image<T: Scalar>(encoder: &str, image: &Array4<T>) -> StyleKey {
         let d = image.dim();
         let shape = [d.0, d.1, d.2, d.3];
         let h = fnv1a(
             shape.iter().flat_map(|s| (*s as u64).to_le_bytes()),
             0xcbf2_9ce4_8422_2325,
         );
-        let hash = fnv1a(image.iter().flat_map(|v| v.to_bits().to_le_bytes()), h);
+        let hash = fnv1a(
+            image
+                .iter()
+                .flat_map(|v| v.to_f64_exact().to_bits().to_le_bytes()),
+            h,
+        );
         StyleKey {
             encoder: encoder.to_string(),
             source: KeySource::Content { shape, hash },

@@ -23,7 +23,7 @@ pub enum StyleError {
     NonFinite { what: &'static str, value: f64 },
     /// A network operation failed.
     #[error("network: {0}")]
-    Net(String),
+    Net(#[from] nets::NetError),
 }
 
 /// Result alias of this crate.

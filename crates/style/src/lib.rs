@@ -8,6 +8,10 @@
 //! * [`colour`]: colour preservation (the style image's colours matched to the content's).
 //! * [`loss`]: content, style and alignment losses.
 //! * [`cache`]: per-style statistics computed once and reused across views.
+//! * [`objective`]: the decoder training loss and the 3D stylization loss through the networks,
+//!   each one function with its gradients.
+//! * [`fold`]: a style's transform folded into the decoder's first convolution.
+//! * [`stylize`]: feed-forward stylization of images.
 //!
 //! Everything is generic over [`Scalar`] (`f32` in production, `f64` in gradient checks) and works
 //! on `ndarray::Array4` feature maps in NCHW layout.
@@ -16,10 +20,13 @@ pub mod adain;
 pub mod cache;
 pub mod colour;
 pub mod error;
+pub mod fold;
 pub mod loss;
+pub mod objective;
 pub mod scalar;
 pub mod spatial;
 pub mod stats;
+pub mod stylize;
 
 pub use adain::{
     adain, adain_alpha, adain_backward, adain_mix, adain_with_stats, blend, instance_normalize,
@@ -28,9 +35,13 @@ pub use adain::{
 pub use cache::{StyleCache, StyleFeatureStats, StyleKey};
 pub use colour::{preserve_colour, preserve_colour_with_eps, COLOUR_EPS};
 pub use error::{Result, StyleError};
+pub use fold::fold_style_transform;
 pub use loss::{
     align_loss, align_loss_backward, content_loss, content_loss_backward, l1, l1_backward, mse,
     mse_backward, style_loss, style_loss_backward, AlignLoss,
+};
+pub use objective::{
+    align_target, decoder_training_loss, stage3_loss, DecoderLoss, Stage3Loss, Stage3Weights,
 };
 pub use scalar::Scalar;
 pub use spatial::{adain_spatial, adain_spatial_backward, Region};
@@ -38,3 +49,4 @@ pub use stats::{
     channel_stats, channel_stats_backward, masked_channel_stats, masked_channel_stats_backward,
     resize_mask_nearest, ChannelStats, STATS_EPS,
 };
+pub use stylize::{encode_style, stylize, stylize_image};

@@ -10,9 +10,10 @@ use std::fmt::{Debug, Display};
 use ndarray::ScalarOperand;
 use num_traits::Float;
 
-/// A real scalar type: implemented for `f32` and `f64`.
+/// A real scalar type: implemented for `f32` and `f64`. It extends the network crate's scalar so
+/// that the same type runs through the encoder, decoder and lifter.
 pub trait Scalar:
-    Float + ScalarOperand + Default + Debug + Display + Send + Sync + 'static
+    nets::Scalar + Float + ScalarOperand + Default + Debug + Display + Send + Sync + 'static
 {
     /// Converts an `f64` to this type (rounding for `f32`).
     fn lit(x: f64) -> Self;

@@ -118,7 +118,7 @@ pub fn adain_spatial_backward<T: Scalar>(
             }
         });
         let g_x = normalize_backward_impl(content, Some(&mask), &stats, &g_y);
-        out.zip_mut_with(&g_x, |a, &b| *a = *a + b);
+        out.zip_mut_with(&g_x, |a, &b| *a += b);
     }
     Ok(out)
 }

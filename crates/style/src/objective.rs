@@ -1,0 +1,222 @@
+//! The training objectives that run through the networks, each one function that returns every
+//! loss term and the gradients a training step needs.
+//!
+//! * Decoder training (AdaIN): with `t` the decoder input (an AdaIN output), `g` the decoder, `phi`
+//!   the frozen encoder (features `relu1_1 .. relu_k_1`) and `S` the style's per-level statistics,
+//!
+//!   ```text
+//!   L = content(phi_k(g(t)), target) + w_s * style(phi(g(t)), S)
+//!   ```
+//!
+//!   where `target` is a constant (usually `t` itself, as in the AdaIN paper). Gradients: the
+//!   decoder input and every decoder parameter.
+//!
+//! * The 3D stylization loss on a rasterized feature map `r` with the lifter `l = relu(W r + b)`,
+//!   the style transform `T(x) = std_s x + mean_s` and a frozen decoder and encoder:
+//!
+//!   ```text
+//!   t = T(l(r)),   image = g(t)
+//!   L = L_align(l(r), target) + lambda_c content(phi_k(image), t) + lambda_s style(phi(image), S)
+//!   ```
+//!
+//!   `target` is the normalised `relu_k_1` of the content view (see [`align_target`]). The content
+//!   term compares with `t`, which depends on `r`, so its gradient flows through both arguments.
+//!   Gradients: `r` and the lifter's weight and bias.
+//!
+//! Sums of loss terms are formed in `f64` and rounded once.
+
+use ndarray::{Array4, ArrayView4};
+use nets::{ConvGrad, Decoder, Encoder, Lifter};
+
+use crate::adain::{instance_normalize, style_transform, style_transform_backward};
+use crate::cache::StyleFeatureStats;
+use crate::error::{Result, StyleError};
+use crate::loss::{
+    align_loss, align_loss_backward, content_loss, mse_backward, style_loss, style_loss_backward,
+    AlignLoss,
+};
+use crate::scalar::Scalar;
+
+/// The result of [`decoder_training_loss`].
+#[derive(Clone, Debug)]
+pub struct DecoderLoss<T: Scalar> {
+    /// The decoded image `g(t)`.
+    pub image: Array4<T>,
+    pub loss_content: T,
+    pub loss_style: T,
+    /// `loss_content + w_s * loss_style`.
+    pub loss: T,
+    /// `dL/dt`.
+    pub grad_input: Array4<T>,
+    /// `dL/d(weight, bias)` of every decoder conv in [`Decoder::layers`] order; each
+    /// [`ConvGrad::source`] is the layer's key prefix in its weights (e.g. `1` for `decoder.1`).
+    pub grad_params: Vec<ConvGrad<T>>,
+}
+
+fn check_levels<T: Scalar>(encoder: &Encoder<T>, style: &StyleFeatureStats<T>) -> Result<()> {
+    if encoder.depth() != style.levels.len() {
+        return Err(StyleError::Invalid {
+            what: "style statistics",
+            problem: format!(
+                "{} levels for an encoder to relu{}_1 (encode the style with the same encoder)",
+                style.levels.len(),
+                encoder.depth()
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// Encodes `image`, evaluates `lambda_c * content(phi_k, content_target) + lambda_s * style(phi, S)`
+/// and returns `(features, content, style, dL/dimage, dL/dcontent_target)`.
+fn perceptual<T: Scalar>(
+    encoder: &Encoder<T>,
+    image: &Array4<T>,
+    content_target: &Array4<T>,
+    style: &StyleFeatureStats<T>,
+    lambda_c: f64,
+    lambda_s: f64,
+) -> Result<(T, T, Array4<T>, Array4<T>)> {
+    check_levels(encoder, style)?;
+    let (feats, tape) = encoder.forward_with_tape(image.view())?;
+    let deepest = feats.last().expect("encoder depth >= 1");
+    let loss_c = content_loss(deepest, content_target)?;
+    let loss_s = style_loss(&feats, &style.levels)?;
+    let mut cot = style_loss_backward(&feats, &style.levels, T::lit(lambda_s))?;
+    let g_c = mse_backward(deepest, content_target, T::lit(lambda_c))?;
+    let last = cot.last_mut().expect("one level per feature");
+    last.zip_mut_with(&g_c, |a, &b| *a += b);
+    let views: Vec<Option<ArrayView4<T>>> = cot.iter().map(|c| Some(c.view())).collect();
+    let g_image = encoder.backward(&tape, &views)?;
+    Ok((loss_c, loss_s, g_image, g_c.mapv(|v| -v)))
+}
+
+/// The decoder training loss `content(phi_k(g(t)), target) + w_s * style(phi(g(t)), S)` and its
+/// gradients with respect to the decoder input `t` and the decoder parameters (see the module
+/// documentation). The encoder must be the one the style statistics were computed with.
+pub fn decoder_training_loss<T: Scalar>(
+    encoder: &Encoder<T>,
+    decoder: &Decoder<T>,
+    input: &Array4<T>,
+    content_target: &Array4<T>,
+    style: &StyleFeatureStats<T>,
+    style_weight: f64,
+) -> Result<DecoderLoss<T>> {
+    crate::adain::check_finite("style weight", style_weight)?;
+    let (image, dtape) = decoder.forward_with_tape(input.view())?;
+    let (loss_c, loss_s, g_image, _) =
+        perceptual(encoder, &image, content_target, style, 1.0, style_weight)?;
+    let grads = decoder.backward(&dtape, g_image.view())?;
+    let loss = T::lit(loss_c.to_f64_exact() + style_weight * loss_s.to_f64_exact());
+    Ok(DecoderLoss {
+        image,
+        loss_content: loss_c,
+        loss_style: loss_s,
+        loss,
+        grad_input: grads.input,
+        grad_params: grads.params,
+    })
+}
+
+/// Weights and options of the 3D stylization loss.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Stage3Weights {
+    /// `lambda_c` (default 1).
+    pub lambda_content: f64,
+    /// `lambda_s` (default 1).
+    pub lambda_style: f64,
+    /// The alignment penalty (default MSE).
+    pub align: AlignLoss,
+}
+
+impl Default for Stage3Weights {
+    fn default() -> Self {
+        Stage3Weights {
+            lambda_content: 1.0,
+            lambda_style: 1.0,
+            align: AlignLoss::Mse,
+        }
+    }
+}
+
+/// The result of [`stage3_loss`].
+#[derive(Clone, Debug)]
+pub struct Stage3Loss<T: Scalar> {
+    /// `relu(W r + b)`.
+    pub lifted: Array4<T>,
+    /// `T(lifted) = std_s * lifted + mean_s`.
+    pub stylized_features: Array4<T>,
+    /// The decoded image.
+    pub image: Array4<T>,
+    pub loss_align: T,
+    pub loss_content: T,
+    pub loss_style: T,
+    /// `loss_align + lambda_c loss_content + lambda_s loss_style`.
+    pub loss: T,
+    /// `dL/dr`, the gradient with respect to the rasterized feature map.
+    pub grad_raster_features: Array4<T>,
+    /// `dL/d(W, b)` of the lifter.
+    pub grad_lifter: ConvGrad<T>,
+}
+
+/// The alignment target: the content view's `relu_k_1` feature, instance-normalised.
+pub fn align_target<T: Scalar>(
+    encoder: &Encoder<T>,
+    content_image: &Array4<T>,
+) -> Result<Array4<T>> {
+    let feats = encoder.forward(content_image.view())?;
+    instance_normalize(feats.last().expect("encoder depth >= 1"))
+}
+
+/// The 3D stylization loss and its gradients (see the module documentation). `raster_features`
+/// is `[N, F, H, W]`; `align_target` is `[N, C, H, W]` with `C` the lifter's output width, which
+/// must equal the decoder's input width and the encoder's deepest width (fullres networks keep
+/// `H x W` throughout).
+pub fn stage3_loss<T: Scalar>(
+    lifter: &Lifter<T>,
+    decoder: &Decoder<T>,
+    encoder: &Encoder<T>,
+    raster_features: &Array4<T>,
+    align_target: &Array4<T>,
+    style: &StyleFeatureStats<T>,
+    weights: Stage3Weights,
+) -> Result<Stage3Loss<T>> {
+    crate::adain::check_finite("lambda_content", weights.lambda_content)?;
+    crate::adain::check_finite("lambda_style", weights.lambda_style)?;
+    let (lifted, ltape) = lifter.forward_with_tape(raster_features.view())?;
+    let deepest_style = style.deepest();
+    let t = style_transform(&lifted, deepest_style)?;
+    let (image, dtape) = decoder.forward_with_tape(t.view())?;
+    let loss_a = align_loss(&lifted, align_target, weights.align)?;
+    let (loss_c, loss_s, g_image, g_t_target) = perceptual(
+        encoder,
+        &image,
+        &t,
+        style,
+        weights.lambda_content,
+        weights.lambda_style,
+    )?;
+    let mut g_t = decoder.backward(&dtape, g_image.view())?.input;
+    // The content term's target is t itself.
+    g_t.zip_mut_with(&g_t_target, |a, &b| *a += b);
+    let (mut g_lifted, _) = style_transform_backward(&lifted, deepest_style, &g_t)?;
+    let g_align = align_loss_backward(&lifted, align_target, weights.align, T::one())?;
+    g_lifted.zip_mut_with(&g_align, |a, &b| *a += b);
+    let grads = lifter.backward(&ltape, g_lifted.view())?;
+    let loss = T::lit(
+        loss_a.to_f64_exact()
+            + weights.lambda_content * loss_c.to_f64_exact()
+            + weights.lambda_style * loss_s.to_f64_exact(),
+    );
+    Ok(Stage3Loss {
+        lifted,
+        stylized_features: t,
+        image,
+        loss_align: loss_a,
+        loss_content: loss_c,
+        loss_style: loss_s,
+        loss,
+        grad_raster_features: grads.input,
+        grad_lifter: grads.params,
+    })
+}

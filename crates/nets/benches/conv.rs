@@ -89,7 +89,9 @@ fn conv(c: &mut Criterion) {
         let rows = rows_per_tile(ci);
         let tiles = SIZE.div_ceil(rows);
         let a = rng.vec(co * 9 * ci, 0.1);
-        let bs: Vec<Vec<f32>> = (0..tiles).map(|_| rng.vec(9 * ci * rows * SIZE, 1.0)).collect();
+        let bs: Vec<Vec<f32>> = (0..tiles)
+            .map(|_| rng.vec(9 * ci * rows * SIZE, 1.0))
+            .collect();
         let mut out = vec![0f32; co * tiles * rows * SIZE];
         let t_conv = best_of(3, || {
             std::hint::black_box(conv3x3_reflect(x.view(), w.view(), b.view(), true));

@@ -29,8 +29,15 @@ fn networks(c: &mut Criterion) {
             .with_resolution(Resolution::Fullres);
         let t = Instant::now();
         let feats = enc.forward(x.view()).unwrap();
-        report(&format!("vgg {net} fullres forward (single run)"), net, t.elapsed().as_secs_f64());
-        assert_eq!(feats[depth - 1].dim(), (1, enc.widths()[depth - 1], SIZE, SIZE));
+        report(
+            &format!("vgg {net} fullres forward (single run)"),
+            net,
+            t.elapsed().as_secs_f64(),
+        );
+        assert_eq!(
+            feats[depth - 1].dim(),
+            (1, enc.widths()[depth - 1], SIZE, SIZE)
+        );
         group.bench_function(format!("vgg_{net}_fullres_forward_{SIZE}"), |b| {
             b.iter(|| enc.forward(x.view()).unwrap())
         });
@@ -41,7 +48,11 @@ fn networks(c: &mut Criterion) {
     let feat = rng.image(256, SIZE, SIZE);
     let t = Instant::now();
     let y = dec.forward(feat.view()).unwrap();
-    report("decoder relu3_1 fullres forward (single run)", "decoder3_1", t.elapsed().as_secs_f64());
+    report(
+        "decoder relu3_1 fullres forward (single run)",
+        "decoder3_1",
+        t.elapsed().as_secs_f64(),
+    );
     assert_eq!(y.dim(), (1, 3, SIZE, SIZE));
     group.bench_function(format!("decoder_relu3_1_fullres_forward_{SIZE}"), |b| {
         b.iter(|| dec.forward(feat.view()).unwrap())

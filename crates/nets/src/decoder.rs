@@ -4,6 +4,8 @@
 //!
 //! The fullres variant ([`Resolution::Fullres`]) skips the upsamplings; the weights are the same.
 
+use std::path::Path;
+
 use ndarray::{Array4, ArrayView4};
 
 use crate::error::NetError;
@@ -41,6 +43,16 @@ impl<T: Scalar> Decoder<T> {
     /// layout. Depth and widths come from the weights.
     pub fn from_state_dict(sd: &StateDict) -> Result<Decoder<T>, NetError> {
         Self::from_spec(sd, decoder_spec(sd, None)?)
+    }
+
+    /// Imports a PyTorch checkpoint (`.pth`, legacy or zip format) and builds the network from
+    /// it as [`Decoder::from_state_dict`] does. Errors name the file.
+    pub fn from_checkpoint(path: &Path) -> Result<Decoder<T>, NetError> {
+        let sd = crate::checkpoint::load_checkpoint(path)?;
+        Self::from_state_dict(&sd).map_err(|e| NetError::File {
+            path: path.to_path_buf(),
+            detail: e.to_string(),
+        })
     }
 
     pub(crate) fn from_spec(sd: &StateDict, spec: DecoderSpec) -> Result<Decoder<T>, NetError> {

@@ -6,6 +6,8 @@
 //! The fullres variant ([`Resolution::Fullres`]) skips the max-pools, so every feature has the
 //! input's resolution; the weights are the same.
 
+use std::path::Path;
+
 use ndarray::{Array4, ArrayView4};
 
 use crate::error::NetError;
@@ -39,6 +41,16 @@ impl<T: Scalar> Encoder<T> {
     /// [`Encoder::with_depth`] to stop earlier. Widths come from the weights.
     pub fn from_state_dict(sd: &StateDict) -> Result<Encoder<T>, NetError> {
         Self::from_spec(sd, encoder_spec(sd, None)?)
+    }
+
+    /// Imports a PyTorch checkpoint (`.pth`, legacy or zip format) and builds the network from
+    /// it as [`Encoder::from_state_dict`] does. Errors name the file.
+    pub fn from_checkpoint(path: &Path) -> Result<Encoder<T>, NetError> {
+        let sd = crate::checkpoint::load_checkpoint(path)?;
+        Self::from_state_dict(&sd).map_err(|e| NetError::File {
+            path: path.to_path_buf(),
+            detail: e.to_string(),
+        })
     }
 
     pub(crate) fn from_spec(sd: &StateDict, spec: EncoderSpec) -> Result<Encoder<T>, NetError> {

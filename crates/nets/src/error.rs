@@ -30,4 +30,7 @@ pub enum NetError {
     /// A weights file is malformed or inconsistent.
     #[error("{path}: {detail}")]
     File { path: PathBuf, detail: String },
+    /// A PyTorch checkpoint could not be imported.
+    #[error(transparent)]
+    Checkpoint(#[from] crate::checkpoint::CheckpointError),
 }

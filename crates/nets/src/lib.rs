@@ -10,7 +10,27 @@
 //! * [`Decoder`]: forward with tape, backward to the input and every parameter.
 //! * [`Lifter`]: `relu(conv1x1(x))`, forward and backward.
 //! * Built from a [`StateDict`] in the AdaIN/WCT Sequential layout or the compressed named layout
-//!   ([`layout`]), or loaded from canonical safetensors files ([`weights_file`]).
+//!   ([`layout`]), imported from PyTorch checkpoints ([`checkpoint`], [`Encoder::from_checkpoint`]),
+//!   or loaded from canonical safetensors files ([`weights_file`]).
+//!
+//! Gradients of a loss on encoder features of a decoded image, as the style losses need them:
+//!
+//! ```
+//! # use ndarray::Array4;
+//! # use nets::{Decoder, Encoder, NetError, Resolution};
+//! fn decoder_gradients(
+//!     enc: &Encoder,
+//!     dec: &Decoder,
+//!     t: &Array4<f32>,
+//! ) -> Result<nets::DecoderGrads, NetError> {
+//!     let (image, dec_tape) = dec.forward_with_tape(t.view())?;
+//!     let (feats, enc_tape) = enc.forward_with_tape(image.view())?;
+//!     // d loss / d relu{k}_1; here a cotangent on relu1_1 only (None = no loss on that level).
+//!     let cot = feats[0].mapv(|v| 2.0 * v);
+//!     let d_image = enc.backward(&enc_tape, &[Some(cot.view())])?;
+//!     dec.backward(&dec_tape, d_image.view()) // .input and .params (one per decoder conv)
+//! }
+//! ```
 
 pub mod checkpoint;
 pub mod conv;

@@ -50,12 +50,14 @@ fn check(what: &str, a: &Array4<f32>, fx: &Fixture, key: &str) {
 #[test]
 fn wct_relu3_1_pair_matches_pytorch() {
     let fx = real();
-    let enc: Encoder =
-        Encoder::from_state_dict(&checkpoint("wct-relu1_1-3_1/vgg_normalised_conv3_1.pth"))
-            .unwrap();
-    let dec: Decoder =
-        Decoder::from_state_dict(&checkpoint("wct-relu1_1-3_1/feature_invertor_conv3_1.pth"))
-            .unwrap();
+    let enc: Encoder = Encoder::from_checkpoint(&shared_path(
+        "weights/wct-relu1_1-3_1/vgg_normalised_conv3_1.pth",
+    ))
+    .unwrap();
+    let dec: Decoder = Decoder::from_checkpoint(&shared_path(
+        "weights/wct-relu1_1-3_1/feature_invertor_conv3_1.pth",
+    ))
+    .unwrap();
     assert_eq!(enc.widths(), vec![64, 128, 256]);
     assert_eq!(enc.pool_rounding(), PoolRounding::Ceil);
     assert_eq!(dec.convs_per_level(), vec![1, 2, 2]);
@@ -161,4 +163,21 @@ fn fixture_checkpoints_build_the_adain_networks() {
     )
     .unwrap();
     assert_eq!(dec.in_channels(), 64);
+}
+
+#[test]
+fn checkpoint_errors_name_the_file() {
+    let path = shared_path("weights/wct-relu1_1-3_1/feature_invertor_conv3_1.pth");
+    let msg = Encoder::<f32>::from_checkpoint(&path)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        msg.contains("feature_invertor_conv3_1.pth") && msg.contains("`0.weight`"),
+        "{msg}"
+    );
+    let missing = shared_path("weights/no-such-file.pth");
+    let msg = Decoder::<f32>::from_checkpoint(&missing)
+        .unwrap_err()
+        .to_string();
+    assert!(msg.contains("no-such-file.pth"), "{msg}");
 }

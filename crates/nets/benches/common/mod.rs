@@ -74,7 +74,13 @@ pub fn vgg(depth: usize, rng: &mut Lcg) -> StateDict {
 /// The WCT relu3_1 decoder (`feature_invertor_conv3_1.pth` shapes) in the Sequential layout.
 pub fn wct_decoder(rng: &mut Lcg) -> StateDict {
     let mut sd = StateDict::new();
-    for (i, o, c) in [(1, 128, 256), (5, 128, 128), (8, 64, 128), (12, 64, 64), (15, 3, 64)] {
+    for (i, o, c) in [
+        (1, 128, 256),
+        (5, 128, 128),
+        (8, 64, 128),
+        (12, 64, 64),
+        (15, 3, 64),
+    ] {
         conv(&mut sd, rng, i, o, c, 3);
     }
     sd

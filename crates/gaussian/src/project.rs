@@ -136,25 +136,37 @@ impl<T: Real> CamT<T> {
     }
 }
 
+/// `[f(0), f(1), f(2)]`, spelled out so that it always inlines (`array::map` may not).
+#[inline(always)]
+fn v3<T>(f: impl Fn(usize) -> T) -> [T; 3] {
+    [f(0), f(1), f(2)]
+}
+
+/// The 3x3 matrix with entries `f(row, col)`.
+#[inline(always)]
+fn m3<T>(f: impl Fn(usize, usize) -> T) -> [[T; 3]; 3] {
+    [v3(|j| f(0, j)), v3(|j| f(1, j)), v3(|j| f(2, j))]
+}
+
 #[inline(always)]
 fn matmul<T: Real>(a: &M3<T>, b: &M3<T>) -> M3<T> {
-    [0, 1, 2].map(|i| [0, 1, 2].map(|j| a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j]))
+    m3(|i, j| a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j])
 }
 
 #[inline(always)]
 fn transpose<T: Real>(a: &M3<T>) -> M3<T> {
-    [0, 1, 2].map(|i| [0, 1, 2].map(|j| a[j][i]))
+    m3(|i, j| a[j][i])
 }
 
 #[inline(always)]
 fn matvec<T: Real>(a: &M3<T>, v: &[T; 3]) -> [T; 3] {
-    [0, 1, 2].map(|i| a[i][0] * v[0] + a[i][1] * v[1] + a[i][2] * v[2])
+    v3(|i| a[i][0] * v[0] + a[i][1] * v[1] + a[i][2] * v[2])
 }
 
 /// `a^T v`.
 #[inline(always)]
 fn matvec_t<T: Real>(a: &M3<T>, v: &[T; 3]) -> [T; 3] {
-    [0, 1, 2].map(|i| a[0][i] * v[0] + a[1][i] * v[1] + a[2][i] * v[2])
+    v3(|i| a[0][i] * v[0] + a[1][i] * v[1] + a[2][i] * v[2])
 }
 
 /// F.normalize semantics: `q / max(|q|, 1e-12)`. Returns the unit quaternion, the divisor and
@@ -165,7 +177,11 @@ fn normalize_quat_ref<T: Real>(q: &[T; 4]) -> ([T; 4], T, bool) {
     let eps = T::lit(1e-12);
     let clamped = norm < eps;
     let denom = if clamped { eps } else { norm };
-    (q.map(|v| v / denom), denom, clamped)
+    (
+        [q[0] / denom, q[1] / denom, q[2] / denom, q[3] / denom],
+        denom,
+        clamped,
+    )
 }
 
 /// The world-space covariance and the intermediates its backward needs.
@@ -184,8 +200,8 @@ struct Covariance<T> {
 fn covariance<T: Real>(quat: &[T; 4], log_scale: &[T; 3]) -> Covariance<T> {
     let (qn, denom, norm_clamped) = normalize_quat_ref(quat);
     let rot = quat_to_rotmat(qn);
-    let scale = log_scale.map(T::exp);
-    let m = [0, 1, 2].map(|i| [0, 1, 2].map(|j| rot[i][j] * scale[j]));
+    let scale = v3(|j| log_scale[j].exp());
+    let m = m3(|i, j| rot[i][j] * scale[j]);
     let sigma = matmul(&m, &transpose(&m));
     Covariance {
         qn,
@@ -220,7 +236,7 @@ struct Screen<T> {
 #[inline(always)]
 fn screen<T: Real>(cam: &CamT<T>, mean: &[T; 3], sigma: &M3<T>) -> Screen<T> {
     let pw = matvec(&cam.rot, mean);
-    let p = [0, 1, 2].map(|i| pw[i] + cam.trans[i]);
+    let p = v3(|i| pw[i] + cam.trans[i]);
     let sigma_c = matmul(&matmul(&cam.rot, sigma), &transpose(&cam.rot));
     let [tx, ty, tz] = p;
     let u = [tx / tz, ty / tz];
@@ -372,10 +388,11 @@ fn backward_one<T: Real>(
     // cov2d = J Sigma_c J^T: dSigma_c = J^T V J, dJ = 2 V J Sigma_c.
     let [j00, j02, j11, j12] = sc.j;
     let jm = [[j00, zero, j02], [zero, j11, j12]];
-    let vj: [[T; 3]; 2] =
-        [0, 1].map(|r| [0, 1, 2].map(|k| v[r][0] * jm[0][k] + v[r][1] * jm[1][k]));
-    let g_sigma_c: M3<T> =
-        [0, 1, 2].map(|i| [0, 1, 2].map(|k| jm[0][i] * vj[0][k] + jm[1][i] * vj[1][k]));
+    let vj: [[T; 3]; 2] = [
+        v3(|k| v[0][0] * jm[0][k] + v[0][1] * jm[1][k]),
+        v3(|k| v[1][0] * jm[0][k] + v[1][1] * jm[1][k]),
+    ];
+    let g_sigma_c: M3<T> = m3(|i, k| jm[0][i] * vj[0][k] + jm[1][i] * vj[1][k]);
     let s = &sc.sigma_c;
     let g_j =
         |r: usize, k: usize| two * (vj[r][0] * s[0][k] + vj[r][1] * s[1][k] + vj[r][2] * s[2][k]);
@@ -417,9 +434,10 @@ fn backward_one<T: Real>(
     let g_sigma = matmul(&matmul(&transpose(&cam.rot), &g_sigma_c), &cam.rot);
 
     // Sigma = M M^T (g_sigma symmetric): dM = 2 dSigma M; M = R diag(s).
-    let g_m = matmul(&g_sigma, &cov.m).map(|row| row.map(|x| two * x));
-    let g_rot: M3<T> = [0, 1, 2].map(|i| [0, 1, 2].map(|j| g_m[i][j] * cov.scale[j]));
-    let g_log_scale = [0, 1, 2].map(|j| {
+    let g_sigma_m = matmul(&g_sigma, &cov.m);
+    let g_m = m3(|i, j| two * g_sigma_m[i][j]);
+    let g_rot: M3<T> = m3(|i, j| g_m[i][j] * cov.scale[j]);
+    let g_log_scale = v3(|j| {
         (g_m[0][j] * cov.rot[0][j] + g_m[1][j] * cov.rot[1][j] + g_m[2][j] * cov.rot[2][j])
             * cov.scale[j]
     });
@@ -444,10 +462,18 @@ fn backward_one<T: Real>(
     ];
     // q_n = q / max(|q|, 1e-12): project out the radial part unless the norm was clamped.
     let g_quat = if !cov.norm_clamped {
-        let dot = (0..4).map(|k| cov.qn[k] * g_qn[k]).sum::<T>();
-        [0, 1, 2, 3].map(|k| (g_qn[k] - cov.qn[k] * dot) / cov.denom)
+        let qn = &cov.qn;
+        let dot = qn[0] * g_qn[0] + qn[1] * g_qn[1] + qn[2] * g_qn[2] + qn[3] * g_qn[3];
+        let d = cov.denom;
+        [
+            (g_qn[0] - qn[0] * dot) / d,
+            (g_qn[1] - qn[1] * dot) / d,
+            (g_qn[2] - qn[2] * dot) / d,
+            (g_qn[3] - qn[3] * dot) / d,
+        ]
     } else {
-        g_qn.map(|v| v / cov.denom)
+        let d = cov.denom;
+        [g_qn[0] / d, g_qn[1] / d, g_qn[2] / d, g_qn[3] / d]
     };
     (g_mean, g_quat, g_log_scale)
 }

@@ -146,6 +146,12 @@ pub fn bases_vjp<T: Real>(nb: usize, [x, y, z]: [T; 3], g: &[T; 16]) -> [T; 3] {
     [gx, gy, gz]
 }
 
+/// `[f(0), f(1), f(2)]`, spelled out so that it always inlines (`array::map` may not).
+#[inline(always)]
+fn v3<T>(f: impl Fn(usize) -> T) -> [T; 3] {
+    [f(0), f(1), f(2)]
+}
+
 /// `d / max(|d|, 1e-12)`, the divisor, and whether the norm was clamped.
 #[inline(always)]
 fn normalize_dir<T: Real>(d: [T; 3]) -> ([T; 3], T, bool) {
@@ -153,7 +159,7 @@ fn normalize_dir<T: Real>(d: [T; 3]) -> ([T; 3], T, bool) {
     let eps = T::lit(1e-12);
     let clamped = norm < eps;
     let denom = if clamped { eps } else { norm };
-    (d.map(|v| v / denom), denom, clamped)
+    (v3(|a| d[a] / denom), denom, clamped)
 }
 
 fn check_args(degree: usize, coeffs_per_gaussian: usize, sh_len: usize, n: usize) -> usize {
@@ -192,10 +198,10 @@ pub fn sh_colors<T: Real>(
         .zip(sh.par_chunks(coeffs_per_gaussian))
         .with_min_len(MIN_CHUNK)
         .map(|(m, coeffs)| {
-            let dir = [0, 1, 2].map(|a| m[a] - camera_center[a]);
+            let dir = v3(|a| m[a] - camera_center[a]);
             let (u, _, _) = normalize_dir(dir);
             let b = eval_bases(nb, u);
-            [0, 1, 2].map(|c| {
+            v3(|c| {
                 let raw = (0..nb).fold(T::zero(), |acc, k| acc + b[k] * coeffs[k][c]);
                 (raw + half).max(T::zero())
             })
@@ -239,11 +245,11 @@ pub fn sh_colors_backward<T: Real>(
         .for_each(|(i, (d_coeffs, d_mean))| {
             let coeffs = &sh[i * coeffs_per_gaussian..(i + 1) * coeffs_per_gaussian];
             let m = &means[i];
-            let dir = [0, 1, 2].map(|a| m[a] - camera_center[a]);
+            let dir = v3(|a| m[a] - camera_center[a]);
             let (u, denom, clamped) = normalize_dir(dir);
             let b = eval_bases(nb, u);
             // The colour cotangent where the clamp at 0 passes it.
-            let v = [0, 1, 2].map(|c| {
+            let v = v3(|c| {
                 let raw = (0..nb).fold(zero, |acc, k| acc + b[k] * coeffs[k][c]);
                 if raw + half >= zero {
                     v_colors[i][c]
@@ -253,16 +259,16 @@ pub fn sh_colors_backward<T: Real>(
             });
             let mut g_basis = [zero; 16];
             for k in 0..nb {
-                d_coeffs[k] = [0, 1, 2].map(|c| b[k] * v[c]);
+                d_coeffs[k] = v3(|c| b[k] * v[c]);
                 g_basis[k] = coeffs[k][0] * v[0] + coeffs[k][1] * v[1] + coeffs[k][2] * v[2];
             }
             let g_u = bases_vjp(nb, u, &g_basis);
             // u = d / max(|d|, eps): (I - u u^T) / |d| unless the norm was clamped.
             *d_mean = if clamped {
-                g_u.map(|g| g / denom)
+                v3(|a| g_u[a] / denom)
             } else {
                 let dot = u[0] * g_u[0] + u[1] * g_u[1] + u[2] * g_u[2];
-                [0, 1, 2].map(|a| (g_u[a] - u[a] * dot) / denom)
+                v3(|a| (g_u[a] - u[a] * dot) / denom)
             };
         });
     (d_sh, d_means)

@@ -1,0 +1,178 @@
+//! The composite objectives' gradients against central differences in `f64`, along random
+//! directions, on small random inputs through the oracle's (fullres) networks.
+//!
+//! For a direction `v`, `(L(x + h v) - L(x - h v)) / (2h)` must equal `<dL/dx, v>`. The losses are
+//! smooth except at ReLU kinks; each case checks with a replay of the networks
+//! (`common::pattern`) that the ReLU pattern is the same at `x - h v`, `x` and `x + h v`, and
+//! discards the case otherwise (`prop_assume!`), so no difference straddles a kink. Inside one
+//! linear piece the only curvature comes from the statistics and squared errors, so with
+//! `h = 1e-6` the truncation error is about `1e-12` relative, and rounding adds about
+//! `1e-16 |L| / h = 1e-10`; the tolerance `1e-6` (relative to `max(|<g, v>|, 1e-3 |L|)`, which
+//! guards against directions that happen to be nearly orthogonal to the gradient) is far above
+//! both and far below the effect of any wrong term.
+
+mod common;
+
+use common::*;
+use ndarray::{Array1, Array4};
+use nets::{Decoder, Encoder, Lifter, Resolution};
+use proptest::prelude::*;
+use style::*;
+
+const H: f64 = 1e-6;
+const TOL: f64 = 1e-6;
+
+fn map(
+    n: usize,
+    c: usize,
+    h: usize,
+    w: usize,
+    lo: f64,
+    hi: f64,
+) -> impl Strategy<Value = Array4<f64>> {
+    prop::collection::vec(lo..hi, n * c * h * w)
+        .prop_map(move |v| Array4::from_shape_vec((n, c, h, w), v).unwrap())
+}
+
+struct Nets {
+    enc: Encoder<f64>,
+    dec: Decoder<f64>,
+    lift: Lifter<f64>,
+}
+
+fn nets() -> Nets {
+    let fx = nets_fixture();
+    let (enc, dec) = networks::<f64>(&fx, Resolution::Fullres);
+    Nets {
+        enc,
+        dec,
+        lift: lifter::<f64>(&fx),
+    }
+}
+
+/// All ReLU patterns of lifter (if given), decoder and encoder for a decoder input or raster map.
+fn patterns(
+    n: &Nets,
+    x: &Array4<f64>,
+    with_lifter: Option<&Lifter<f64>>,
+    style: &StyleFeatureStats<f64>,
+) -> Vec<Option<Array4<bool>>> {
+    let mut out = Vec::new();
+    let t = match with_lifter {
+        Some(l) => {
+            let f = pattern::forward(&pattern::lifter_steps(l), x);
+            out.extend(f.pattern);
+            style_transform(&f.outputs[0], style.deepest()).unwrap()
+        }
+        None => x.clone(),
+    };
+    let d = pattern::forward(&pattern::decoder_steps(&n.dec), &t);
+    out.extend(d.pattern);
+    let e = pattern::forward(&pattern::encoder_steps(&n.enc), &d.outputs[0]);
+    out.extend(e.pattern);
+    out
+}
+
+fn dot(a: &Array4<f64>, b: &Array4<f64>) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+fn close(what: &str, analytic: f64, numeric: f64, loss: f64) -> Result<(), TestCaseError> {
+    let scale = analytic.abs().max(1e-3 * loss.abs());
+    prop_assert!(
+        (analytic - numeric).abs() <= TOL * scale,
+        "{what}: analytic {analytic:.9e}, differences {numeric:.9e}"
+    );
+    Ok(())
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(8))]
+
+    #[test]
+    fn stage3_gradients_match_differences(
+        raster in map(1, 32, 5, 6, -1.0, 1.0),
+        target in map(1, 64, 5, 6, -1.5, 1.5),
+        style_img in map(1, 3, 6, 5, 0.0, 1.0),
+        v in map(1, 32, 5, 6, -1.0, 1.0),
+        vw in map(64, 32, 1, 1, -1.0, 1.0),
+        vb in prop::collection::vec(-1.0f64..1.0, 64),
+        l1 in any::<bool>(),
+    ) {
+        let n = nets();
+        let s = encode_style(&n.enc, &style_img).unwrap();
+        let weights = Stage3Weights { lambda_content: 0.7, lambda_style: 1.3, align: if l1 { AlignLoss::L1 } else { AlignLoss::Mse } };
+        let out = stage3_loss(&n.lift, &n.dec, &n.enc, &raster, &target, &s, weights).unwrap();
+        let loss_at = |lift: &Lifter<f64>, r: &Array4<f64>| stage3_loss(lift, &n.dec, &n.enc, r, &target, &s, weights).unwrap().loss;
+        // Raster direction.
+        let (rp, rm) = (&raster + &(&v * H), &raster - &(&v * H));
+        let base = patterns(&n, &raster, Some(&n.lift), &s);
+        prop_assume!(patterns(&n, &rp, Some(&n.lift), &s) == base && patterns(&n, &rm, Some(&n.lift), &s) == base);
+        if l1 {
+            // |lifted - target| must not change sign inside the step either.
+            let lifted = |r: &Array4<f64>| n.lift.forward(r.view()).unwrap();
+            let sign = |r: &Array4<f64>| (lifted(r) - &target).mapv(|d| d > 0.0);
+            prop_assume!(sign(&rp) == sign(&raster) && sign(&rm) == sign(&raster));
+        }
+        let numeric = (loss_at(&n.lift, &rp) - loss_at(&n.lift, &rm)) / (2.0 * H);
+        close("raster features", dot(&out.grad_raster_features, &v), numeric, out.loss)?;
+        // Lifter parameter direction.
+        let w = n.lift.layer().weight.clone();
+        let b = n.lift.layer().bias.clone();
+        let vb = Array1::from_vec(vb);
+        let lp = Lifter::new(&w + &(&vw * H), &b + &(&vb * H)).unwrap();
+        let lm = Lifter::new(&w - &(&vw * H), &b - &(&vb * H)).unwrap();
+        prop_assume!(patterns(&n, &raster, Some(&lp), &s) == base && patterns(&n, &raster, Some(&lm), &s) == base);
+        if l1 {
+            let sign = |l: &Lifter<f64>| (l.forward(raster.view()).unwrap() - &target).mapv(|d| d > 0.0);
+            prop_assume!(sign(&lp) == sign(&n.lift) && sign(&lm) == sign(&n.lift));
+        }
+        let numeric = (loss_at(&lp, &raster) - loss_at(&lm, &raster)) / (2.0 * H);
+        let analytic = dot(&out.grad_lifter.weight, &vw) + out.grad_lifter.bias.iter().zip(&vb).map(|(a, b)| a * b).sum::<f64>();
+        close("lifter parameters", analytic, numeric, out.loss)?;
+    }
+
+    #[test]
+    fn decoder_training_gradients_match_differences(
+        t in map(1, 64, 5, 6, 0.0, 2.0),
+        target in map(1, 64, 5, 6, 0.0, 2.0),
+        style_img in map(1, 3, 7, 5, 0.0, 1.0),
+        v in map(1, 64, 5, 6, -1.0, 1.0),
+        layer in 0usize..9,
+        seed in 0u64..1000,
+    ) {
+        let n = nets();
+        let s = encode_style(&n.enc, &style_img).unwrap();
+        let out = decoder_training_loss(&n.enc, &n.dec, &t, &target, &s, 10.0).unwrap();
+        let loss_at = |dec: &Decoder<f64>, x: &Array4<f64>| decoder_training_loss(&n.enc, dec, x, &target, &s, 10.0).unwrap().loss;
+        let base = patterns(&n, &t, None, &s);
+        let (tp, tm) = (&t + &(&v * H), &t - &(&v * H));
+        prop_assume!(patterns(&n, &tp, None, &s) == base && patterns(&n, &tm, None, &s) == base);
+        let numeric = (loss_at(&n.dec, &tp) - loss_at(&n.dec, &tm)) / (2.0 * H);
+        close("decoder input", dot(&out.grad_input, &v), numeric, out.loss)?;
+        // One layer's parameters along a pseudo-random direction.
+        let shape = n.dec.layers().nth(layer).unwrap().weight.raw_dim();
+        let mut st = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        let mut rnd = || { st = st.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407); (st >> 11) as f64 / (1u64 << 53) as f64 - 0.5 };
+        let dw = Array4::from_shape_fn(shape, |_| rnd());
+        let db = Array1::from_shape_fn(shape[0], |_| rnd());
+        let shifted = |sign: f64| {
+            let mut d = n.dec.clone();
+            let l = d.layers_mut().nth(layer).unwrap();
+            l.weight.scaled_add(sign * H, &dw);
+            l.bias.scaled_add(sign * H, &db);
+            d
+        };
+        let (dp, dm) = (shifted(1.0), shifted(-1.0));
+        let pat = |d: &Decoder<f64>| {
+            let f = pattern::forward(&pattern::decoder_steps(d), &t);
+            let e = pattern::forward(&pattern::encoder_steps(&n.enc), &f.outputs[0]);
+            (f.pattern, e.pattern)
+        };
+        prop_assume!(pat(&dp) == pat(&n.dec) && pat(&dm) == pat(&n.dec));
+        let numeric = (loss_at(&dp, &t) - loss_at(&dm, &t)) / (2.0 * H);
+        let g = &out.grad_params[layer];
+        let analytic = dot(&g.weight, &dw) + g.bias.iter().zip(&db).map(|(a, b)| a * b).sum::<f64>();
+        close(&format!("decoder layer {layer}"), analytic, numeric, out.loss)?;
+    }
+}

@@ -229,11 +229,12 @@ impl Dataset {
         };
         let mut warnings = Vec::new();
         let mut intrinsics = HashMap::new();
+        let mut ignored = Vec::new();
         for cam in &model.cameras {
             let (k, d) = colmap_intrinsics(cam, &cameras_file, options.distortion)?;
             if let Some(d) = d.filter(|_| options.distortion == DistortionHandling::Ignore) {
-                warnings.push(format!(
-                    "camera {} ({}): lens distortion {} ignored; images are used as if taken by its pinhole part",
+                ignored.push(format!(
+                    "camera {} ({}, {})",
                     cam.id,
                     cam.model.name(),
                     d.describe()
@@ -241,6 +242,14 @@ impl Dataset {
             }
             let d = d.filter(|_| options.distortion == DistortionHandling::Undistort);
             intrinsics.insert(cam.id, (k, d));
+        }
+        if !ignored.is_empty() {
+            warnings.push(format!(
+                "lens distortion of {} of {} cameras ignored; their images are used as if taken by the pinhole part (first: {})",
+                ignored.len(),
+                model.cameras.len(),
+                ignored[0]
+            ));
         }
         let mut images: Vec<&colmap::ColmapImage> = model.images.iter().collect();
         images.sort_by(|a, b| a.name.cmp(&b.name));

@@ -76,8 +76,8 @@ pub(crate) fn evaluate<T: Real>(s: &Splat<T>, px: T, py: T) -> Option<Hit<T>> {
     let dx = s.mx - px;
     let dy = s.my - py;
     let sigma = T::lit(0.5) * (s.a * (dx * dx) + s.c * (dy * dy)) + s.b * dx * dy;
-    // `!(sigma >= 0)` also skips a NaN sigma.
-    if !(sigma >= T::zero()) || sigma > s.sigma_cut {
+    // A NaN sigma is skipped too.
+    if sigma.is_nan() || sigma < T::zero() || sigma > s.sigma_cut {
         return None;
     }
     let falloff = (-sigma).exp();
@@ -85,8 +85,8 @@ pub(crate) fn evaluate<T: Real>(s: &Splat<T>, px: T, py: T) -> Option<Hit<T>> {
     let alpha_max = T::lit(ALPHA_MAX);
     let clamped = raw > alpha_max;
     let alpha = if clamped { alpha_max } else { raw };
-    // `!(alpha >= ALPHA_MIN)` also skips a NaN alpha.
-    if !(alpha >= T::lit(ALPHA_MIN)) {
+    // A NaN alpha is skipped too.
+    if alpha.is_nan() || alpha < T::lit(ALPHA_MIN) {
         return None;
     }
     Some(Hit {

@@ -1,0 +1,190 @@
+//! Forward and backward rasterization throughput in `f32`, for 3, 35 and 64 channels, 100k and
+//! 1M Gaussians, 256x256 and 800x800 images, on 1 and 2 threads.
+//!
+//! Throughput is reported in blended Gaussian-pixel pairs per second (criterion's "elements").
+//! Benchmark ids are `{forward|backward}/{D}ch/{N}/{size}/t{threads}`; pass a filter to run a
+//! subset, e.g. `cargo bench -p raster --bench raster -- forward/35ch`.
+//!
+//! Scenes are synthetic projected Gaussians: means uniform over the image, random orientations
+//! and anisotropy, standard deviations chosen so that the summed 2-sigma footprints cover every
+//! pixel about 20 times on average (like a trained scene seen from a training view), opacities
+//! in `[0.1, 0.9]`, depths uniform.
+
+use criterion::{
+    criterion_group, criterion_main, BenchmarkId, Criterion, SamplingMode, Throughput,
+};
+use raster::{rasterize, rasterize_backward, Cotangents, Splats};
+
+struct Scene {
+    width: u32,
+    height: u32,
+    d: usize,
+    means2d: Vec<[f32; 2]>,
+    conics: Vec<[f32; 3]>,
+    depths: Vec<f32>,
+    radii: Vec<[u32; 2]>,
+    opacities: Vec<f32>,
+    channels: Vec<f32>,
+    background: Vec<f32>,
+}
+
+/// SplitMix64 uniform numbers.
+struct Rng(u64);
+impl Rng {
+    fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^= z >> 31;
+        lo + (hi - lo) * ((z >> 11) as f64 / (1u64 << 53) as f64)
+    }
+}
+
+fn scene(n: usize, size: u32, d: usize) -> Scene {
+    let mut rng = Rng(n as u64 ^ ((size as u64) << 32) ^ d as u64);
+    let (w, h) = (size as f64, size as f64);
+    // n * pi * (2 sigma)^2 = 20 * w * h
+    let sigma = (20.0 * w * h / (4.0 * std::f64::consts::PI * n as f64)).sqrt();
+    let mut s = Scene {
+        width: size,
+        height: size,
+        d,
+        means2d: Vec::with_capacity(n),
+        conics: Vec::with_capacity(n),
+        depths: Vec::with_capacity(n),
+        radii: Vec::with_capacity(n),
+        opacities: Vec::with_capacity(n),
+        channels: Vec::with_capacity(n * d),
+        background: vec![0.5; d],
+    };
+    for _ in 0..n {
+        s.means2d
+            .push([rng.uniform(0.0, w) as f32, rng.uniform(0.0, h) as f32]);
+        let aniso = rng.uniform(0.5, 2.0);
+        let (l1, l2) = ((sigma * aniso).powi(2) + 0.3, (sigma / aniso).powi(2) + 0.3);
+        let th = rng.uniform(0.0, std::f64::consts::PI);
+        let (c, sn) = (th.cos(), th.sin());
+        let (xx, xy, yy) = (
+            l1 * c * c + l2 * sn * sn,
+            (l1 - l2) * c * sn,
+            l1 * sn * sn + l2 * c * c,
+        );
+        let det = xx * yy - xy * xy;
+        s.conics
+            .push([(yy / det) as f32, (-xy / det) as f32, (xx / det) as f32]);
+        s.radii.push([
+            (3.33 * xx.sqrt()).ceil() as u32,
+            (3.33 * yy.sqrt()).ceil() as u32,
+        ]);
+        s.depths.push(rng.uniform(1.0, 100.0) as f32);
+        s.opacities.push(rng.uniform(0.1, 0.9) as f32);
+        for _ in 0..d {
+            s.channels.push(rng.uniform(0.0, 1.0) as f32);
+        }
+    }
+    s
+}
+
+impl Scene {
+    fn splats(&self) -> Splats<'_, f32> {
+        Splats {
+            means2d: &self.means2d,
+            conics: &self.conics,
+            depths: &self.depths,
+            radii: &self.radii,
+            opacities: &self.opacities,
+            channels: &self.channels,
+            channel_count: self.d,
+        }
+    }
+}
+
+fn bench(c: &mut Criterion) {
+    let pools: Vec<(usize, rayon::ThreadPool)> = [1usize, 2]
+        .into_iter()
+        .map(|t| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(t)
+                .build()
+                .unwrap();
+            (t, pool)
+        })
+        .collect();
+    for n in [100_000usize, 1_000_000] {
+        for size in [256u32, 800] {
+            for d in [3usize, 35, 64] {
+                let tag = format!("{d}ch/{}k/{size}", n / 1000);
+                // Build the scene only when some benchmark of this configuration is selected.
+                let wanted = |pass: &str| {
+                    let args: Vec<String> = std::env::args().skip(1).collect();
+                    let filters: Vec<&String> =
+                        args.iter().filter(|a| !a.starts_with('-')).collect();
+                    filters.is_empty()
+                        || filters.iter().any(|f| {
+                            format!("{pass}/{tag}/t1 {pass}/{tag}/t2").contains(f.as_str())
+                        })
+                };
+                if !wanted("forward") && !wanted("backward") {
+                    continue;
+                }
+                let s = scene(n, size, d);
+                let out = rasterize(&s.splats(), s.width, s.height, &s.background).unwrap();
+                let pairs = out.blended_pairs();
+                let pixels = (size * size) as usize;
+                let v_image = vec![0.01f32; pixels * d];
+                let v_alpha = vec![0.01f32; pixels];
+                let v_depth = vec![0.001f32; pixels];
+                eprintln!(
+                    "{tag}: {} intersections, {pairs} blended pairs ({:.1} per pixel)",
+                    out.bins.intersection_count(),
+                    pairs as f64 / pixels as f64
+                );
+                for pass in ["forward", "backward"] {
+                    let mut g = c.benchmark_group(pass);
+                    g.sampling_mode(SamplingMode::Flat)
+                        .sample_size(10)
+                        .warm_up_time(std::time::Duration::from_millis(200))
+                        .measurement_time(std::time::Duration::from_secs(2))
+                        .throughput(Throughput::Elements(pairs));
+                    for (t, pool) in &pools {
+                        let id = BenchmarkId::new(tag.clone(), format!("t{t}"));
+                        if pass == "forward" {
+                            g.bench_function(id, |b| {
+                                pool.install(|| {
+                                    b.iter(|| {
+                                        rasterize(&s.splats(), s.width, s.height, &s.background)
+                                            .unwrap()
+                                    })
+                                })
+                            });
+                        } else {
+                            let cot = Cotangents {
+                                image: &v_image,
+                                alpha: Some(&v_alpha),
+                                depth: Some(&v_depth),
+                            };
+                            g.bench_function(id, |b| {
+                                pool.install(|| {
+                                    b.iter(|| {
+                                        rasterize_backward(
+                                            &s.splats(),
+                                            &out.bins,
+                                            &s.background,
+                                            &cot,
+                                        )
+                                        .unwrap()
+                                    })
+                                })
+                            });
+                        }
+                    }
+                    g.finish();
+                }
+            }
+        }
+    }
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

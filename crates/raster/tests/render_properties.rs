@@ -1,0 +1,280 @@
+//! Property test of the camera-level chain: gradients of every scene parameter against central
+//! differences of `render`, on random scenes and cameras.
+
+mod common;
+
+use common::{dense_reference, Rng, Scene2d};
+use dsgs_testkit::max_rel_err;
+use gaussian::{Camera, FeatureGaussians, Intrinsics};
+use glam::{DMat4, DQuat, DVec3};
+use proptest::prelude::*;
+use proptest::test_runner::TestCaseError;
+use raster::{render, render_backward, Channels, Render, RenderOptions};
+
+/// An image side `16 k + r` with `r` in 1..16: never a multiple of 16.
+fn side() -> impl Strategy<Value = u32> {
+    (1u32..4, 1u32..16).prop_map(|(k, r)| 16 * k + r)
+}
+
+/// A random camera (rotation, translation, focal lengths, principal point up to 20% of the image
+/// off centre) and a scene of `n` Gaussians whose means lie in the inner 80% of the image at
+/// depths 3..6, with sizes of roughly 0.5..4 pixels, opacities in `[0.12, 0.989]` (never reaching
+/// the 0.999 clamp), SH coefficients dominated by the DC term (so `raw + 0.5` stays positive and the
+/// colour clamp is inactive) and `d` features.
+fn random_case(
+    rng: &mut Rng,
+    n: usize,
+    width: u32,
+    height: u32,
+    d: usize,
+    sh_degree: usize,
+) -> (Camera, FeatureGaussians<f64>) {
+    let (w, h) = (width as f64, height as f64);
+    let fx = rng.uniform(0.8, 1.5) * w;
+    let intrinsics = Intrinsics {
+        fx,
+        fy: fx * rng.uniform(0.9, 1.1),
+        cx: w * rng.uniform(0.3, 0.7),
+        cy: h * rng.uniform(0.3, 0.7),
+        width,
+        height,
+    };
+    let q = DQuat::from_xyzw(
+        rng.uniform(-1.0, 1.0),
+        rng.uniform(-1.0, 1.0),
+        rng.uniform(-1.0, 1.0),
+        rng.uniform(0.2, 1.0),
+    )
+    .normalize();
+    let t = DVec3::new(
+        rng.uniform(-1.0, 1.0),
+        rng.uniform(-1.0, 1.0),
+        rng.uniform(-1.0, 1.0),
+    );
+    let camera_from_world = DMat4::from_rotation_translation(q, t);
+    let world_from_camera = camera_from_world.inverse();
+    let camera = Camera::new(intrinsics, camera_from_world);
+    let k = (sh_degree + 1) * (sh_degree + 1);
+    let mut s = FeatureGaussians::<f64> {
+        sh_degree,
+        feature_dim: d,
+        ..Default::default()
+    };
+    for _ in 0..n {
+        let z = rng.uniform(3.0, 6.0);
+        let u = rng.uniform(0.1 * w, 0.9 * w);
+        let v = rng.uniform(0.1 * h, 0.9 * h);
+        let p = DVec3::new(
+            (u - intrinsics.cx) * z / intrinsics.fx,
+            (v - intrinsics.cy) * z / intrinsics.fy,
+            z,
+        );
+        let m = world_from_camera.transform_point3(p);
+        s.means.push([m.x, m.y, m.z]);
+        s.quats
+            .push(std::array::from_fn(|_| rng.uniform(-1.0, 1.0)));
+        let px = z / fx; // world size of one pixel at this depth
+        s.log_scales
+            .push(std::array::from_fn(|_| (rng.uniform(0.5, 4.0) * px).ln()));
+        s.opacity_logits.push(rng.uniform(-2.0, 4.5));
+        for j in 0..k {
+            let (lo, hi) = if j == 0 { (-0.5, 1.5) } else { (-0.02, 0.02) };
+            s.sh.push(std::array::from_fn(|_| rng.uniform(lo, hi)));
+        }
+        s.features.extend(rng.vec(d, 0.0, 1.0));
+    }
+    (camera, s)
+}
+
+/// The rasterizer-level view of a render (geometry only), for the dense reference's margins.
+fn scene2d(r: &Render<f64>) -> Scene2d {
+    Scene2d {
+        width: r.raster.width,
+        height: r.raster.height,
+        channel_count: 0,
+        means2d: r.projected.means2d.clone(),
+        conics: r.projected.conics.clone(),
+        depths: r.projected.depths.clone(),
+        radii: r.projected.radii.clone(),
+        opacities: r.opacities.clone(),
+        channels: vec![],
+        background: vec![],
+    }
+}
+
+/// Applies a perturbation of size `h` to the scene and/or the background.
+type Setter<'a> = &'a dyn Fn(&mut FeatureGaussians<f64>, &mut Vec<f64>, f64);
+
+/// Perturbation of the central differences (all parameters are O(1) or log-scale).
+const H: f64 = 1e-7;
+/// Step for the parameters the loss is linear in (features, background) or nearly so.
+const H_LINEAR: f64 = 1e-3;
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 10, ..ProptestConfig::default() })]
+
+    /// Gradients of means, quaternions, log-scales, opacity logits, SH coefficients, features and
+    /// background of the whole chain against central differences of `render`.
+    ///
+    /// Discontinuities are avoided on purpose. By construction: opacities stay below the 0.999
+    /// clamp, the SH colour clamp at 0 is inactive, means stay inside the image (away from the
+    /// EWA Jacobian's clamp) and far beyond the near plane, and the radius boxes always enclose
+    /// the region where alpha can reach 1/255 (radii are 3.33 standard deviations, the support
+    /// ends at `sqrt(2 ln 255) = 3.329`). By rejection: scenes whose projected Gaussians come
+    /// within 1e-4 (in `ln alpha`) of the 1/255 skip or of the 1e-4 transmittance stop (see
+    /// `dense_reference`), or whose depths are within 1e-4 of each other; a step of 1e-7 moves
+    /// `ln alpha` by at most about 2e-5 here. As a guard, a case is also rejected if any
+    /// perturbed render blends a different number of Gaussians at any pixel than the unperturbed
+    /// one (a skip or stop decision changed inside the stencil).
+    ///
+    /// Output differences are formed per pixel before the dot product with the cotangents, so
+    /// round-off is about `eps |output| / h` per affected pixel, about 1e-8 of the gradients;
+    /// the tolerance is 1e-6.
+    #[test]
+    fn chained_gradients_match_central_differences(
+        n in 1usize..8, d in 1usize..=40, width in side(), height in side(),
+        sh_degree in 0usize..=3, mode in 0usize..3, seed in any::<u64>(),
+    ) {
+        let mut rng = Rng(seed);
+        let (camera, scene) = random_case(&mut rng, n, width, height, d, sh_degree);
+        let channels = match mode {
+            0 => Channels::Color { sh_degree },
+            1 => Channels::Features,
+            _ => Channels::ColorAndFeatures { sh_degree },
+        };
+        let dc = channels.count(d);
+        let opts = RenderOptions::new(channels, rng.vec(dc, 0.0, 1.0));
+        let base = render(&camera, &scene, &opts).unwrap();
+        prop_assume!(base.raster.blended.iter().any(|&c| c > 0));
+        let margins = dense_reference(&scene2d(&base));
+        prop_assume!(margins.alpha_min_margin > 1e-4);
+        prop_assume!(margins.transmittance_margin_per_unit > 1e-4);
+        let mut depths = base.projected.depths.clone();
+        depths.sort_by(f64::total_cmp);
+        prop_assume!(depths.windows(2).all(|w| w[1] - w[0] > 1e-4));
+
+        let pixels = (width * height) as usize;
+        let v_image = rng.vec(pixels * dc, -1.0, 1.0);
+        let v_alpha = rng.vec(pixels, -1.0, 1.0);
+        let v_depth = rng.vec(pixels, -0.1, 0.1);
+        let g = render_backward(
+            &camera, &scene, &opts, &base, &v_image, Some(&v_alpha), Some(&v_depth),
+        ).unwrap();
+
+        // Central difference along `set`, or `None` when the stencil crosses a skip/stop decision.
+        let central = |h: f64, set: Setter| {
+            let mut outs = vec![];
+            for sign in [1.0, -1.0] {
+                let mut s = scene.clone();
+                let mut o = opts.clone();
+                set(&mut s, &mut o.background, sign * h);
+                let r = render(&camera, &s, &o).unwrap();
+                if r.raster.blended != base.raster.blended {
+                    return None;
+                }
+                outs.push(r.raster);
+            }
+            let (p, m) = (&outs[0], &outs[1]);
+            let mut sum = 0.0;
+            for (v, (a, b)) in [
+                (&v_image, (&p.image, &m.image)),
+                (&v_alpha, (&p.alpha, &m.alpha)),
+                (&v_depth, (&p.depth, &m.depth)),
+            ] {
+                for ((&v, &a), &b) in v.iter().zip(a).zip(b) {
+                    sum += v * (a - b);
+                }
+            }
+            Some(sum / (2.0 * h))
+        };
+        let check = |name: &str, an: &[f64], fd: Vec<Option<f64>>| -> Result<(), TestCaseError> {
+            let Some(fd) = fd.into_iter().collect::<Option<Vec<f64>>>() else {
+                return Err(TestCaseError::reject("a stencil crossed a discontinuity"));
+            };
+            let err = max_rel_err(an, &fd);
+            eprintln!("{name}: {err:.2e}");
+            prop_assert!(err <= 1e-6, "{}: max relative error {:.3e}", name, err);
+            Ok(())
+        };
+
+        let (mut an, mut fd) = (vec![], vec![]);
+        for i in 0..n {
+            for a in 0..3 {
+                an.push(g.means[i][a]);
+                fd.push(central(H, &|s, _, h| s.means[i][a] += h));
+            }
+        }
+        check("means", &an, std::mem::take(&mut fd))?;
+        an.clear();
+        for i in 0..n {
+            for a in 0..4 {
+                an.push(g.quats[i][a]);
+                fd.push(central(H, &|s, _, h| s.quats[i][a] += h));
+            }
+        }
+        check("quats", &an, std::mem::take(&mut fd))?;
+        an.clear();
+        for i in 0..n {
+            for a in 0..3 {
+                an.push(g.log_scales[i][a]);
+                fd.push(central(H, &|s, _, h| s.log_scales[i][a] += h));
+            }
+        }
+        check("log_scales", &an, std::mem::take(&mut fd))?;
+        an.clear();
+        for i in 0..n {
+            an.push(g.opacity_logits[i]);
+            fd.push(central(H, &|s, _, h| s.opacity_logits[i] += h));
+        }
+        check("opacity_logits", &an, std::mem::take(&mut fd))?;
+        an.clear();
+        // SH, features and background: every component of the first Gaussian, plus three random
+        // directions through all of them.
+        let kk = scene.sh_coeffs_per_gaussian();
+        if channels.sh_degree().is_some() {
+            for j in 0..kk {
+                for c in 0..3 {
+                    an.push(g.sh[j][c]);
+                    fd.push(central(H_LINEAR, &|s, _, h| s.sh[j][c] += h));
+                }
+            }
+            for _ in 0..3 {
+                let u: Vec<[f64; 3]> = (0..n * kk).map(|_| std::array::from_fn(|_| rng.uniform(-1.0, 1.0))).collect();
+                an.push(g.sh.iter().zip(&u).map(|(a, b)| a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).sum());
+                fd.push(central(H_LINEAR, &|s, _, h| {
+                    for (c, du) in s.sh.iter_mut().zip(&u) {
+                        for a in 0..3 {
+                            c[a] += h * du[a];
+                        }
+                    }
+                }));
+            }
+            check("sh", &an, std::mem::take(&mut fd))?;
+            an.clear();
+        }
+        if channels.has_features() {
+            for c in 0..d {
+                an.push(g.features[c]);
+                fd.push(central(H_LINEAR, &|s, _, h| s.features[c] += h));
+            }
+            for _ in 0..3 {
+                let u = rng.vec(n * d, -1.0, 1.0);
+                an.push(g.features.iter().zip(&u).map(|(a, b)| a * b).sum());
+                fd.push(central(H_LINEAR, &|s, _, h| {
+                    for (c, du) in s.features.iter_mut().zip(&u) {
+                        *c += h * du;
+                    }
+                }));
+            }
+            check("features", &an, std::mem::take(&mut fd))?;
+            an.clear();
+        } else {
+            prop_assert!(g.features.iter().all(|&v| v == 0.0));
+        }
+        for c in 0..dc {
+            an.push(g.background[c]);
+            fd.push(central(H_LINEAR, &|_, b, h| b[c] += h));
+        }
+        check("background", &an, std::mem::take(&mut fd))?;
+    }
+}

@@ -24,4 +24,13 @@ pub enum TrainError {
     /// The dataset has nothing to train on, or an image does not fit its camera.
     #[error("dataset: {0}")]
     Dataset(String),
+    /// A dataset that could not be loaded.
+    #[error(transparent)]
+    DatasetLoad(#[from] gaussian::dataset::DatasetError),
+    /// A PLY file that could not be written or read.
+    #[error(transparent)]
+    Ply(#[from] gaussian::ply::PlyError),
+    /// The rasterizer refused its input.
+    #[error(transparent)]
+    Raster(#[from] raster::RasterError),
 }

@@ -10,19 +10,27 @@
 //! * [`init`]: initial Gaussians from a point cloud (k-d tree neighbour scales).
 //! * [`model`]: the trainable scene with its Adam groups; [`density`]: clone, split, prune and
 //!   opacity reset, keeping the optimiser state consistent.
+//! * [`render`]: colour rendering (projection, SH, rasterization) and its backward pass.
+//! * [`geometry`]: the training loop ([`GeometryTrainer`], [`GeometryConfig`]);
+//!   [`checkpoint`]: exact, atomic checkpoints.
 
 pub mod adam;
+pub mod checkpoint;
 pub mod density;
 pub mod error;
+pub mod geometry;
 pub mod init;
 pub mod loss;
 pub mod model;
+pub mod render;
 pub mod schedule;
 pub mod ssim;
 
 pub use adam::{Adam, AdamConfig, ParamState};
+pub use checkpoint::GeometryCheckpoint;
 pub use density::{DensifyConfig, DensifyReport, DensityStats};
 pub use error::TrainError;
+pub use geometry::{Evaluation, GeometryConfig, GeometryTrainer, StepReport, TrainSummary, View};
 pub use init::{gaussians_from_points, random_points_in_box, PointCloud};
 pub use model::{GaussianGrads, GaussianModel, LearningRates};
 pub use schedule::ExponentialLr;

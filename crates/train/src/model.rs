@@ -181,32 +181,18 @@ impl GaussianModel {
         }
     }
 
-    /// The scene to render: the stored scene truncated to the active SH degree (a copy; the
-    /// stored scene itself when the active degree is the maximum).
-    pub fn render_scene(&self) -> std::borrow::Cow<'_, FeatureGaussians<f32>> {
-        if self.active_sh_degree == self.scene.sh_degree {
-            return std::borrow::Cow::Borrowed(&self.scene);
-        }
-        let k_all = self.scene.sh_coeffs_per_gaussian();
-        let k = (self.active_sh_degree + 1) * (self.active_sh_degree + 1);
-        let mut s = FeatureGaussians {
-            means: self.scene.means.clone(),
-            log_scales: self.scene.log_scales.clone(),
-            quats: self.scene.quats.clone(),
-            opacity_logits: self.scene.opacity_logits.clone(),
-            sh_degree: self.active_sh_degree,
-            sh: Vec::with_capacity(self.len() * k),
-            feature_dim: self.scene.feature_dim,
-            features: self.scene.features.clone(),
-        };
-        for row in self.scene.sh.chunks_exact(k_all) {
-            s.sh.extend_from_slice(&row[..k]);
-        }
-        std::borrow::Cow::Owned(s)
-    }
-
     /// One Adam step of every group from the gradients of the loss.
     pub fn step(&mut self, grads: &GaussianGrads<'_>) -> Result<(), TrainError> {
+        self.step_except(grads, &[])
+    }
+
+    /// One Adam step of every group except those named in `skip` (whose parameters and state
+    /// stay untouched, as for a PyTorch parameter without gradient).
+    pub fn step_except(
+        &mut self,
+        grads: &GaussianGrads<'_>,
+        skip: &[&str],
+    ) -> Result<(), TrainError> {
         let n = self.len();
         let k_all = self.scene.sh_coeffs_per_gaussian();
         let kg = grads.coeffs_per_gaussian;
@@ -229,12 +215,15 @@ impl GaussianModel {
                 "gradient has {kg} SH coefficients per Gaussian, the model stores {k_all}"
             )));
         }
-        let g = self.group(XYZ)?;
-        self.adam.step(
-            g,
-            self.scene.means.as_flattened_mut(),
-            grads.means.as_flattened(),
-        )?;
+        let run = |name: &str| !skip.contains(&name);
+        if run(XYZ) {
+            let g = self.group(XYZ)?;
+            self.adam.step(
+                g,
+                self.scene.means.as_flattened_mut(),
+                grads.means.as_flattened(),
+            )?;
+        }
         // SH gradients at the stored width (zeros above the active degree)
         let padded;
         let sh_grad: &[[f32; 3]] = if kg == k_all {
@@ -248,15 +237,17 @@ impl GaussianModel {
             &padded
         };
         let stride = 3 * k_all;
-        let g = self.group(F_DC)?;
-        self.adam.step_strided(
-            g,
-            self.scene.sh.as_flattened_mut(),
-            sh_grad.as_flattened(),
-            stride,
-            0,
-        )?;
-        if k_all > 1 {
+        if run(F_DC) {
+            let g = self.group(F_DC)?;
+            self.adam.step_strided(
+                g,
+                self.scene.sh.as_flattened_mut(),
+                sh_grad.as_flattened(),
+                stride,
+                0,
+            )?;
+        }
+        if k_all > 1 && run(F_REST) {
             let g = self.group(F_REST)?;
             self.adam.step_strided(
                 g,

@@ -1,0 +1,383 @@
+//! Geometry-stage checkpoints: everything needed to resume training exactly.
+//!
+//! One safetensors file holds, as tensors:
+//! * the scene: `scene.means [N,3]`, `scene.log_scales [N,3]`, `scene.quats [N,4]`,
+//!   `scene.opacity_logits [N]`, `scene.sh [N,K,3]` (f32);
+//! * the Adam state of every group `G`: `adam.G.exp_avg`, `adam.G.exp_avg_sq` (`[N, width]`, f32);
+//! * the densification statistics: `stats.grad_norm_sum [N]` (f64), `stats.visible_count [N]`,
+//!   `stats.max_screen_radius [N]` (u32);
+//! * the views left in the current pass over the training set: `view_stack [M]` (u64);
+//!
+//! and, as string metadata, the format tag, the completed step, the seed, the scene extent, the
+//! active SH degree, each group's learning rate and step count, the running averages shown in
+//! the progress bar and the configuration (JSON). Floating-point metadata is written in Rust's
+//! shortest round-trip form, so it reads back bit-identically. The file is written to a temporary
+//! name in the same directory and renamed into place.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use gaussian::FeatureGaussians;
+use safetensors::{Dtype, SafeTensors};
+
+use crate::adam::{Adam, AdamConfig, ParamState};
+use crate::density::DensityStats;
+use crate::error::TrainError;
+use crate::model::GaussianModel;
+
+/// The value of the `format` metadata entry.
+pub const FORMAT: &str = "dsgs-geometry-checkpoint-v1";
+
+/// The resumable state of a geometry training run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GeometryCheckpoint {
+    /// Completed iterations.
+    pub step: u64,
+    pub model: GaussianModel,
+    /// Training-view indices not yet visited in the current pass.
+    pub view_stack: Vec<usize>,
+    /// Exponential moving averages of the loss and PSNR (progress display only).
+    pub ema_loss: f64,
+    pub ema_psnr: f64,
+    pub seed: u64,
+    /// The scene extent (3DGS `cameras_extent`).
+    pub extent: f64,
+    /// The configuration of the run, as JSON (informative).
+    pub config_json: String,
+}
+
+struct Tensor {
+    name: String,
+    dtype: Dtype,
+    shape: Vec<usize>,
+    bytes: Vec<u8>,
+}
+
+fn f32_tensor(name: &str, shape: Vec<usize>, v: &[f32]) -> Tensor {
+    Tensor {
+        name: name.to_string(),
+        dtype: Dtype::F32,
+        shape,
+        bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+    }
+}
+
+/// Writes `bytes` to `path` atomically: a temporary file in the same directory, then a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TrainError> {
+    let io = |source| TrainError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let dir = path.parent().filter(|p| !p.as_os_str().is_empty());
+    if let Some(d) = dir {
+        std::fs::create_dir_all(d).map_err(io)?;
+    }
+    let file_name = path
+        .file_name()
+        .ok_or_else(|| io(std::io::Error::other("not a file path")))?;
+    let mut tmp_name = std::ffi::OsString::from(".");
+    tmp_name.push(file_name);
+    tmp_name.push(format!(".tmp{}", std::process::id()));
+    let tmp: PathBuf = match dir {
+        Some(d) => d.join(tmp_name),
+        None => PathBuf::from(tmp_name),
+    };
+    let result = (|| {
+        use std::io::Write;
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result.map_err(io)
+}
+
+impl GeometryCheckpoint {
+    /// Serialises the checkpoint to safetensors bytes.
+    pub fn to_bytes(&self) -> Result<Vec<u8>, TrainError> {
+        let m = &self.model;
+        let s = &m.scene;
+        let n = s.len();
+        let k = s.sh_coeffs_per_gaussian();
+        let mut tensors = vec![
+            f32_tensor("scene.means", vec![n, 3], s.means.as_flattened()),
+            f32_tensor("scene.log_scales", vec![n, 3], s.log_scales.as_flattened()),
+            f32_tensor("scene.quats", vec![n, 4], s.quats.as_flattened()),
+            f32_tensor("scene.opacity_logits", vec![n], &s.opacity_logits),
+            f32_tensor("scene.sh", vec![n, k, 3], s.sh.as_flattened()),
+        ];
+        let mut meta = HashMap::new();
+        meta.insert("format".to_string(), FORMAT.to_string());
+        meta.insert("step".to_string(), self.step.to_string());
+        meta.insert("seed".to_string(), self.seed.to_string());
+        meta.insert("extent".to_string(), self.extent.to_string());
+        meta.insert("ema_loss".to_string(), self.ema_loss.to_string());
+        meta.insert("ema_psnr".to_string(), self.ema_psnr.to_string());
+        meta.insert("sh_degree".to_string(), s.sh_degree.to_string());
+        meta.insert(
+            "active_sh_degree".to_string(),
+            m.active_sh_degree.to_string(),
+        );
+        meta.insert("adam.beta1".to_string(), m.adam.config.beta1.to_string());
+        meta.insert("adam.beta2".to_string(), m.adam.config.beta2.to_string());
+        meta.insert("adam.eps".to_string(), m.adam.config.eps.to_string());
+        let names: Vec<&str> = m.adam.params().iter().map(|p| p.name.as_str()).collect();
+        meta.insert("adam.groups".to_string(), names.join(","));
+        for p in m.adam.params() {
+            let w = p.width();
+            meta.insert(format!("adam.{}.lr", p.name), p.lr.to_string());
+            meta.insert(format!("adam.{}.step", p.name), p.step_count().to_string());
+            meta.insert(format!("adam.{}.width", p.name), w.to_string());
+            tensors.push(f32_tensor(
+                &format!("adam.{}.exp_avg", p.name),
+                vec![p.rows(), w],
+                p.exp_avg(),
+            ));
+            tensors.push(f32_tensor(
+                &format!("adam.{}.exp_avg_sq", p.name),
+                vec![p.rows(), w],
+                p.exp_avg_sq(),
+            ));
+        }
+        meta.insert("config".to_string(), self.config_json.clone());
+        tensors.push(Tensor {
+            name: "stats.grad_norm_sum".into(),
+            dtype: Dtype::F64,
+            shape: vec![n],
+            bytes: m
+                .stats
+                .grad_norm_sum
+                .iter()
+                .flat_map(|x| x.to_le_bytes())
+                .collect(),
+        });
+        for (name, v) in [
+            ("stats.visible_count", &m.stats.visible_count),
+            ("stats.max_screen_radius", &m.stats.max_screen_radius),
+        ] {
+            tensors.push(Tensor {
+                name: name.into(),
+                dtype: Dtype::U32,
+                shape: vec![n],
+                bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+            });
+        }
+        tensors.push(Tensor {
+            name: "view_stack".into(),
+            dtype: Dtype::U64,
+            shape: vec![self.view_stack.len()],
+            bytes: self
+                .view_stack
+                .iter()
+                .flat_map(|&x| (x as u64).to_le_bytes())
+                .collect(),
+        });
+        let views: Vec<(String, safetensors::tensor::TensorView<'_>)> = tensors
+            .iter()
+            .map(|t| {
+                safetensors::tensor::TensorView::new(t.dtype, t.shape.clone(), &t.bytes)
+                    .map(|v| (t.name.clone(), v))
+                    .map_err(|e| TrainError::Shape(format!("checkpoint tensor {}: {e}", t.name)))
+            })
+            .collect::<Result<_, _>>()?;
+        safetensors::serialize(views, Some(meta))
+            .map_err(|e| TrainError::Shape(format!("cannot serialise the checkpoint: {e}")))
+    }
+
+    /// Writes the checkpoint atomically.
+    pub fn save(&self, path: &Path) -> Result<(), TrainError> {
+        let bytes = self.to_bytes()?;
+        write_atomic(path, &bytes)
+    }
+
+    /// Reads a checkpoint written by [`GeometryCheckpoint::save`].
+    pub fn load(path: &Path) -> Result<Self, TrainError> {
+        let bytes = std::fs::read(path).map_err(|source| TrainError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_bytes(&bytes, path)
+    }
+
+    /// Parses checkpoint bytes; `path` only names the file in errors.
+    pub fn from_bytes(bytes: &[u8], path: &Path) -> Result<Self, TrainError> {
+        let r = Reader::new(bytes, path)?;
+        if r.meta_str("format")? != FORMAT {
+            return Err(r.err(format!(
+                "format `{}` is not `{FORMAT}`",
+                r.meta_str("format")?
+            )));
+        }
+        let sh_degree: usize = r.meta_parse("sh_degree")?;
+        if sh_degree > 3 {
+            return Err(r.err(format!("SH degree {sh_degree} is not supported")));
+        }
+        let k = (sh_degree + 1) * (sh_degree + 1);
+        let means = r.f32s("scene.means", &[None, Some(3)])?;
+        let n = means.len() / 3;
+        let scene = FeatureGaussians {
+            means: rows3(&means),
+            log_scales: rows3(&r.f32s("scene.log_scales", &[Some(n), Some(3)])?),
+            quats: r
+                .f32s("scene.quats", &[Some(n), Some(4)])?
+                .chunks_exact(4)
+                .map(|c| [c[0], c[1], c[2], c[3]])
+                .collect(),
+            opacity_logits: r.f32s("scene.opacity_logits", &[Some(n)])?,
+            sh_degree,
+            sh: rows3(&r.f32s("scene.sh", &[Some(n), Some(k), Some(3)])?),
+            feature_dim: 0,
+            features: Vec::new(),
+        };
+        let config = AdamConfig {
+            beta1: r.meta_parse("adam.beta1")?,
+            beta2: r.meta_parse("adam.beta2")?,
+            eps: r.meta_parse("adam.eps")?,
+        };
+        let mut adam = Adam::new(config);
+        for name in r.meta_str("adam.groups")?.split(',') {
+            let width: usize = r.meta_parse(&format!("adam.{name}.width"))?;
+            let m = r.f32s(&format!("adam.{name}.exp_avg"), &[Some(n), Some(width)])?;
+            let v = r.f32s(&format!("adam.{name}.exp_avg_sq"), &[Some(n), Some(width)])?;
+            let state = ParamState::from_parts(
+                name,
+                r.meta_parse(&format!("adam.{name}.lr"))?,
+                width,
+                r.meta_parse(&format!("adam.{name}.step"))?,
+                m,
+                v,
+            )
+            .map_err(|e| r.err(e.to_string()))?;
+            adam.push_state(state);
+        }
+        let stats = DensityStats {
+            grad_norm_sum: r.f64s("stats.grad_norm_sum", n)?,
+            visible_count: r.u32s("stats.visible_count", n)?,
+            max_screen_radius: r.u32s("stats.max_screen_radius", n)?,
+        };
+        let model = GaussianModel {
+            scene,
+            active_sh_degree: r.meta_parse("active_sh_degree")?,
+            adam,
+            stats,
+        };
+        model
+            .check_consistency()
+            .map_err(|e| r.err(e.to_string()))?;
+        Ok(GeometryCheckpoint {
+            step: r.meta_parse("step")?,
+            model,
+            view_stack: r.u64s("view_stack")?,
+            ema_loss: r.meta_parse("ema_loss")?,
+            ema_psnr: r.meta_parse("ema_psnr")?,
+            seed: r.meta_parse("seed")?,
+            extent: r.meta_parse("extent")?,
+            config_json: r.meta_str("config")?.to_string(),
+        })
+    }
+}
+
+fn rows3(v: &[f32]) -> Vec<[f32; 3]> {
+    v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+}
+
+/// Validating access to a checkpoint's tensors and metadata.
+struct Reader<'a> {
+    st: SafeTensors<'a>,
+    meta: HashMap<String, String>,
+    path: &'a Path,
+}
+
+impl<'a> Reader<'a> {
+    fn new(bytes: &'a [u8], path: &'a Path) -> Result<Self, TrainError> {
+        let st = SafeTensors::deserialize(bytes).map_err(|e| TrainError::Checkpoint {
+            path: path.to_path_buf(),
+            message: format!("not a safetensors file: {e}"),
+        })?;
+        let meta = SafeTensors::read_metadata(bytes)
+            .ok()
+            .and_then(|(_, m)| m.metadata().clone())
+            .unwrap_or_default();
+        Ok(Reader { st, meta, path })
+    }
+
+    fn err(&self, message: String) -> TrainError {
+        TrainError::Checkpoint {
+            path: self.path.to_path_buf(),
+            message,
+        }
+    }
+
+    fn meta_str(&self, key: &str) -> Result<&str, TrainError> {
+        self.meta
+            .get(key)
+            .map(String::as_str)
+            .ok_or_else(|| self.err(format!("metadata entry `{key}` is missing")))
+    }
+
+    fn meta_parse<V: std::str::FromStr>(&self, key: &str) -> Result<V, TrainError> {
+        let s = self.meta_str(key)?;
+        s.parse()
+            .map_err(|_| self.err(format!("metadata entry `{key}` = `{s}` is malformed")))
+    }
+
+    fn raw(
+        &self,
+        name: &str,
+        dtype: Dtype,
+        shape: &[Option<usize>],
+    ) -> Result<&'a [u8], TrainError> {
+        let t = self
+            .st
+            .tensor(name)
+            .map_err(|_| self.err(format!("tensor `{name}` is missing")))?;
+        let ok_shape = t.shape().len() == shape.len()
+            && t.shape()
+                .iter()
+                .zip(shape)
+                .all(|(&a, b)| b.is_none_or(|b| a == b));
+        if t.dtype() != dtype || !ok_shape {
+            return Err(self.err(format!(
+                "tensor `{name}` is {:?} {:?}, expected {dtype:?} {shape:?}",
+                t.dtype(),
+                t.shape()
+            )));
+        }
+        Ok(t.data())
+    }
+
+    fn f32s(&self, name: &str, shape: &[Option<usize>]) -> Result<Vec<f32>, TrainError> {
+        Ok(self
+            .raw(name, Dtype::F32, shape)?
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect())
+    }
+
+    fn f64s(&self, name: &str, n: usize) -> Result<Vec<f64>, TrainError> {
+        Ok(self
+            .raw(name, Dtype::F64, &[Some(n)])?
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")))
+            .collect())
+    }
+
+    fn u32s(&self, name: &str, n: usize) -> Result<Vec<u32>, TrainError> {
+        Ok(self
+            .raw(name, Dtype::U32, &[Some(n)])?
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect())
+    }
+
+    fn u64s(&self, name: &str) -> Result<Vec<usize>, TrainError> {
+        Ok(self
+            .raw(name, Dtype::U64, &[None])?
+            .chunks_exact(8)
+            .map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")) as usize)
+            .collect())
+    }
+}

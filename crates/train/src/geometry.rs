@@ -1,0 +1,591 @@
+//! The geometry stage: fitting a 3D Gaussian Splatting scene to posed images, iteration by
+//! iteration as the original 3DGS `train.py` does.
+//!
+//! Iteration `i` (counted from 1):
+//! 1. the position learning rate is set from its schedule at `i`;
+//! 2. every `sh_degree_interval` (1,000) iterations the active SH degree grows by one;
+//! 3. a training view is drawn without replacement from the views not yet seen in this pass
+//!    (the pass restarts when all have been seen);
+//! 4. the scene is rendered over the background colour, the loss
+//!    `0.8 L1 + 0.2 (1 - SSIM)` is taken against the image and differentiated;
+//! 5. below `densify_until_iter`, the densification statistics are gathered, density control and
+//!    opacity resets run on their schedule ([`crate::density`]);
+//! 6. Adam steps every group whose tensor was not replaced in step 5: in 3DGS, density control
+//!    replaces every optimised tensor (which then has no gradient and is skipped by
+//!    `optimizer.step()`), and an opacity reset replaces the opacity tensor. The last iteration
+//!    takes no optimiser step (`if iteration < opt.iterations`).
+//!
+//! Randomness (view order, split samples) comes from a generator seeded by the run seed and the
+//! iteration number, so a run resumed from a checkpoint continues exactly as the uninterrupted
+//! run would. Every kernel is deterministic for any thread count.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use gaussian::dataset::Dataset;
+use gaussian::{Camera, FeatureGaussians};
+use indicatif::{ProgressBar, ProgressStyle};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+
+use crate::adam::AdamConfig;
+use crate::checkpoint::GeometryCheckpoint;
+use crate::density::{DensifyConfig, DensifyReport};
+use crate::error::TrainError;
+use crate::init::{gaussians_from_points, random_points_in_box, PointCloud};
+use crate::loss::{photometric_loss_with_grad, psnr, LossTerms};
+use crate::model::{GaussianGrads, GaussianModel, LearningRates, OPACITY};
+use crate::render::{render_color, render_color_backward};
+use crate::ssim::{ssim, ImageShape};
+
+/// Settings of a geometry run. Defaults are those of the original 3DGS code.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct GeometryConfig {
+    /// Total iterations.
+    pub iterations: u64,
+    /// Seed of every random choice (initial points, view order, split samples).
+    pub seed: u64,
+    /// Maximum SH degree.
+    pub sh_degree: usize,
+    /// Iterations between increments of the active SH degree.
+    pub sh_degree_interval: u64,
+    /// Weight of `1 - SSIM` in the loss.
+    pub lambda_dssim: f64,
+    /// Background colour behind the Gaussians (and behind transparent dataset pixels).
+    pub background: [f32; 3],
+    /// Random initial points when the dataset has none (NeRF-synthetic).
+    pub random_init_points: usize,
+    /// Half side of the cube the random points fill.
+    pub random_init_half_extent: f64,
+    pub learning_rates: LearningRates,
+    /// Adam hyper-parameters; 3DGS uses eps 1e-15.
+    pub adam: AdamConfig,
+    pub densify: DensifyConfig,
+    /// Iterations after which the held-out views are evaluated.
+    pub test_iterations: Vec<u64>,
+    /// Iterations after which the scene is written as a `.ply`.
+    pub save_iterations: Vec<u64>,
+    /// Iterations after which a resumable checkpoint is written.
+    pub checkpoint_iterations: Vec<u64>,
+    /// Show a progress bar.
+    pub progress: bool,
+}
+
+impl Default for GeometryConfig {
+    fn default() -> Self {
+        GeometryConfig {
+            iterations: 30_000,
+            seed: 0,
+            sh_degree: 3,
+            sh_degree_interval: 1000,
+            lambda_dssim: 0.2,
+            background: [0.0; 3],
+            random_init_points: 100_000,
+            random_init_half_extent: 1.3,
+            learning_rates: LearningRates::default(),
+            adam: AdamConfig {
+                eps: 1e-15,
+                ..AdamConfig::default()
+            },
+            densify: DensifyConfig::default(),
+            test_iterations: vec![7000, 30_000],
+            save_iterations: vec![7000, 30_000],
+            checkpoint_iterations: Vec::new(),
+            progress: true,
+        }
+    }
+}
+
+impl GeometryConfig {
+    fn validate(&self) -> Result<(), TrainError> {
+        if self.sh_degree > 3 {
+            return Err(TrainError::Config(format!(
+                "sh_degree {} is above 3",
+                self.sh_degree
+            )));
+        }
+        if !(0.0..=1.0).contains(&self.lambda_dssim) {
+            return Err(TrainError::Config(format!(
+                "lambda_dssim {} is outside [0, 1]",
+                self.lambda_dssim
+            )));
+        }
+        if self.densify.split_count == 0 {
+            return Err(TrainError::Config("densify.split_count is 0".into()));
+        }
+        Ok(())
+    }
+}
+
+/// A posed image: the camera and its RGB image (row-major, `height * width * 3`, in [0, 1]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct View {
+    pub name: String,
+    pub camera: Camera,
+    pub image: Vec<f32>,
+}
+
+impl View {
+    /// The image shape.
+    pub fn shape(&self) -> ImageShape {
+        let k = self.camera.intrinsics;
+        ImageShape::new(k.width as usize, k.height as usize, 3)
+    }
+
+    fn check(&self) -> Result<(), TrainError> {
+        let s = self.shape();
+        if s.is_empty() || self.image.len() != s.len() {
+            return Err(TrainError::Dataset(format!(
+                "view `{}`: image has {} values, its {}x{} camera needs {}",
+                self.name,
+                self.image.len(),
+                s.width,
+                s.height,
+                s.len()
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Loads the images at `indices` of a dataset as views.
+pub fn load_views(dataset: &Dataset, indices: &[usize]) -> Result<Vec<View>, TrainError> {
+    let images = dataset.load_images(indices)?;
+    indices
+        .iter()
+        .zip(images)
+        .map(|(&i, img)| {
+            let v = View {
+                name: dataset.names[i].clone(),
+                camera: dataset.cameras[i],
+                image: img.data,
+            };
+            v.check()?;
+            Ok(v)
+        })
+        .collect()
+}
+
+/// The initial point cloud of a dataset: its points (COLMAP `points3D`) when present, otherwise
+/// the 3DGS random cube.
+pub fn initial_points(dataset: &Dataset, config: &GeometryConfig) -> PointCloud {
+    match &dataset.points {
+        Some(p) if !p.positions.is_empty() => PointCloud {
+            positions: p.positions.clone(),
+            colors: p.colors_f32(),
+        },
+        _ => {
+            let h = config.random_init_half_extent;
+            random_points_in_box(config.random_init_points, [-h; 3], [h; 3], config.seed)
+        }
+    }
+}
+
+/// What one iteration did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepReport {
+    /// The iteration number (from 1).
+    pub step: u64,
+    pub loss: LossTerms,
+    /// PSNR of the (unclamped) render against the training image.
+    pub psnr: f64,
+    /// Gaussians after the iteration.
+    pub gaussians: usize,
+    pub densified: Option<DensifyReport>,
+    pub opacity_reset: bool,
+}
+
+/// Held-out image quality, averaged over views (per-view PSNR averaged, as 3DGS reports it).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Evaluation {
+    pub step: u64,
+    pub views: usize,
+    pub psnr: f64,
+    pub ssim: f64,
+    pub l1: f64,
+    pub gaussians: usize,
+}
+
+/// The result of [`GeometryTrainer::train`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrainSummary {
+    /// Completed iterations when training stopped.
+    pub step: u64,
+    /// Whether the stop flag ended the run early.
+    pub interrupted: bool,
+    pub evaluations: Vec<Evaluation>,
+    /// Wall time of the iterations run by this call, in seconds.
+    pub seconds: f64,
+    pub gaussians: usize,
+}
+
+/// A geometry training run.
+pub struct GeometryTrainer {
+    pub config: GeometryConfig,
+    pub model: GaussianModel,
+    /// Completed iterations.
+    pub step: u64,
+    /// The scene extent (3DGS `cameras_extent`, from the training cameras).
+    pub extent: f64,
+    pub train_views: Vec<View>,
+    pub test_views: Vec<View>,
+    view_stack: Vec<usize>,
+    ema_loss: f64,
+    ema_psnr: f64,
+}
+
+impl GeometryTrainer {
+    /// A run at step 0 from initial Gaussians (see [`crate::init`]). The extent is computed
+    /// from the training cameras.
+    pub fn new(
+        config: GeometryConfig,
+        initial: FeatureGaussians<f32>,
+        train_views: Vec<View>,
+        test_views: Vec<View>,
+    ) -> Result<Self, TrainError> {
+        config.validate()?;
+        if train_views.is_empty() {
+            return Err(TrainError::Dataset("no training views".into()));
+        }
+        for v in train_views.iter().chain(&test_views) {
+            v.check()?;
+        }
+        if initial.sh_degree != config.sh_degree {
+            return Err(TrainError::Config(format!(
+                "initial Gaussians store SH degree {}, the configuration asks for {}",
+                initial.sh_degree, config.sh_degree
+            )));
+        }
+        let cams: Vec<Camera> = train_views.iter().map(|v| v.camera).collect();
+        let extent = gaussian::scene_extent_from_cameras(&cams);
+        let model = GaussianModel::new(initial, &config.learning_rates, config.adam, extent)?;
+        Ok(GeometryTrainer {
+            config,
+            model,
+            step: 0,
+            extent,
+            train_views,
+            test_views,
+            view_stack: Vec::new(),
+            ema_loss: 0.0,
+            ema_psnr: 0.0,
+        })
+    }
+
+    /// A run at step 0 on a dataset: the training views are all images, or those of the
+    /// every-8th split when `eval_split` is set (the held-out ones become test views); the
+    /// initial Gaussians come from [`initial_points`].
+    pub fn from_dataset(
+        config: GeometryConfig,
+        dataset: &Dataset,
+        eval_split: bool,
+    ) -> Result<Self, TrainError> {
+        let (train_idx, test_idx) = if eval_split {
+            let s = dataset.split();
+            (s.train, s.test)
+        } else {
+            ((0..dataset.len()).collect(), Vec::new())
+        };
+        let train = load_views(dataset, &train_idx)?;
+        let test = load_views(dataset, &test_idx)?;
+        let cloud = initial_points(dataset, &config);
+        let initial = gaussians_from_points(&cloud, config.sh_degree)?;
+        GeometryTrainer::new(config, initial, train, test)
+    }
+
+    /// Continues a run from a checkpoint with the same views (the configuration may differ,
+    /// e.g. more iterations).
+    pub fn resume(
+        config: GeometryConfig,
+        checkpoint: GeometryCheckpoint,
+        train_views: Vec<View>,
+        test_views: Vec<View>,
+    ) -> Result<Self, TrainError> {
+        config.validate()?;
+        if let Some(&bad) = checkpoint
+            .view_stack
+            .iter()
+            .find(|&&i| i >= train_views.len())
+        {
+            return Err(TrainError::Config(format!(
+                "the checkpoint refers to training view {bad}, but there are only {} views",
+                train_views.len()
+            )));
+        }
+        for v in train_views.iter().chain(&test_views) {
+            v.check()?;
+        }
+        Ok(GeometryTrainer {
+            config,
+            model: checkpoint.model,
+            step: checkpoint.step,
+            extent: checkpoint.extent,
+            train_views,
+            test_views,
+            view_stack: checkpoint.view_stack,
+            ema_loss: checkpoint.ema_loss,
+            ema_psnr: checkpoint.ema_psnr,
+        })
+    }
+
+    /// The resumable state of the run.
+    pub fn checkpoint(&self) -> Result<GeometryCheckpoint, TrainError> {
+        Ok(GeometryCheckpoint {
+            step: self.step,
+            model: self.model.clone(),
+            view_stack: self.view_stack.clone(),
+            ema_loss: self.ema_loss,
+            ema_psnr: self.ema_psnr,
+            seed: self.config.seed,
+            extent: self.extent,
+            config_json: serde_json::to_string(&self.config)
+                .map_err(|e| TrainError::Config(e.to_string()))?,
+        })
+    }
+
+    /// Writes a checkpoint atomically.
+    pub fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
+        self.checkpoint()?.save(path)
+    }
+
+    /// Writes the scene as an official 3DGS `.ply` (atomically).
+    pub fn save_ply(&self, path: &Path) -> Result<(), TrainError> {
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
+                path: dir.to_path_buf(),
+                source,
+            })?;
+        }
+        gaussian::ply::save_ply(path, &self.model.scene)?;
+        Ok(())
+    }
+
+    /// The generator for iteration `step`: a function of the seed and the iteration only.
+    fn rng_for(&self, step: u64) -> StdRng {
+        StdRng::seed_from_u64(splitmix64(self.config.seed ^ splitmix64(step)))
+    }
+
+    /// Runs one iteration.
+    pub fn train_step(&mut self) -> Result<StepReport, TrainError> {
+        let it = self.step + 1;
+        let mut rng = self.rng_for(it);
+        let sched = self.config.learning_rates.position_schedule(self.extent);
+        self.model.set_position_lr(sched.at(it))?;
+        if self.config.sh_degree_interval > 0 && it % self.config.sh_degree_interval == 0 {
+            self.model.one_up_sh_degree();
+        }
+        if self.view_stack.is_empty() {
+            self.view_stack = (0..self.train_views.len()).collect();
+        }
+        let pick = rng.random_range(0..self.view_stack.len());
+        let view_index = self.view_stack.remove(pick);
+        let view = &self.train_views[view_index];
+        let shape = view.shape();
+
+        let fwd = render_color(
+            &view.camera,
+            &self.model.scene,
+            self.model.active_sh_degree,
+            self.config.background,
+        )?;
+        let image = &fwd.raster.image;
+        let (loss, v_image) =
+            photometric_loss_with_grad(image, &view.image, shape, self.config.lambda_dssim)?;
+        let train_psnr = psnr(image, &view.image, shape)?;
+        let grads = render_color_backward(
+            &view.camera,
+            &self.model.scene,
+            self.model.active_sh_degree,
+            self.config.background,
+            &fwd,
+            &v_image,
+        )?;
+
+        let d = self.config.densify;
+        let mut densified = None;
+        let mut opacity_reset = false;
+        if d.gathers_stats(it) {
+            let k = view.camera.intrinsics;
+            self.model
+                .stats
+                .accumulate(&fwd.projected.radii, &grads.means2d, k.width, k.height)?;
+            if d.densifies_at(it) {
+                let prune_large = d.prunes_large_at(it);
+                densified =
+                    Some(
+                        self.model
+                            .densify_and_prune(&d, self.extent, prune_large, &mut rng)?,
+                    );
+            }
+            let white = self.config.background == [1.0; 3];
+            if d.resets_opacity_at(it, white) {
+                self.model.reset_opacity(d.opacity_reset_value)?;
+                opacity_reset = true;
+            }
+        }
+        if it < self.config.iterations && densified.is_none() {
+            let g = GaussianGrads {
+                means: &grads.means,
+                quats: &grads.quats,
+                log_scales: &grads.log_scales,
+                opacity_logits: &grads.opacity_logits,
+                sh: &grads.sh,
+                coeffs_per_gaussian: self.model.scene.sh_coeffs_per_gaussian(),
+            };
+            let skip: &[&str] = if opacity_reset { &[OPACITY] } else { &[] };
+            self.model.step_except(&g, skip)?;
+        }
+        self.step = it;
+        if it == 1 {
+            self.ema_loss = loss.total;
+            self.ema_psnr = train_psnr;
+        } else {
+            self.ema_loss = 0.4 * loss.total + 0.6 * self.ema_loss;
+            self.ema_psnr = 0.4 * train_psnr + 0.6 * self.ema_psnr;
+        }
+        Ok(StepReport {
+            step: it,
+            loss,
+            psnr: train_psnr,
+            gaussians: self.model.len(),
+            densified,
+            opacity_reset,
+        })
+    }
+
+    /// Renders every test view (clamped to [0, 1], as 3DGS evaluates) and averages PSNR, SSIM
+    /// and L1 over them. `None` without test views.
+    pub fn evaluate(&self) -> Result<Option<Evaluation>, TrainError> {
+        self.evaluate_views(&self.test_views)
+    }
+
+    /// [`GeometryTrainer::evaluate`] on any views.
+    pub fn evaluate_views(&self, views: &[View]) -> Result<Option<Evaluation>, TrainError> {
+        if views.is_empty() {
+            return Ok(None);
+        }
+        let (mut p, mut s, mut l) = (0.0, 0.0, 0.0);
+        for v in views {
+            let fwd = render_color(
+                &v.camera,
+                &self.model.scene,
+                self.model.active_sh_degree,
+                self.config.background,
+            )?;
+            let img: Vec<f32> = fwd.raster.image.iter().map(|x| x.clamp(0.0, 1.0)).collect();
+            let shape = v.shape();
+            p += psnr(&img, &v.image, shape)?;
+            s += ssim(&img, &v.image, shape)?;
+            l += crate::loss::l1_loss(&img, &v.image, shape)?;
+        }
+        let n = views.len() as f64;
+        Ok(Some(Evaluation {
+            step: self.step,
+            views: views.len(),
+            psnr: p / n,
+            ssim: s / n,
+            l1: l / n,
+            gaussians: self.model.len(),
+        }))
+    }
+
+    /// Trains up to `config.iterations`, evaluating, saving `.ply` files
+    /// (`out_dir/point_cloud/iteration_I/point_cloud.ply`, the 3DGS layout) and checkpoints
+    /// (`out_dir/chkpnt_I.safetensors`) at the configured iterations. When `stop` becomes true the
+    /// run ends after the current iteration (the caller may then write a checkpoint).
+    pub fn train(
+        &mut self,
+        out_dir: Option<&Path>,
+        stop: Option<&AtomicBool>,
+    ) -> Result<TrainSummary, TrainError> {
+        let start = Instant::now();
+        let bar = if self.config.progress {
+            let b = ProgressBar::new(self.config.iterations);
+            b.set_style(
+                ProgressStyle::with_template(
+                    "{bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {per_sec} {msg}",
+                )
+                .expect("valid template"),
+            );
+            b.set_position(self.step);
+            b
+        } else {
+            ProgressBar::hidden()
+        };
+        let mut evaluations = Vec::new();
+        let mut interrupted = false;
+        while self.step < self.config.iterations {
+            if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+                interrupted = true;
+                break;
+            }
+            let r = self.train_step()?;
+            let it = r.step;
+            if it % 10 == 0 || it == self.config.iterations {
+                bar.set_message(format!(
+                    "loss {:.5}  psnr {:.2}  N {}",
+                    self.ema_loss, self.ema_psnr, r.gaussians
+                ));
+                bar.set_position(it);
+            }
+            if self.config.test_iterations.contains(&it) {
+                if let Some(e) = self.evaluate()? {
+                    bar.println(format!(
+                        "[ITER {it}] test: PSNR {:.3} SSIM {:.4} L1 {:.5} ({} views, {} Gaussians)",
+                        e.psnr, e.ssim, e.l1, e.views, e.gaussians
+                    ));
+                    evaluations.push(e);
+                }
+            }
+            if let Some(dir) = out_dir {
+                if self.config.save_iterations.contains(&it) {
+                    let p = ply_path(dir, it);
+                    self.save_ply(&p)?;
+                    bar.println(format!("[ITER {it}] saved {}", p.display()));
+                }
+                if self.config.checkpoint_iterations.contains(&it) {
+                    let p = checkpoint_path(dir, it);
+                    self.save_checkpoint(&p)?;
+                    bar.println(format!("[ITER {it}] checkpoint {}", p.display()));
+                }
+            }
+        }
+        bar.finish();
+        Ok(TrainSummary {
+            step: self.step,
+            interrupted,
+            evaluations,
+            seconds: start.elapsed().as_secs_f64(),
+            gaussians: self.model.len(),
+        })
+    }
+
+    /// The running averages of loss and training PSNR shown by the progress bar.
+    pub fn running_averages(&self) -> (f64, f64) {
+        (self.ema_loss, self.ema_psnr)
+    }
+}
+
+/// `out_dir/point_cloud/iteration_I/point_cloud.ply`, where 3DGS writes its scenes.
+pub fn ply_path(out_dir: &Path, iteration: u64) -> PathBuf {
+    out_dir
+        .join("point_cloud")
+        .join(format!("iteration_{iteration}"))
+        .join("point_cloud.ply")
+}
+
+/// `out_dir/chkpnt_I.safetensors`.
+pub fn checkpoint_path(out_dir: &Path, iteration: u64) -> PathBuf {
+    out_dir.join(format!("chkpnt_{iteration}.safetensors"))
+}
+
+/// The SplitMix64 finaliser: a bijective mix of 64 bits.
+fn splitmix64(x: u64) -> u64 {
+    let mut z = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}

@@ -1,0 +1,79 @@
+//! Synthetic scenes and views for the training tests.
+
+#![allow(dead_code)]
+
+use gaussian::camera_path::look_at;
+use gaussian::{Camera, FeatureGaussians, Intrinsics};
+use glam::DVec3;
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use train::geometry::View;
+use train::render::render_color;
+
+/// A known scene: `n` opaque-ish Gaussians of degree-0 colour in the cube `[-0.8, 0.8]^3`.
+pub fn synthetic_scene(n: usize, seed: u64) -> FeatureGaussians<f32> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut g = FeatureGaussians {
+        sh_degree: 0,
+        ..Default::default()
+    };
+    for _ in 0..n {
+        g.means
+            .push(std::array::from_fn(|_| rng.random_range(-0.8f32..0.8)));
+        g.log_scales.push(std::array::from_fn(|_| {
+            rng.random_range(0.04f32..0.15).ln()
+        }));
+        g.quats
+            .push(std::array::from_fn(|_| rng.random_range(-1.0f32..1.0)));
+        g.opacity_logits.push(rng.random_range(0.5f32..3.0));
+        // colour in [0.1, 0.9]: DC = (rgb - 0.5) / C0
+        g.sh.push(std::array::from_fn(|_| {
+            (rng.random_range(0.1f32..0.9) - 0.5) / 0.282_094_8
+        }));
+    }
+    g
+}
+
+/// `count` cameras on a sphere of radius `radius` around the origin (a Fibonacci spiral, so
+/// consecutive cameras are spread out), `size x size` pixels.
+pub fn sphere_cameras(count: usize, radius: f64, size: u32, focal: f64) -> Vec<Camera> {
+    let k = Intrinsics {
+        fx: focal,
+        fy: focal,
+        cx: size as f64 / 2.0,
+        cy: size as f64 / 2.0,
+        width: size,
+        height: size,
+    };
+    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    (0..count)
+        .map(|i| {
+            // elevations in (-0.85, 0.85) to keep away from the poles of the up vector
+            let z = 0.85 * (1.0 - 2.0 * (i as f64 + 0.5) / count as f64);
+            let r = (1.0 - z * z).sqrt();
+            let phi = golden * i as f64;
+            let eye = DVec3::new(r * phi.cos(), r * phi.sin(), z) * radius;
+            look_at(k, eye, DVec3::ZERO, DVec3::Z).expect("non-degenerate camera")
+        })
+        .collect()
+}
+
+/// Ground-truth views of `scene` rendered with the rasterizer.
+pub fn render_views(
+    scene: &FeatureGaussians<f32>,
+    cameras: &[Camera],
+    background: [f32; 3],
+) -> Vec<View> {
+    cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| View {
+            name: format!("view{i:03}"),
+            camera: *c,
+            image: render_color(c, scene, scene.sh_degree, background)
+                .expect("render")
+                .raster
+                .image,
+        })
+        .collect()
+}

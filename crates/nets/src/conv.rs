@@ -35,6 +35,8 @@
 //! one GEMM call per tile with a fixed summation order, so results are bitwise identical for any
 //! thread count.
 
+use std::sync::Mutex;
+
 use ndarray::{s, Array1, Array4, ArrayView1, ArrayView4, Axis};
 use rayon::prelude::*;
 
@@ -146,55 +148,65 @@ pub(crate) fn conv_valid<T: Scalar>(
     let rows = rows_per_tile::<T>(ckk, w_out, h_out, k);
     let jobs = tiles(n, h_out, rows);
     let plane_out = h_out * w_out;
-    jobs.par_iter()
-        .for_each_init(Vec::<T>::new, |col, &(img, r0, r1)| {
-            let px = (r1 - r0) * w_out;
-            let x_img = &xs[img * c * hp * wp..(img + 1) * c * hp * wp];
-            let (b_ptr, rsb) = if k == 1 {
-                (x_img[r0 * wp..].as_ptr(), (hp * wp) as isize)
-            } else {
-                col.resize(ckk * px, T::ZERO);
-                im2col(x_img, [c, hp, wp], k, r0, r1, col);
-                (col.as_ptr(), px as isize)
-            };
-            // SAFETY: the tile writes rows r0..r1 of every output channel of image `img`, which no
-            // other tile touches; all strides stay inside the buffers.
-            unsafe {
-                let c_ptr = out_ptr.get().add(img * o * plane_out + r0 * w_out);
-                T::gemm(
-                    o,
-                    ckk,
-                    px,
-                    T::ONE,
-                    ws.as_ptr(),
-                    ckk as isize,
-                    1,
-                    b_ptr,
-                    rsb,
-                    1,
-                    T::ZERO,
-                    c_ptr,
-                    plane_out as isize,
-                    1,
-                );
-                if bias.is_some() || relu {
-                    for oc in 0..o {
-                        let row = std::slice::from_raw_parts_mut(c_ptr.add(oc * plane_out), px);
-                        let b = bias.as_ref().map_or(T::ZERO, |b| b[oc]);
-                        if relu {
-                            for v in row.iter_mut() {
-                                let t = *v + b;
-                                *v = if t > T::ZERO { t } else { T::ZERO };
-                            }
-                        } else {
-                            for v in row.iter_mut() {
-                                *v += b;
-                            }
+    // im2col buffers are recycled through a pool, so at most one per running task exists.
+    let pool: Mutex<Vec<Vec<T>>> = Mutex::new(Vec::new());
+    jobs.par_iter().for_each(|&(img, r0, r1)| {
+        let mut buf = pool
+            .lock()
+            .ok()
+            .and_then(|mut p| p.pop())
+            .unwrap_or_default();
+        let col = &mut buf;
+        let px = (r1 - r0) * w_out;
+        let x_img = &xs[img * c * hp * wp..(img + 1) * c * hp * wp];
+        let (b_ptr, rsb) = if k == 1 {
+            (x_img[r0 * wp..].as_ptr(), (hp * wp) as isize)
+        } else {
+            col.resize(ckk * px, T::ZERO);
+            im2col(x_img, [c, hp, wp], k, r0, r1, col);
+            (col.as_ptr(), px as isize)
+        };
+        // SAFETY: the tile writes rows r0..r1 of every output channel of image `img`, which no
+        // other tile touches; all strides stay inside the buffers.
+        unsafe {
+            let c_ptr = out_ptr.get().add(img * o * plane_out + r0 * w_out);
+            T::gemm(
+                o,
+                ckk,
+                px,
+                T::ONE,
+                ws.as_ptr(),
+                ckk as isize,
+                1,
+                b_ptr,
+                rsb,
+                1,
+                T::ZERO,
+                c_ptr,
+                plane_out as isize,
+                1,
+            );
+            if bias.is_some() || relu {
+                for oc in 0..o {
+                    let row = std::slice::from_raw_parts_mut(c_ptr.add(oc * plane_out), px);
+                    let b = bias.as_ref().map_or(T::ZERO, |b| b[oc]);
+                    if relu {
+                        for v in row.iter_mut() {
+                            let t = *v + b;
+                            *v = if t > T::ZERO { t } else { T::ZERO };
+                        }
+                    } else {
+                        for v in row.iter_mut() {
+                            *v += b;
                         }
                     }
                 }
             }
-        });
+        }
+        if let Ok(mut p) = pool.lock() {
+            p.push(buf);
+        }
+    });
     out
 }
 

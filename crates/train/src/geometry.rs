@@ -72,6 +72,9 @@ pub struct GeometryConfig {
     pub checkpoint_iterations: Vec<u64>,
     /// Show a progress bar.
     pub progress: bool,
+    /// Print a plain progress line to standard error every this many iterations (0: never);
+    /// useful when the output is a log file.
+    pub log_interval: u64,
 }
 
 impl Default for GeometryConfig {
@@ -95,6 +98,7 @@ impl Default for GeometryConfig {
             save_iterations: vec![7000, 30_000],
             checkpoint_iterations: Vec::new(),
             progress: true,
+            log_interval: 0,
         }
     }
 }
@@ -502,6 +506,7 @@ impl GeometryTrainer {
         stop: Option<&AtomicBool>,
     ) -> Result<TrainSummary, TrainError> {
         let start = Instant::now();
+        let first = self.step;
         let bar = if self.config.progress {
             let b = ProgressBar::new(self.config.iterations);
             b.set_style(
@@ -530,6 +535,17 @@ impl GeometryTrainer {
                     self.ema_loss, self.ema_psnr, r.gaussians
                 ));
                 bar.set_position(it);
+            }
+            if self.config.log_interval > 0 && it % self.config.log_interval == 0 {
+                let secs = start.elapsed().as_secs_f64();
+                eprintln!(
+                    "[ITER {it}] loss {:.5} psnr {:.2} N {} | {:.2} it/s since start, {:.0} s",
+                    self.ema_loss,
+                    self.ema_psnr,
+                    r.gaussians,
+                    (it - first) as f64 / secs,
+                    secs
+                );
             }
             if self.config.test_iterations.contains(&it) {
                 if let Some(e) = self.evaluate()? {

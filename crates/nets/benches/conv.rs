@@ -1,8 +1,8 @@
 //! One 3x3 reflection-padded convolution at 256x256 for every `(in, out)` width pair of the
-//! benchmarked networks, next to the raw `sgemm` of the same GEMM (`m = out`, `k = 9 * in`,
-//! `n = 256 * 256`) split into the same row tiles and run on the same rayon pool, with the
-//! operands already laid out (no padding, no im2col, no bias). The ratio of the two is the
-//! engine's overhead over the matrix product itself. FLOPs count 2 per multiply-add.
+//! benchmarked networks, next to the raw `sgemm` of the same matrix product (`m = out`,
+//! `k = 9 * in`, `n = 256 * 256`) with its operands already laid out (no padding, no bias), split
+//! into column blocks of 2048 run on the same rayon pool. The ratio of the two is the engine's
+//! overhead over the matrix product itself. FLOPs count 2 per multiply-add.
 
 mod common;
 
@@ -11,7 +11,7 @@ use std::time::Instant;
 use common::*;
 use criterion::{criterion_group, criterion_main, Criterion};
 use ndarray::Array1;
-use nets::conv::{conv3x3_reflect, COL_BUDGET_BYTES, TILE_PIXELS};
+use nets::conv::conv3x3_reflect;
 use rayon::prelude::*;
 
 const SIZE: usize = 256;
@@ -29,35 +29,34 @@ const SHAPES: [(usize, usize); 10] = [
     (64, 3),
 ];
 
-/// The engine's rows per tile for this shape (same rule as the engine).
-fn rows_per_tile(c: usize) -> usize {
-    let by_pixels = TILE_PIXELS / SIZE;
-    let by_memory = COL_BUDGET_BYTES / (9 * c * SIZE * 4);
-    by_pixels.min(by_memory).clamp(1, SIZE)
-}
+/// Columns per block of the raw GEMM.
+const BLOCK: usize = 2048;
 
-/// The raw tiled GEMM: each tile multiplies the `o x 9c` weights by its own `9c x tile` operand.
+/// Distinct `B` operands cycled through, so the raw GEMM streams its operand from memory as a
+/// convolution does instead of finding it in cache.
+const OPERANDS: usize = 8;
+
+/// The raw GEMM `out (o x n) = a (o x 9c) * b (9c x n)`, one column block per task.
 fn tiled_sgemm(o: usize, c: usize, a: &[f32], bs: &[Vec<f32>], out: &mut [f32]) {
     let k = 9 * c;
-    let rows = rows_per_tile(c);
-    let px = rows * SIZE;
-    out.par_chunks_mut(o * px)
-        .zip(bs.par_iter())
-        .for_each(|(cblock, b)| unsafe {
+    out.par_chunks_mut(o * BLOCK)
+        .enumerate()
+        .for_each(|(t, cblock)| unsafe {
+            let b = &bs[t % OPERANDS];
             matrixmultiply::sgemm(
                 o,
                 k,
-                px,
+                BLOCK,
                 1.0,
                 a.as_ptr(),
                 k as isize,
                 1,
                 b.as_ptr(),
-                px as isize,
+                BLOCK as isize,
                 1,
                 0.0,
                 cblock.as_mut_ptr(),
-                px as isize,
+                BLOCK as isize,
                 1,
             );
         });
@@ -85,14 +84,11 @@ fn conv(c: &mut Criterion) {
         let w = ndarray::Array4::from_shape_vec((co, ci, 3, 3), rng.vec(co * ci * 9, 0.1)).unwrap();
         let b = Array1::from_vec(rng.vec(co, 0.1));
         let flop = 2.0 * (co * ci * 9 * SIZE * SIZE) as f64 / 1e9;
-        // Raw GEMM operands: one B per tile (distinct memory, as im2col buffers would be).
-        let rows = rows_per_tile(ci);
-        let tiles = SIZE.div_ceil(rows);
         let a = rng.vec(co * 9 * ci, 0.1);
-        let bs: Vec<Vec<f32>> = (0..tiles)
-            .map(|_| rng.vec(9 * ci * rows * SIZE, 1.0))
+        let bs: Vec<Vec<f32>> = (0..OPERANDS)
+            .map(|_| rng.vec(9 * ci * BLOCK, 1.0))
             .collect();
-        let mut out = vec![0f32; co * tiles * rows * SIZE];
+        let mut out = vec![0f32; co * SIZE * SIZE];
         let t_conv = best_of(3, || {
             std::hint::black_box(conv3x3_reflect(x.view(), w.view(), b.view(), true));
         });

@@ -8,32 +8,42 @@
 //!
 //! # How it is computed
 //! Every convolution, including the backward ones, is reduced to a *valid* cross-correlation of an
-//! already padded tensor (`conv_valid`), computed as im2col + GEMM tile by tile:
+//! already padded tensor (`conv_valid`):
 //! * forward 3x3: reflection-pad by 1, then valid 3x3;
 //! * input gradient 3x3: zero-pad the output gradient by 2 and correlate with the flipped,
 //!   transposed kernel (`wt[c,o,i,j] = w[o,c,2-i,2-j]`), which yields the gradient of the padded
 //!   input; then fold the reflected border back onto the pixels it was copied from;
-//! * weight gradient: `dW[o, (c,i,j)] += dY_tile[o, p] * col_tile[(c,i,j), p]` accumulated tile by
-//!   tile in a fixed order;
-//! * 1x1 convolutions need no im2col at all: the input itself is the GEMM operand.
+//! * 1x1 convolutions need no padding: the input rows themselves are the GEMM operand.
+//!
+//! A valid 3x3 correlation is an *implicit GEMM*: output rows are computed on the padded grid
+//! (each row `Wp` wide, of which the last two columns are discarded), where the window of tap
+//! `(i, j)` is just the padded plane shifted by `i*Wp + j`, a strided matrix `matrixmultiply`
+//! packs directly. A tile of output rows accumulates the nine products
+//! `w[:, :, i, j] (O x C) * shifted input (C x tile)` into an `O x tile` accumulator and then
+//! copies the valid columns out with bias and ReLU. No im2col matrix is formed.
+//!
+//! The weight gradient uses im2col per tile: `dW[o, (c,i,j)] += dY_tile[o, p] * col[(c,i,j), p]`,
+//! accumulated tile by tile in a fixed order.
 //!
 //! # Memory bound
-//! The output is split into tiles of whole output rows of one image. A tile holds at most
-//! [`TILE_PIXELS`] output pixels and its im2col buffer (`C*K*K` rows by tile pixels) at most
-//! [`COL_BUDGET_BYTES`], unless a single output row alone is larger (then a tile is one row). Each
-//! worker thread owns one such buffer, so the scratch memory of a convolution is at most
-//! `threads * max(COL_BUDGET_BYTES, C*K*K*W_out*size_of::<T>())`, independent of the image height
-//! and batch size. For a 256x256 fullres relu4_1 pass in `f32` this is 16 MiB per thread, where a
-//! whole-image im2col of the 512-channel layers would need 2.4 GB. Besides scratch, a convolution
-//! allocates its output and one padded copy of its input (or output gradient).
-//!
+//! Forward (and input-gradient) tiles are whole output rows of one image, with an accumulator of
+//! at most [`ACC_BUDGET_BYTES`] (256 KiB) unless one padded row alone is larger
+//! (`O*Wp*size_of::<T>()`; then a tile is one row). Weight-gradient tiles hold at most
+//! [`TILE_PIXELS`] pixels and an im2col buffer of at most [`COL_BUDGET_BYTES`] (16 MiB) unless one
+//! output row is larger. Each running task owns one buffer, so scratch memory is at most
+//! `threads * max(256 KiB, O*Wp*size_of::<T>())` forward and
+//! `max(16 MiB, 9*C*W*size_of::<T>())` for a weight gradient, independent of the image height and
+//! batch size: a 256x256 fullres relu4_1 forward in `f32` uses at most 2 x 528 KiB of scratch,
+//! where a whole-image im2col of its 512-channel layer would take 2.4 GB. Besides scratch, a
+//! convolution allocates its output and one padded copy of its input (or output gradient).
+
 //! # Parallelism and determinism
-//! Forward and input-gradient tiles run in parallel with rayon, each with a single-threaded GEMM
-//! writing a disjoint block of the output. Weight gradients visit the tiles sequentially in a fixed
-//! order and parallelise inside a tile over fixed column blocks of `dW`. The tiling depends only
-//! on the shapes, never on the number of threads, and every output element is produced by exactly
-//! one GEMM call per tile with a fixed summation order, so results are bitwise identical for any
-//! thread count.
+//! Forward and input-gradient tiles run in parallel with rayon, each with single-threaded GEMMs
+//! writing a disjoint block of the output. Weight gradients visit the tiles sequentially in a
+//! fixed order and parallelise inside a tile over fixed column blocks of `dW`. The tiling depends
+//! only on the shapes, never on the number of threads, and every output element is computed by
+//! one task through the same sequence of GEMM calls (taps in a fixed order), so results are
+//! bitwise identical for any thread count.
 
 use std::sync::Mutex;
 
@@ -45,8 +55,14 @@ use crate::scalar::Scalar;
 /// Target number of output pixels per tile (a good GEMM width for `matrixmultiply`).
 pub const TILE_PIXELS: usize = 2048;
 
-/// Upper bound on one im2col scratch buffer, in bytes (unless one output row is larger).
+/// Upper bound on one im2col scratch buffer of the weight gradient, in bytes (unless one output
+/// row is larger).
 pub const COL_BUDGET_BYTES: usize = 16 << 20;
+
+/// Upper bound on one forward accumulator (`O` channels by tile pixels), in bytes, unless one
+/// padded row is larger. 256 KiB keeps it in a core's L2 cache while the nine taps accumulate
+/// into it; measured on the 2-core development machine, larger tiles were slower.
+pub const ACC_BUDGET_BYTES: usize = 256 << 10;
 
 /// Columns of `dW` per parallel block in the weight gradient.
 const DW_COLUMN_BLOCK: usize = 128;
@@ -112,8 +128,23 @@ fn im2col<T: Scalar>(xp: &[T], dims: [usize; 3], k: usize, r0: usize, r1: usize,
         });
 }
 
+/// Rows per tile of the implicit GEMM: at most [`TILE_PIXELS`] pixels on the padded grid and an
+/// accumulator of at most [`ACC_BUDGET_BYTES`] (at least one row).
+fn rows_per_implicit_tile<T>(o: usize, wp: usize, h_out: usize) -> usize {
+    let by_pixels = TILE_PIXELS / wp.max(1);
+    let by_memory = ACC_BUDGET_BYTES / (o * wp * std::mem::size_of::<T>()).max(1);
+    by_pixels.min(by_memory).clamp(1, h_out.max(1))
+}
+
 /// Valid cross-correlation of a padded input `xp [N,C,Hp,Wp]` with `w [O,C,K,K]`, plus an
 /// optional bias, optionally followed by ReLU. Output `[N, O, Hp-K+1, Wp-K+1]`.
+///
+/// For `K > 1` this is an implicit GEMM: output rows are computed on the padded grid (width
+/// `Wp`, the last `K-1` columns of each row being discarded), where the input window of tap
+/// `(i, j)` is the padded plane shifted by `i*Wp + j`, a plain strided matrix. Each tile then
+/// accumulates `K*K` products `w[:, :, i, j] (O x C) * shifted input (C x tile)` into an
+/// `O x tile` accumulator in a fixed tap order, and copies the valid columns out, adding the bias
+/// and applying the ReLU. No im2col buffer is formed.
 pub(crate) fn conv_valid<T: Scalar>(
     xp: ArrayView4<T>,
     w: ArrayView4<T>,
@@ -145,69 +176,106 @@ pub(crate) fn conv_valid<T: Scalar>(
     let ckk = c * k * k;
     let mut out = Array4::<T>::zeros((n, o, h_out, w_out));
     let out_ptr = SyncPtr(out.as_mut_ptr());
-    let rows = rows_per_tile::<T>(ckk, w_out, h_out, k);
+    let rows = rows_per_implicit_tile::<T>(o, wp, h_out);
     let jobs = tiles(n, h_out, rows);
+    let plane_in = hp * wp;
     let plane_out = h_out * w_out;
-    // im2col buffers are recycled through a pool, so at most one per running task exists.
+    // Accumulators are recycled through a pool, so at most one per running task exists.
     let pool: Mutex<Vec<Vec<T>>> = Mutex::new(Vec::new());
     jobs.par_iter().for_each(|&(img, r0, r1)| {
-        let mut buf = pool
-            .lock()
-            .ok()
-            .and_then(|mut p| p.pop())
-            .unwrap_or_default();
-        let col = &mut buf;
-        let px = (r1 - r0) * w_out;
-        let x_img = &xs[img * c * hp * wp..(img + 1) * c * hp * wp];
-        let (b_ptr, rsb) = if k == 1 {
-            (x_img[r0 * wp..].as_ptr(), (hp * wp) as isize)
-        } else {
-            col.resize(ckk * px, T::ZERO);
-            im2col(x_img, [c, hp, wp], k, r0, r1, col);
-            (col.as_ptr(), px as isize)
-        };
-        // SAFETY: the tile writes rows r0..r1 of every output channel of image `img`, which no
-        // other tile touches; all strides stay inside the buffers.
+        let x_img = &xs[img * c * plane_in..(img + 1) * c * plane_in];
+        // SAFETY (whole block): the tile writes rows r0..r1 of every output channel of image
+        // `img`, which no other tile touches. Tap (i, j) reads padded-plane elements
+        // (r0+i)*wp + j + p for p < np = (r1-r0)*wp - (k-1), whose largest index is
+        // (r1-1+i)*wp + j + wp - k <= hp*wp - 1 since r1 <= hp-k+1, i, j <= k-1: inside the plane.
         unsafe {
-            let c_ptr = out_ptr.get().add(img * o * plane_out + r0 * w_out);
-            T::gemm(
-                o,
-                ckk,
-                px,
-                T::ONE,
-                ws.as_ptr(),
-                ckk as isize,
-                1,
-                b_ptr,
-                rsb,
-                1,
-                T::ZERO,
-                c_ptr,
-                plane_out as isize,
-                1,
-            );
-            if bias.is_some() || relu {
+            let c_out = out_ptr.get().add(img * o * plane_out + r0 * w_out);
+            if k == 1 {
+                // The input rows are the GEMM operand and the output rows its result.
+                let px = (r1 - r0) * w_out;
+                T::gemm(
+                    o,
+                    c,
+                    px,
+                    T::ONE,
+                    ws.as_ptr(),
+                    c as isize,
+                    1,
+                    x_img[r0 * wp..].as_ptr(),
+                    plane_in as isize,
+                    1,
+                    T::ZERO,
+                    c_out,
+                    plane_out as isize,
+                    1,
+                );
                 for oc in 0..o {
-                    let row = std::slice::from_raw_parts_mut(c_ptr.add(oc * plane_out), px);
+                    let row = std::slice::from_raw_parts_mut(c_out.add(oc * plane_out), px);
                     let b = bias.as_ref().map_or(T::ZERO, |b| b[oc]);
-                    if relu {
-                        for v in row.iter_mut() {
-                            let t = *v + b;
-                            *v = if t > T::ZERO { t } else { T::ZERO };
-                        }
-                    } else {
-                        for v in row.iter_mut() {
-                            *v += b;
+                    for v in row.iter_mut() {
+                        *v = bias_relu(*v, b, relu);
+                    }
+                }
+            } else {
+                let np = (r1 - r0) * wp - (k - 1);
+                let mut acc = pool
+                    .lock()
+                    .ok()
+                    .and_then(|mut p| p.pop())
+                    .unwrap_or_default();
+                acc.resize(o * np, T::ZERO);
+                for i in 0..k {
+                    for j in 0..k {
+                        let tap = i * k + j;
+                        T::gemm(
+                            o,
+                            c,
+                            np,
+                            T::ONE,
+                            ws.as_ptr().add(tap),
+                            ckk as isize,
+                            (k * k) as isize,
+                            x_img.as_ptr().add((r0 + i) * wp + j),
+                            plane_in as isize,
+                            1,
+                            if tap == 0 { T::ZERO } else { T::ONE },
+                            acc.as_mut_ptr(),
+                            np as isize,
+                            1,
+                        );
+                    }
+                }
+                for oc in 0..o {
+                    let b = bias.as_ref().map_or(T::ZERO, |b| b[oc]);
+                    for r in 0..r1 - r0 {
+                        let dst = std::slice::from_raw_parts_mut(
+                            c_out.add(oc * plane_out + r * w_out),
+                            w_out,
+                        );
+                        let src = &acc[oc * np + r * wp..oc * np + r * wp + w_out];
+                        for (d, &v) in dst.iter_mut().zip(src) {
+                            *d = bias_relu(v, b, relu);
                         }
                     }
                 }
+                if let Ok(mut p) = pool.lock() {
+                    p.push(acc);
+                }
             }
-        }
-        if let Ok(mut p) = pool.lock() {
-            p.push(buf);
         }
     });
     out
+}
+
+/// `v + b`, through a ReLU when `relu`.
+#[inline]
+fn bias_relu<T: Scalar>(v: T, b: T, relu: bool) -> T {
+    let t = v + b;
+    if !relu || t > T::ZERO {
+        t
+    } else {
+        T::ZERO
+    }
 }
 
 /// Gradients of a valid cross-correlation with respect to its weights and bias, given the padded

@@ -12,6 +12,10 @@ use train::geometry::{load_views, GeometryConfig, GeometryTrainer};
 use train::init::{gaussians_from_points, random_points_in_box};
 
 #[test]
+#[cfg_attr(
+    debug_assertions,
+    ignore = "minutes without optimisation: run with --release"
+)]
 fn a_short_lego_run_raises_held_out_psnr() {
     let dir = dsgs_testkit::shared_path("data/scenes/lego");
     let options = LoadOptions {

@@ -185,3 +185,23 @@ fn final_ply_is_the_official_layout_and_reloads() {
     assert_eq!(back.opacity_logits, t.model.scene.opacity_logits);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn training_is_bit_identical_for_any_thread_count() {
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let mut t = fresh(busy_config());
+                for _ in 0..20 {
+                    t.train_step().unwrap();
+                }
+                t.model
+            })
+    };
+    let one = run(1);
+    assert_eq!(one, run(2));
+    assert_eq!(one, run(3));
+}

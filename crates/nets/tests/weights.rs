@@ -12,10 +12,25 @@ use nets::{
     TensorF32,
 };
 
-fn temp_path(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("nets-test-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+/// A scratch directory removed when dropped.
+struct TempDir(PathBuf);
+
+impl TempDir {
+    fn new(test: &str) -> TempDir {
+        let dir = std::env::temp_dir().join(format!("nets-test-{}-{test}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        TempDir(dir)
+    }
+
+    fn path(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
 }
 
 fn adain_state_dicts() -> (StateDict, StateDict) {
@@ -37,6 +52,7 @@ fn the_f32_checkpoint_tensors_are_the_fixture_weights_rounded() {
 
 #[test]
 fn canonical_file_round_trips() {
+    let tmp = TempDir::new("canonical_file_round_trips");
     let (vgg, dec) = adain_state_dicts();
     let fx = nets_fixture();
     let encoder = Encoder::from_state_dict(&vgg)
@@ -54,7 +70,7 @@ fn canonical_file_round_trips() {
         decoder: Some(decoder.clone()),
         lifter: Some(lifter),
     };
-    let path = temp_path("adain.safetensors");
+    let path = tmp.path("adain.safetensors");
     weights.save(&path).unwrap();
     let back = NetWeights::load(&path).unwrap();
     assert_eq!(back.to_state_dict(), weights.to_state_dict());
@@ -122,6 +138,7 @@ fn canonical_file_round_trips() {
 /// survive the canonical file.
 #[test]
 fn named_layout_and_its_flags_round_trip() {
+    let tmp = TempDir::new("named_layout_and_its_flags_round_trip");
     let mut rng = TestRng::new(3);
     let mut e = StateDict::new();
     rng.conv_into(&mut e, "conv0", 3, 3, 1);
@@ -146,7 +163,7 @@ fn named_layout_and_its_flags_round_trip() {
     // The final ReLU is applied: no negative output.
     let x = TestRng::new(4).array4((1, 6, 3, 3)).mapv(|v| v as f32);
     assert!(dec.forward(x.view()).unwrap().iter().all(|&v| v >= 0.0));
-    let path = temp_path("named.safetensors");
+    let path = tmp.path("named.safetensors");
     NetWeights {
         encoder: Some(enc.clone()),
         decoder: Some(dec.clone()),
@@ -254,7 +271,8 @@ fn bad_inputs_give_errors() {
 
 #[test]
 fn bad_files_give_errors_naming_the_file() {
-    let path = temp_path("garbage.safetensors");
+    let tmp = TempDir::new("bad_files_give_errors_naming_the_file");
+    let path = tmp.path("garbage.safetensors");
     std::fs::write(&path, b"not a safetensors file at all").unwrap();
     let msg = expect_err(NetWeights::load(&path));
     assert!(
@@ -262,7 +280,7 @@ fn bad_files_give_errors_naming_the_file() {
         "{msg}"
     );
 
-    let missing = temp_path("does-not-exist.safetensors");
+    let missing = tmp.path("does-not-exist.safetensors");
     let msg = expect_err(NetWeights::load(&missing));
     assert!(msg.contains("does-not-exist.safetensors"), "{msg}");
 
@@ -280,7 +298,7 @@ fn bad_files_give_errors_naming_the_file() {
     let mut md = w.metadata();
     md.insert("encoder.widths".into(), "8,17".into());
     let bytes = serialise(&sd, md.clone());
-    let path = temp_path("mismatch.safetensors");
+    let path = tmp.path("mismatch.safetensors");
     std::fs::write(&path, bytes).unwrap();
     let msg = expect_err(NetWeights::load(&path));
     assert!(
@@ -291,7 +309,7 @@ fn bad_files_give_errors_naming_the_file() {
     // A file missing one tensor.
     let mut sd2 = sd.clone();
     sd2.remove("encoder.conv1_2.weight");
-    let path = temp_path("missing-tensor.safetensors");
+    let path = tmp.path("missing-tensor.safetensors");
     std::fs::write(&path, serialise(&sd2, w.metadata())).unwrap();
     let msg = expect_err(NetWeights::load(&path));
     assert!(msg.contains("encoder.conv1_2.weight"), "{msg}");

@@ -1,0 +1,69 @@
+"""PyTorch timings of the network passes that dsgs benchmarks in crates/nets/benches/networks.rs.
+
+Optional and never part of the build or the tests: run by benches/side_by_side.sh when a Python
+with PyTorch is available (for example the environment built by ../shared/oracle/setup.sh).
+Same shapes as the Rust benches: 256x256 input, fullres (no pooling, no upsampling), float32,
+two threads, gradients off. Prints one line per pass: name, median seconds, GFLOP/s.
+"""
+import statistics
+import sys
+import time
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+torch.set_num_threads(int(sys.argv[1]) if len(sys.argv) > 1 else 2)
+torch.manual_seed(0)
+SIZE = 256
+
+
+def conv_stack(widths):
+    """3x3 reflection-padded convs with ReLU: widths = [c0, c1, ...] consecutive channel counts."""
+    layers = []
+    for i, o in zip(widths[:-1], widths[1:]):
+        layers += [nn.ReflectionPad2d(1), nn.Conv2d(i, o, 3), nn.ReLU()]
+    return layers
+
+
+def encoder(levels):
+    # normalised VGG-19 topology, fullres: 1x1 input conv then the conv blocks, no pooling
+    plan = {1: [3, 64], 2: [3, 64, 64, 128], 3: [3, 64, 64, 128, 128, 256],
+            4: [3, 64, 64, 128, 128, 256, 256, 256, 256, 512]}[levels]
+    return nn.Sequential(nn.Conv2d(3, 3, 1), *conv_stack(plan))
+
+
+def decoder3():
+    # WCT relu3_1 inverter, fullres: 256->128, 128->128, 128->64, 64->64, 64->3 (no final ReLU)
+    layers = conv_stack([256, 128, 128, 64, 64])
+    layers += [nn.ReflectionPad2d(1), nn.Conv2d(64, 3, 3)]
+    return nn.Sequential(*layers)
+
+
+def flops(net, x):
+    total, h, w = 0, x.shape[2], x.shape[3]
+    for m in net:
+        if isinstance(m, nn.Conv2d):
+            k = m.kernel_size[0] * m.kernel_size[1]
+            total += 2 * m.in_channels * m.out_channels * k * h * w
+    return total
+
+
+def bench(name, net, channels, reps=5):
+    x = torch.rand(1, channels, SIZE, SIZE)
+    with torch.no_grad():
+        net(x)
+        times = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            net(x)
+            times.append(time.perf_counter() - t0)
+    med = statistics.median(times)
+    print(f"{name}\t{med:.4f}\t{flops(net, x) / med / 1e9:.1f}")
+
+
+print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads")
+print("pass\tseconds\tGFLOP/s")
+bench("encoder_relu3_1_fullres_256", encoder(3), 3)
+bench("encoder_relu4_1_fullres_256", encoder(4), 3, reps=3)
+bench("decoder_relu3_1_fullres_256", decoder3(), 256)

@@ -72,6 +72,13 @@ impl DensificationStats {
         self.visible_count.is_empty()
     }
 
+    /// Whether all three arrays track `n` Gaussians.
+    pub fn is_consistent(&self, n: usize) -> bool {
+        self.grad_norm_sum.len() == n
+            && self.visible_count.len() == n
+            && self.max_screen_radius.len() == n
+    }
+
     /// Adds one view: its per-Gaussian radii and NDC gradient norms.
     pub fn accumulate<T: Real>(
         &mut self,

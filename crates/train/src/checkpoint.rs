@@ -21,9 +21,9 @@ use gaussian::FeatureGaussians;
 use safetensors::{Dtype, SafeTensors};
 
 use crate::adam::{Adam, AdamConfig, ParamState};
-use crate::density::DensityStats;
 use crate::error::TrainError;
 use crate::model::GaussianModel;
+use raster::DensificationStats;
 
 /// The value of the `format` metadata entry.
 pub const FORMAT: &str = "dsgs-geometry-checkpoint-v1";
@@ -253,7 +253,7 @@ impl GeometryCheckpoint {
             .map_err(|e| r.err(e.to_string()))?;
             adam.push_state(state);
         }
-        let stats = DensityStats {
+        let stats = DensificationStats {
             grad_norm_sum: r.f64s("stats.grad_norm_sum", n)?,
             visible_count: r.u32s("stats.visible_count", n)?,
             max_screen_radius: r.u32s("stats.max_screen_radius", n)?,

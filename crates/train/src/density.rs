@@ -2,7 +2,7 @@
 //!
 //! Follows `GaussianModel.densify_and_prune` of the original trainer, with its defaults:
 //!
-//! * Statistics ([`DensityStats`]): for every view in which a Gaussian is visible (both screen
+//! * Statistics ([`raster::DensificationStats`]): for every view in which a Gaussian is visible (both screen
 //!   radii positive), the norm of the loss gradient with respect to its 2D mean in NDC units,
 //!   `|| (dL/du W/2, dL/dv H/2) ||`, is summed and the view counted; the largest screen radius
 //!   `max(rx, ry)` in pixels is kept.
@@ -115,84 +115,6 @@ impl DensifyConfig {
         step < self.densify_until_iter
             && ((self.opacity_reset_interval > 0 && step % self.opacity_reset_interval == 0)
                 || (white_background && step == self.densify_from_iter))
-    }
-}
-
-/// Per-Gaussian statistics gathered between densifications.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct DensityStats {
-    /// Sum over visible views of the NDC gradient norm of the 2D mean.
-    pub grad_norm_sum: Vec<f64>,
-    /// Number of views in which the Gaussian was visible.
-    pub visible_count: Vec<u32>,
-    /// Largest screen radius, in pixels, over those views.
-    pub max_screen_radius: Vec<u32>,
-}
-
-impl DensityStats {
-    /// Zero statistics for `n` Gaussians.
-    pub fn new(n: usize) -> Self {
-        DensityStats {
-            grad_norm_sum: vec![0.0; n],
-            visible_count: vec![0; n],
-            max_screen_radius: vec![0; n],
-        }
-    }
-
-    /// Number of Gaussians tracked.
-    pub fn len(&self) -> usize {
-        self.visible_count.len()
-    }
-
-    /// Whether no Gaussian is tracked.
-    pub fn is_empty(&self) -> bool {
-        self.visible_count.is_empty()
-    }
-
-    /// Whether all three arrays track `n` Gaussians.
-    pub fn is_consistent(&self, n: usize) -> bool {
-        self.grad_norm_sum.len() == n
-            && self.visible_count.len() == n
-            && self.max_screen_radius.len() == n
-    }
-
-    /// Adds one view: per-Gaussian screen radii `[rx, ry]` (0 when culled) and gradients of the
-    /// loss with respect to the 2D means in pixels, for an image of `width x height`.
-    pub fn accumulate(
-        &mut self,
-        radii: &[[u32; 2]],
-        v_means2d: &[[f32; 2]],
-        width: u32,
-        height: u32,
-    ) -> Result<(), TrainError> {
-        let n = self.len();
-        if radii.len() != n || v_means2d.len() != n {
-            return Err(TrainError::Shape(format!(
-                "densification statistics for {n} Gaussians got {} radii and {} mean gradients",
-                radii.len(),
-                v_means2d.len()
-            )));
-        }
-        let (sx, sy) = (0.5 * width as f64, 0.5 * height as f64);
-        for (i, (r, g)) in radii.iter().zip(v_means2d).enumerate() {
-            if r[0] > 0 && r[1] > 0 {
-                let gx = g[0] as f64 * sx;
-                let gy = g[1] as f64 * sy;
-                self.grad_norm_sum[i] += (gx * gx + gy * gy).sqrt();
-                self.visible_count[i] += 1;
-                self.max_screen_radius[i] = self.max_screen_radius[i].max(r[0].max(r[1]));
-            }
-        }
-        Ok(())
-    }
-
-    /// Mean NDC gradient norm per Gaussian (0 for Gaussians never visible, like 3DGS's NaN -> 0).
-    pub fn mean_grad_norms(&self) -> Vec<f64> {
-        self.grad_norm_sum
-            .iter()
-            .zip(&self.visible_count)
-            .map(|(&s, &c)| if c > 0 { s / c as f64 } else { 0.0 })
-            .collect()
     }
 }
 
@@ -388,7 +310,7 @@ impl GaussianModel {
         for p in 0..self.adam.params().len() {
             self.adam.param_mut(p).extend_rows(m);
         }
-        self.stats = DensityStats::new(self.len());
+        self.stats = raster::DensificationStats::new(self.len());
         Ok(())
     }
 

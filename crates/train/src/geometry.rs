@@ -412,10 +412,9 @@ impl GeometryTrainer {
         let mut densified = None;
         let mut opacity_reset = false;
         if d.gathers_stats(it) {
-            let k = view.camera.intrinsics;
             self.model
                 .stats
-                .accumulate(&fwd.projected.radii, &grads.means2d, k.width, k.height)?;
+                .accumulate(&fwd.projected.radii, &grads.ndc_grad_norms)?;
             if d.densifies_at(it) {
                 let prune_large = d.prunes_large_at(it);
                 densified =

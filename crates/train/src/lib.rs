@@ -28,7 +28,7 @@ pub mod ssim;
 
 pub use adam::{Adam, AdamConfig, ParamState};
 pub use checkpoint::GeometryCheckpoint;
-pub use density::{DensifyConfig, DensifyReport, DensityStats};
+pub use density::{DensifyConfig, DensifyReport};
 pub use error::TrainError;
 pub use geometry::{Evaluation, GeometryConfig, GeometryTrainer, StepReport, TrainSummary, View};
 pub use init::{gaussians_from_points, random_points_in_box, PointCloud};

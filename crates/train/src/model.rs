@@ -23,9 +23,9 @@ use gaussian::FeatureGaussians;
 use serde::{Deserialize, Serialize};
 
 use crate::adam::{Adam, AdamConfig};
-use crate::density::DensityStats;
 use crate::error::TrainError;
 use crate::schedule::ExponentialLr;
+use raster::DensificationStats;
 
 /// Name of the position group.
 pub const XYZ: &str = "xyz";
@@ -113,7 +113,7 @@ pub struct GaussianModel {
     /// The SH degree used for rendering, `<= scene.sh_degree`.
     pub active_sh_degree: usize,
     pub adam: Adam<f32>,
-    pub stats: DensityStats,
+    pub stats: DensificationStats,
 }
 
 impl GaussianModel {
@@ -146,7 +146,7 @@ impl GaussianModel {
             scene,
             active_sh_degree: 0,
             adam: opt,
-            stats: DensityStats::new(n),
+            stats: DensificationStats::new(n),
         })
     }
 

@@ -15,6 +15,7 @@
 //!   [`checkpoint`]: exact, atomic checkpoints.
 
 pub mod adam;
+pub mod bundle;
 pub mod checkpoint;
 pub mod density;
 pub mod error;
@@ -27,6 +28,7 @@ pub mod schedule;
 pub mod ssim;
 
 pub use adam::{Adam, AdamConfig, ParamState};
+pub use bundle::{BundleInfo, CameraRecord, SceneBundle, Variant};
 pub use checkpoint::GeometryCheckpoint;
 pub use density::{DensifyConfig, DensifyReport};
 pub use error::TrainError;

@@ -1,0 +1,481 @@
+//! The scene bundle: what feature training produces and zero-shot stylization consumes.
+//!
+//! A bundle is frozen geometry whose Gaussians carry learned features, together with the lifter
+//! trained on them and the encoder and decoder they were trained against. On disk it is a
+//! directory:
+//!
+//! ```text
+//! scene.ply          the official 3DGS layout, then f_feat_0 .. f_feat_{F-1}
+//! nets.safetensors   encoder, decoder and lifter under their canonical names (nets::NetWeights)
+//! bundle.json        BundleInfo: variant, widths, background, scene statistics, cameras
+//! ```
+//!
+//! Rendering a stylized view (the module's convention, shared by training and stylization):
+//!
+//! 1. Rasterize the features at the *feature resolution*: the image size reduced by the
+//!    encoder's pooling for the standard variant, the image size itself for fullres
+//!    ([`SceneBundle::feature_size`]). The camera's intrinsics are rescaled to that size.
+//! 2. Lift: `l = relu(W r + b)` ([`nets::Lifter`]).
+//! 3. Transform: `t = std_s * l + mean_s`, with the style's deepest-level statistics. Strength
+//!    `alpha` interpolates the target statistics between the scene's own mean statistics
+//!    ([`BundleInfo::scene_mean`], [`BundleInfo::scene_std`], measured on the training views)
+//!    and the style's, so `alpha = 0` reconstructs the scene.
+//! 4. Decode and crop to the requested image size (the standard decoder's upsampling can
+//!    overshoot by up to `2^levels - 1` pixels).
+
+use std::path::{Path, PathBuf};
+
+use gaussian::ply::{load_ply, save_ply};
+use gaussian::{Camera, FeatureGaussians, Intrinsics};
+use glam::DMat4;
+use ndarray::{s, Array2, Array4};
+use nets::{Decoder, Encoder, Lifter, NetWeights, Resolution};
+use raster::{render, Channels, RenderOptions};
+use serde::{Deserialize, Serialize};
+use style::ChannelStats;
+
+use crate::error::TrainError;
+
+/// File names inside a bundle directory.
+pub const SCENE_FILE: &str = "scene.ply";
+pub const NETS_FILE: &str = "nets.safetensors";
+pub const INFO_FILE: &str = "bundle.json";
+
+/// The value of [`BundleInfo::format`].
+pub const BUNDLE_FORMAT: &str = "dsgs-bundle-1";
+
+/// Which network variant the features were trained for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Variant {
+    /// Encoder pooling and decoder upsampling as in AdaIN; features rasterized at the encoder's
+    /// output resolution.
+    #[default]
+    Standard,
+    /// No pooling and no upsampling; features rasterized at image resolution.
+    Fullres,
+}
+
+impl Variant {
+    /// The networks' resolution setting.
+    pub fn resolution(self) -> Resolution {
+        match self {
+            Variant::Standard => Resolution::Standard,
+            Variant::Fullres => Resolution::Fullres,
+        }
+    }
+
+    /// `"standard"` or `"fullres"`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Variant::Standard => "standard",
+            Variant::Fullres => "fullres",
+        }
+    }
+}
+
+impl std::str::FromStr for Variant {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "standard" => Ok(Variant::Standard),
+            "fullres" => Ok(Variant::Fullres),
+            other => Err(format!(
+                "unknown variant `{other}` (expected `standard` or `fullres`)"
+            )),
+        }
+    }
+}
+
+/// A camera as stored in `bundle.json`: pinhole intrinsics and the row-major 4x4
+/// `camera_from_world` (OpenCV axes, see `gaussian::camera`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraRecord {
+    pub name: String,
+    pub width: u32,
+    pub height: u32,
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub camera_from_world: [[f64; 4]; 4],
+    /// Whether the view was held out of training.
+    pub held_out: bool,
+}
+
+impl CameraRecord {
+    /// Records `camera` under `name`.
+    pub fn new(name: impl Into<String>, camera: &Camera, held_out: bool) -> CameraRecord {
+        let k = &camera.intrinsics;
+        let m = camera.camera_from_world.transpose().to_cols_array_2d();
+        CameraRecord {
+            name: name.into(),
+            width: k.width,
+            height: k.height,
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            camera_from_world: m,
+            held_out,
+        }
+    }
+
+    /// The camera.
+    pub fn camera(&self) -> Camera {
+        let m = DMat4::from_cols_array_2d(&self.camera_from_world).transpose();
+        Camera::new(
+            Intrinsics {
+                fx: self.fx,
+                fy: self.fy,
+                cx: self.cx,
+                cy: self.cy,
+                width: self.width,
+                height: self.height,
+            },
+            m,
+        )
+    }
+}
+
+/// The description of a bundle (`bundle.json`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BundleInfo {
+    /// Always [`BUNDLE_FORMAT`].
+    pub format: String,
+    pub variant: Variant,
+    /// Per-Gaussian feature width `F` (the lifter's input width).
+    pub feature_dim: usize,
+    /// The encoder's output width at each level (the last is the lifter's output width).
+    pub encoder_widths: Vec<usize>,
+    /// [`weights_fingerprint`] of the encoder the features were aligned to.
+    pub encoder_fingerprint: String,
+    /// The feature-map background value (one per feature channel).
+    pub feature_background: Vec<f32>,
+    /// The RGB background the geometry was trained on.
+    pub background: [f32; 3],
+    /// Mean over the training views of the deepest encoder features' per-channel mean.
+    pub scene_mean: Vec<f32>,
+    /// Same for the per-channel standard deviation.
+    pub scene_std: Vec<f32>,
+    /// The cameras of the dataset the bundle was trained on, at the training resolution.
+    pub cameras: Vec<CameraRecord>,
+    /// Where the bundle came from (dataset, geometry, style folder); informational.
+    #[serde(default)]
+    pub provenance: Vec<(String, String)>,
+}
+
+/// A loaded bundle.
+#[derive(Clone, Debug)]
+pub struct SceneBundle {
+    /// Geometry plus features (`feature_dim = info.feature_dim`).
+    pub scene: FeatureGaussians<f32>,
+    pub encoder: Encoder<f32>,
+    pub decoder: Decoder<f32>,
+    pub lifter: Lifter<f32>,
+    pub info: BundleInfo,
+}
+
+/// FNV-1a (64-bit) over the encoder's layer names, shapes and weight bits: a cheap identity for
+/// "the same encoder weights", recorded in bundles and compared on load.
+pub fn weights_fingerprint(encoder: &Encoder<f32>) -> String {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut eat = |bytes: &[u8]| {
+        for &b in bytes {
+            h ^= b as u64;
+            h = h.wrapping_mul(0x0100_0000_01b3);
+        }
+    };
+    for l in encoder.layers() {
+        eat(l.name.as_bytes());
+        for &d in l.weight.shape() {
+            eat(&(d as u64).to_le_bytes());
+        }
+        for v in l.weight.iter().chain(l.bias.iter()) {
+            eat(&v.to_bits().to_le_bytes());
+        }
+    }
+    format!("{h:016x}")
+}
+
+fn bundle_err(path: &Path, message: impl Into<String>) -> TrainError {
+    TrainError::Checkpoint {
+        path: path.to_path_buf(),
+        message: message.into(),
+    }
+}
+
+impl SceneBundle {
+    /// Checks that the parts fit together: feature width = lifter input, lifter output =
+    /// decoder input = encoder's deepest width, statistics and background sizes.
+    pub fn validate(&self) -> Result<(), TrainError> {
+        let c = self.lifter.out_channels();
+        let f = self.info.feature_dim;
+        let deepest = *self.encoder.widths().last().unwrap_or(&0);
+        let mut problems = Vec::new();
+        if self.scene.feature_dim != f {
+            problems.push(format!(
+                "the scene has {} feature channels, bundle.json says {f}",
+                self.scene.feature_dim
+            ));
+        }
+        if self.lifter.in_channels() != f {
+            problems.push(format!(
+                "the lifter takes {} channels, the features have {f}",
+                self.lifter.in_channels()
+            ));
+        }
+        if self.decoder.in_channels() != c {
+            problems.push(format!(
+                "the decoder takes {} channels, the lifter makes {c}",
+                self.decoder.in_channels()
+            ));
+        }
+        if deepest != c {
+            problems.push(format!(
+                "the encoder's deepest width is {deepest}, the lifter makes {c}"
+            ));
+        }
+        if self.info.scene_mean.len() != c || self.info.scene_std.len() != c {
+            problems.push(format!(
+                "scene statistics have {} / {} channels, expected {c}",
+                self.info.scene_mean.len(),
+                self.info.scene_std.len()
+            ));
+        }
+        if self.info.feature_background.len() != f {
+            problems.push(format!(
+                "feature background has {} values, expected {f}",
+                self.info.feature_background.len()
+            ));
+        }
+        if problems.is_empty() {
+            Ok(())
+        } else {
+            Err(TrainError::Config(problems.join("; ")))
+        }
+    }
+
+    /// Writes the bundle into `dir` (created if needed); each file is written atomically.
+    pub fn save(&self, dir: &Path) -> Result<(), TrainError> {
+        self.validate()?;
+        std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
+            path: dir.to_path_buf(),
+            source,
+        })?;
+        save_ply(dir.join(SCENE_FILE), &self.scene)?;
+        let nets = NetWeights {
+            encoder: Some(self.encoder.clone().with_resolution(Resolution::Standard)),
+            decoder: Some(self.decoder.clone().with_resolution(Resolution::Standard)),
+            lifter: Some(self.lifter.clone()),
+        };
+        let nets_path = dir.join(NETS_FILE);
+        nets.save(&nets_path)
+            .map_err(|e| bundle_err(&nets_path, e.to_string()))?;
+        let info_path = dir.join(INFO_FILE);
+        let json = serde_json::to_vec_pretty(&self.info)
+            .map_err(|e| bundle_err(&info_path, e.to_string()))?;
+        gaussian::ply::write_atomic(&info_path, &json).map_err(|source| TrainError::Io {
+            path: info_path.clone(),
+            source,
+        })
+    }
+
+    /// Reads a bundle directory written by [`SceneBundle::save`], with the networks set to the
+    /// bundle's variant.
+    pub fn load(dir: &Path) -> Result<SceneBundle, TrainError> {
+        if !dir.is_dir() {
+            return Err(bundle_err(
+                dir,
+                "not a scene bundle directory (expected scene.ply, nets.safetensors, bundle.json)",
+            ));
+        }
+        let info_path = dir.join(INFO_FILE);
+        let bytes = std::fs::read(&info_path).map_err(|source| TrainError::Io {
+            path: info_path.clone(),
+            source,
+        })?;
+        let info: BundleInfo = serde_json::from_slice(&bytes)
+            .map_err(|e| bundle_err(&info_path, format!("not a bundle description: {e}")))?;
+        if info.format != BUNDLE_FORMAT {
+            return Err(bundle_err(
+                &info_path,
+                format!("format `{}`, expected `{BUNDLE_FORMAT}`", info.format),
+            ));
+        }
+        let scene = load_ply(dir.join(SCENE_FILE))?;
+        let nets_path = dir.join(NETS_FILE);
+        let nets = NetWeights::load(&nets_path).map_err(|e| bundle_err(&nets_path, e.to_string()))?;
+        let missing = |what: &str| bundle_err(&nets_path, format!("the {what} is missing"));
+        let resolution = info.variant.resolution();
+        let encoder = nets
+            .encoder
+            .ok_or_else(|| missing("encoder"))?
+            .with_resolution(resolution);
+        let decoder = nets
+            .decoder
+            .ok_or_else(|| missing("decoder"))?
+            .with_resolution(resolution);
+        let lifter = nets.lifter.ok_or_else(|| missing("lifter"))?;
+        let fingerprint = weights_fingerprint(&encoder);
+        if fingerprint != info.encoder_fingerprint {
+            return Err(bundle_err(
+                &nets_path,
+                format!(
+                    "encoder fingerprint {fingerprint} does not match bundle.json's {}",
+                    info.encoder_fingerprint
+                ),
+            ));
+        }
+        let bundle = SceneBundle {
+            scene,
+            encoder,
+            decoder,
+            lifter,
+            info,
+        };
+        bundle
+            .validate()
+            .map_err(|e| bundle_err(dir, e.to_string()))?;
+        Ok(bundle)
+    }
+
+    /// Replaces the decoder (for example with a fine-tuned fullres one) after checking that it
+    /// takes the lifter's width; `variant` sets the resolution of both networks.
+    pub fn with_decoder(mut self, decoder: Decoder<f32>, variant: Variant) -> Result<Self, TrainError> {
+        if decoder.in_channels() != self.lifter.out_channels() {
+            return Err(TrainError::Config(format!(
+                "the decoder takes {} channels, but this bundle's features lift to {} \
+                 (it was made with other weights)",
+                decoder.in_channels(),
+                self.lifter.out_channels()
+            )));
+        }
+        self.decoder = decoder.with_resolution(variant.resolution());
+        self.encoder = self.encoder.with_resolution(variant.resolution());
+        self.info.variant = variant;
+        Ok(self)
+    }
+
+    /// The cameras stored in the bundle.
+    pub fn cameras(&self) -> Vec<Camera> {
+        self.info.cameras.iter().map(CameraRecord::camera).collect()
+    }
+
+    /// The feature-map size `(width, height)` for an image of `width x height`.
+    pub fn feature_size(&self, width: u32, height: u32) -> (u32, u32) {
+        feature_size(&self.encoder, self.info.variant, width, height)
+    }
+
+    /// Rasterizes the features seen by `camera` at the feature resolution: `[1, F, h, w]`.
+    pub fn render_features(&self, camera: &Camera) -> Result<Array4<f32>, TrainError> {
+        render_feature_map(
+            &self.scene,
+            camera,
+            self.feature_size(camera.intrinsics.width, camera.intrinsics.height),
+            &self.info.feature_background,
+        )
+    }
+
+    /// The target statistics for strength `alpha`: `alpha * style + (1 - alpha) * scene`.
+    pub fn target_stats(
+        &self,
+        style: &ChannelStats<f32>,
+        alpha: f64,
+    ) -> Result<ChannelStats<f32>, TrainError> {
+        let c = self.lifter.out_channels();
+        if style.channels() != c || style.batch() != 1 {
+            return Err(TrainError::Shape(format!(
+                "style statistics are {}x{}, expected 1x{c}",
+                style.batch(),
+                style.channels()
+            )));
+        }
+        let a = alpha as f32;
+        let mix = |s: &Array2<f32>, scene: &[f32]| {
+            Array2::from_shape_fn((1, c), |(_, j)| a * s[[0, j]] + (1.0 - a) * scene[j])
+        };
+        ChannelStats::new(
+            mix(&style.mean, &self.info.scene_mean),
+            mix(&style.std, &self.info.scene_std),
+        )
+        .map_err(|e| TrainError::Shape(e.to_string()))
+    }
+
+    /// Lifts, transforms and decodes a feature map from [`SceneBundle::render_features`] into
+    /// an RGB image `[1, 3, height, width]` (cropped; values as the decoder makes them).
+    pub fn decode(
+        &self,
+        features: &Array4<f32>,
+        stats: &ChannelStats<f32>,
+        width: u32,
+        height: u32,
+    ) -> Result<Array4<f32>, TrainError> {
+        let net = |e: nets::NetError| TrainError::Shape(e.to_string());
+        let lifted = self.lifter.forward(features.view()).map_err(net)?;
+        let t = style::style_transform(&lifted, stats).map_err(|e| TrainError::Shape(e.to_string()))?;
+        let image = self.decoder.forward(t.view()).map_err(net)?;
+        crop(image, width, height)
+    }
+}
+
+/// Crops `[N, C, H', W']` to `[N, C, height, width]` (top-left), failing if it is smaller.
+pub fn crop(image: Array4<f32>, width: u32, height: u32) -> Result<Array4<f32>, TrainError> {
+    let (h, w) = (image.shape()[2], image.shape()[3]);
+    let (th, tw) = (height as usize, width as usize);
+    if h < th || w < tw {
+        return Err(TrainError::Shape(format!(
+            "decoded image is {w}x{h}, smaller than the requested {tw}x{th}"
+        )));
+    }
+    if h == th && w == tw {
+        return Ok(image);
+    }
+    Ok(image.slice(s![.., .., ..th, ..tw]).to_owned())
+}
+
+/// The feature-map size for an image of `width x height` under `encoder` and `variant`: the
+/// image size for fullres, else the size after each of the encoder's `depth - 1` poolings.
+pub fn feature_size(
+    encoder: &Encoder<f32>,
+    variant: Variant,
+    width: u32,
+    height: u32,
+) -> (u32, u32) {
+    match variant {
+        Variant::Fullres => (width, height),
+        Variant::Standard => {
+            let r = encoder.pool_rounding();
+            let (mut w, mut h) = (width as usize, height as usize);
+            for _ in 1..encoder.depth() {
+                w = r.pooled(w);
+                h = r.pooled(h);
+            }
+            (w as u32, h as u32)
+        }
+    }
+}
+
+/// Rasterizes `scene`'s features from `camera`, with the intrinsics rescaled to `size`.
+pub fn render_feature_map(
+    scene: &FeatureGaussians<f32>,
+    camera: &Camera,
+    size: (u32, u32),
+    background: &[f32],
+) -> Result<Array4<f32>, TrainError> {
+    let cam = camera.resized(size.0, size.1);
+    let opts = RenderOptions::new(Channels::Features, background.to_vec());
+    let out = render(&cam, scene, &opts)?;
+    let f = scene.feature_dim;
+    let (w, h) = (size.0 as usize, size.1 as usize);
+    // The rasterizer's image is HWC; the networks take NCHW.
+    let img = &out.raster.image;
+    Ok(Array4::from_shape_fn((1, f, h, w), |(_, c, y, x)| {
+        img[(y * w + x) * f + c]
+    }))
+}
+
+/// Path of a file inside a bundle directory.
+pub fn bundle_file(dir: &Path, name: &str) -> PathBuf {
+    dir.join(name)
+}

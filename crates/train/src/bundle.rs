@@ -305,7 +305,8 @@ impl SceneBundle {
         }
         let scene = load_ply(dir.join(SCENE_FILE))?;
         let nets_path = dir.join(NETS_FILE);
-        let nets = NetWeights::load(&nets_path).map_err(|e| bundle_err(&nets_path, e.to_string()))?;
+        let nets =
+            NetWeights::load(&nets_path).map_err(|e| bundle_err(&nets_path, e.to_string()))?;
         let missing = |what: &str| bundle_err(&nets_path, format!("the {what} is missing"));
         let resolution = info.variant.resolution();
         let encoder = nets
@@ -342,7 +343,11 @@ impl SceneBundle {
 
     /// Replaces the decoder (for example with a fine-tuned fullres one) after checking that it
     /// takes the lifter's width; `variant` sets the resolution of both networks.
-    pub fn with_decoder(mut self, decoder: Decoder<f32>, variant: Variant) -> Result<Self, TrainError> {
+    pub fn with_decoder(
+        mut self,
+        decoder: Decoder<f32>,
+        variant: Variant,
+    ) -> Result<Self, TrainError> {
         if decoder.in_channels() != self.lifter.out_channels() {
             return Err(TrainError::Config(format!(
                 "the decoder takes {} channels, but this bundle's features lift to {} \
@@ -413,7 +418,8 @@ impl SceneBundle {
     ) -> Result<Array4<f32>, TrainError> {
         let net = |e: nets::NetError| TrainError::Shape(e.to_string());
         let lifted = self.lifter.forward(features.view()).map_err(net)?;
-        let t = style::style_transform(&lifted, stats).map_err(|e| TrainError::Shape(e.to_string()))?;
+        let t =
+            style::style_transform(&lifted, stats).map_err(|e| TrainError::Shape(e.to_string()))?;
         let image = self.decoder.forward(t.view()).map_err(net)?;
         crop(image, width, height)
     }

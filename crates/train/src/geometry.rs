@@ -548,10 +548,13 @@ impl GeometryTrainer {
             }
             if self.config.test_iterations.contains(&it) {
                 if let Some(e) = self.evaluate()? {
-                    bar.println(format!(
+                    say(
+                        &bar,
+                        format!(
                         "[ITER {it}] test: PSNR {:.3} SSIM {:.4} L1 {:.5} ({} views, {} Gaussians)",
                         e.psnr, e.ssim, e.l1, e.views, e.gaussians
-                    ));
+                    ),
+                    );
                     evaluations.push(e);
                 }
             }
@@ -559,12 +562,12 @@ impl GeometryTrainer {
                 if self.config.save_iterations.contains(&it) {
                     let p = ply_path(dir, it);
                     self.save_ply(&p)?;
-                    bar.println(format!("[ITER {it}] saved {}", p.display()));
+                    say(&bar, format!("[ITER {it}] saved {}", p.display()));
                 }
                 if self.config.checkpoint_iterations.contains(&it) {
                     let p = checkpoint_path(dir, it);
                     self.save_checkpoint(&p)?;
-                    bar.println(format!("[ITER {it}] checkpoint {}", p.display()));
+                    say(&bar, format!("[ITER {it}] checkpoint {}", p.display()));
                 }
             }
         }
@@ -581,6 +584,16 @@ impl GeometryTrainer {
     /// The running averages of loss and training PSNR shown by the progress bar.
     pub fn running_averages(&self) -> (f64, f64) {
         (self.ema_loss, self.ema_psnr)
+    }
+}
+
+/// Prints a line above the progress bar, or to stderr when the bar is hidden (not a terminal,
+/// or progress switched off), so that logs of unattended runs keep every message.
+pub fn say(bar: &ProgressBar, message: String) {
+    if bar.is_hidden() {
+        eprintln!("{message}");
+    } else {
+        bar.println(message);
     }
 }
 

@@ -17,9 +17,11 @@
 pub mod adam;
 pub mod bundle;
 pub mod checkpoint;
+pub mod decoder_training;
 pub mod density;
 pub mod error;
 pub mod geometry;
+pub mod image_folder;
 pub mod init;
 pub mod loss;
 pub mod model;

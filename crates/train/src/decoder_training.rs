@@ -1,0 +1,956 @@
+//! AdaIN decoder training: the decoder learns to invert the frozen encoder's deepest features
+//! after their statistics have been replaced by a style's (Huang and Belongie 2017).
+//!
+//! One iteration `i` (counted from 1) of [`DecoderTrainer::train_step`]:
+//! 1. the learning rate is `lr / (1 + lr_decay * (i - 1))`, the inverse-time decay of the AdaIN
+//!    code (which adjusts the rate with the 0-based iteration count before each step);
+//! 2. `batch_size` content crops and then `batch_size` style crops are drawn
+//!    ([`ImageSet::random_crop`]: image index, then row and column offsets, from a generator
+//!    that is a function of the seed and `i` only);
+//! 3. with `phi` the frozen encoder (features `relu1_1 .. relu_k_1`) and `g` the decoder, the
+//!    target is `t = adain(phi_k(c), phi_k(s))` per sample and the loss is
+//!    `content(phi_k(g(t)), t) + style_weight * style(phi(g(t)), phi(s))`
+//!    ([`style::decoder_training_loss`], `t` a constant as in the AdaIN code);
+//! 4. Adam (PyTorch semantics) steps every decoder weight and bias.
+//!
+//! Batches: the whole batch runs through the networks at once and every loss term is a mean
+//! over all its elements, batch included, exactly as PyTorch's batched `mse_loss`; since all
+//! samples have the same size this is the mean of the per-sample losses, and the gradients are
+//! the mean of the per-sample gradients.
+//!
+//! The variant ([`Variant`]) decides whether the networks pool and upsample (standard) or keep
+//! the crop's resolution throughout (fullres); the weights are the same.
+//!
+//! Evaluation ([`DecoderTrainer::evaluate`]) averages the same loss over `eval_pairs` fixed
+//! (content, style) pairs drawn once from the seed, on centred crops. By default the pairs come
+//! from the training images (a fixed, reproducible yardstick that training never sees in this
+//! crop and pairing); [`DecoderTrainer::with_eval_images`] draws them from separate, held-out
+//! images instead.
+//!
+//! Checkpoints are one safetensors file holding the decoder (its canonical [`NetWeights`]
+//! bytes, so it reloads bit for bit), the Adam moments and, as metadata, the completed step,
+//! the seed, the Adam step counts and the configuration. The random choices of an iteration
+//! depend only on the seed and the iteration number, so a resumed run continues exactly as the
+//! uninterrupted one would.
+//!
+//! A decoder can start from imported weights (e.g. a WCT inverter of the same encoder) or from
+//! [`init_decoder`], a seeded initialisation of the encoder's mirror image.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use ndarray::{Array1, Array4};
+use nets::{Decoder, Encoder, NetWeights, StateDict, TensorF32};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use safetensors::{Dtype, SafeTensors};
+use serde::{Deserialize, Serialize};
+use style::{adain_with_stats, decoder_training_loss, encode_style, StyleFeatureStats};
+
+use crate::adam::{Adam, AdamConfig, ParamState};
+use crate::bundle::{weights_fingerprint, Variant};
+use crate::checkpoint::write_atomic;
+use crate::error::TrainError;
+use crate::geometry::say;
+use crate::image_folder::{stack, ImageSet};
+
+/// The `format` metadata of a decoder-training checkpoint.
+pub const DECODER_CHECKPOINT_FORMAT: &str = "dsgs-decoder-checkpoint-v1";
+
+/// File names inside a decoder-training output folder.
+pub const DECODER_CHECKPOINT_FILE: &str = "checkpoint.safetensors";
+pub const DECODER_WEIGHTS_FILE: &str = "decoder.safetensors";
+
+/// Settings of a decoder training run. The defaults are the AdaIN paper's, scaled down for a CPU
+/// (smaller batch and crops).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct DecoderTrainConfig {
+    /// Total iterations (AdaIN trains 160,000 with batch 8).
+    pub iterations: u64,
+    /// Content (and style) images per iteration (AdaIN: 8).
+    pub batch_size: usize,
+    /// The short side every image is resized to before cropping (AdaIN: 512).
+    pub resize: u32,
+    /// Side of the square random crop fed to the networks (AdaIN: 256).
+    pub crop: u32,
+    /// Weight of the style loss.
+    pub style_weight: f64,
+    /// Initial learning rate.
+    pub lr: f64,
+    /// Inverse-time decay: iteration `i` uses `lr / (1 + lr_decay * (i - 1))`.
+    pub lr_decay: f64,
+    /// Standard (pooling) or fullres networks.
+    pub variant: Variant,
+    /// Seed of every random choice (crops, evaluation pairs, initialisation).
+    pub seed: u64,
+    /// Number of fixed (content, style) pairs of the held-out evaluation (0: none).
+    pub eval_pairs: usize,
+    /// Iterations between evaluations (0: only at the end, when `eval_pairs > 0`).
+    pub eval_interval: u64,
+    /// Iterations between checkpoints (0: none).
+    pub checkpoint_interval: u64,
+    /// Print a plain progress line to standard error every this many iterations (0: never).
+    pub log_interval: u64,
+    /// Show a progress bar.
+    pub progress: bool,
+    /// Adam hyper-parameters (PyTorch defaults, as the AdaIN code uses).
+    pub adam: AdamConfig,
+}
+
+impl Default for DecoderTrainConfig {
+    fn default() -> Self {
+        DecoderTrainConfig {
+            iterations: 20_000,
+            batch_size: 2,
+            resize: 256,
+            crop: 128,
+            style_weight: 10.0,
+            lr: 1e-4,
+            lr_decay: 5e-5,
+            variant: Variant::Standard,
+            seed: 0,
+            eval_pairs: 8,
+            eval_interval: 1000,
+            checkpoint_interval: 1000,
+            log_interval: 0,
+            progress: true,
+            adam: AdamConfig::default(),
+        }
+    }
+}
+
+impl DecoderTrainConfig {
+    fn validate(&self, encoder_depth: usize) -> Result<(), TrainError> {
+        let bad = |m: String| Err(TrainError::Config(m));
+        if self.batch_size == 0 {
+            return bad("batch_size is 0".into());
+        }
+        if self.crop == 0 || self.crop > self.resize {
+            return bad(format!(
+                "crop {} must be positive and at most the resize size {}",
+                self.crop, self.resize
+            ));
+        }
+        let min = 1u32 << (encoder_depth.saturating_sub(1)).min(16);
+        if self.variant == Variant::Standard && self.crop < min {
+            return bad(format!(
+                "crop {} is smaller than {min}, the encoder's total pooling",
+                self.crop
+            ));
+        }
+        for (name, v) in [
+            ("style_weight", self.style_weight),
+            ("lr", self.lr),
+            ("lr_decay", self.lr_decay),
+        ] {
+            if !v.is_finite() || v < 0.0 {
+                return bad(format!("{name} = {v} must be finite and non-negative"));
+            }
+        }
+        Ok(())
+    }
+
+    /// The learning rate of iteration `it` (counted from 1).
+    pub fn lr_at(&self, it: u64) -> f64 {
+        self.lr / (1.0 + self.lr_decay * it.saturating_sub(1) as f64)
+    }
+}
+
+/// What one iteration did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DecoderStepReport {
+    /// The iteration number (from 1).
+    pub step: u64,
+    /// The learning rate used.
+    pub lr: f64,
+    pub loss_content: f64,
+    pub loss_style: f64,
+    /// `loss_content + style_weight * loss_style`.
+    pub loss: f64,
+}
+
+/// The mean loss over the evaluation pairs.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DecoderEvaluation {
+    /// Completed iterations when evaluated.
+    pub step: u64,
+    pub pairs: usize,
+    pub loss_content: f64,
+    pub loss_style: f64,
+    pub loss: f64,
+}
+
+/// The result of [`DecoderTrainer::train`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct DecoderTrainSummary {
+    /// Completed iterations when training stopped.
+    pub step: u64,
+    /// Whether the stop flag ended the run early.
+    pub interrupted: bool,
+    pub evaluations: Vec<DecoderEvaluation>,
+    /// Wall time of the iterations run by this call, in seconds.
+    pub seconds: f64,
+    /// Where the final weights were written (when training completed with an output folder).
+    pub weights: Option<PathBuf>,
+}
+
+/// A fixed evaluation pair: the centred content crop and the style's statistics.
+#[derive(Clone, Debug)]
+struct EvalPair {
+    content: Array4<f32>,
+    style: StyleFeatureStats<f32>,
+}
+
+/// An AdaIN decoder training run.
+pub struct DecoderTrainer {
+    pub config: DecoderTrainConfig,
+    encoder: Encoder<f32>,
+    decoder: Decoder<f32>,
+    adam: Adam<f32>,
+    step: u64,
+    content: ImageSet,
+    styles: ImageSet,
+    eval: Vec<EvalPair>,
+    ema: Option<[f64; 3]>,
+}
+
+fn net_err(e: nets::NetError) -> TrainError {
+    TrainError::Shape(e.to_string())
+}
+
+fn style_err(e: style::StyleError) -> TrainError {
+    TrainError::Shape(e.to_string())
+}
+
+/// Parameter names of the decoder in the optimiser: `{layer}.weight` and `{layer}.bias`.
+fn register_decoder(adam: &mut Adam<f32>, decoder: &Decoder<f32>, lr: f64) {
+    for l in decoder.layers() {
+        let (o, c, k, _) = l.weight.dim();
+        adam.add_param(&format!("{}.weight", l.name), lr, o, c * k * k);
+        adam.add_param(&format!("{}.bias", l.name), lr, 1, o);
+    }
+}
+
+impl DecoderTrainer {
+    /// A run at step 0. `encoder` is frozen; `decoder` (imported weights or [`init_decoder`])
+    /// must take the encoder's deepest width and produce 3 channels. Both are set to the
+    /// configured variant's resolution.
+    pub fn new(
+        encoder: Encoder<f32>,
+        decoder: Decoder<f32>,
+        content_images: ImageSet,
+        style_images: ImageSet,
+        config: DecoderTrainConfig,
+    ) -> Result<Self, TrainError> {
+        config.validate(encoder.depth())?;
+        let deepest = *encoder.widths().last().unwrap_or(&0);
+        if decoder.in_channels() != deepest || decoder.out_channels() != 3 {
+            return Err(TrainError::Config(format!(
+                "the decoder maps {} channels to {}, the encoder's relu{}_1 has {deepest} \
+                 (expected {deepest} to 3)",
+                decoder.in_channels(),
+                decoder.out_channels(),
+                encoder.depth()
+            )));
+        }
+        if encoder.in_channels() != 3 {
+            return Err(TrainError::Config(format!(
+                "the encoder takes {} channels, expected 3",
+                encoder.in_channels()
+            )));
+        }
+        let res = config.variant.resolution();
+        let encoder = encoder.with_resolution(res);
+        let decoder = decoder.with_resolution(res);
+        let mut adam = Adam::new(config.adam);
+        register_decoder(&mut adam, &decoder, config.lr);
+        let eval = eval_pairs(&encoder, &config, &content_images, &style_images)?;
+        Ok(DecoderTrainer {
+            config,
+            encoder,
+            decoder,
+            adam,
+            step: 0,
+            content: content_images,
+            styles: style_images,
+            eval,
+            ema: None,
+        })
+    }
+
+    /// Draws the evaluation pairs from separate (held-out) content and style images instead of
+    /// the training images.
+    pub fn with_eval_images(
+        mut self,
+        content_images: &ImageSet,
+        style_images: &ImageSet,
+    ) -> Result<Self, TrainError> {
+        self.eval = eval_pairs(&self.encoder, &self.config, content_images, style_images)?;
+        Ok(self)
+    }
+
+    /// Continues a run from a checkpoint written by [`DecoderTrainer::save_checkpoint`], with the
+    /// same encoder and images (the configuration may differ, e.g. more iterations; the
+    /// learning rates follow the new configuration).
+    pub fn resume(
+        checkpoint: &Path,
+        encoder: Encoder<f32>,
+        content_images: ImageSet,
+        style_images: ImageSet,
+        config: DecoderTrainConfig,
+    ) -> Result<Self, TrainError> {
+        let bytes = std::fs::read(checkpoint).map_err(|source| TrainError::Io {
+            path: checkpoint.to_path_buf(),
+            source,
+        })?;
+        let r = StateReader::new(&bytes, checkpoint, DECODER_CHECKPOINT_FORMAT)?;
+        let fp = r.meta_str("encoder_fingerprint")?;
+        if fp != weights_fingerprint(&encoder) {
+            return Err(r.err(format!(
+                "it was trained against another encoder (fingerprint {fp}, this encoder's is {})",
+                weights_fingerprint(&encoder)
+            )));
+        }
+        let nets = NetWeights::from_bytes(r.bytes("decoder")?)
+            .map_err(|e| r.err(format!("decoder: {e}")))?;
+        let decoder = nets
+            .decoder
+            .ok_or_else(|| r.err("the decoder is missing".into()))?;
+        let mut t = DecoderTrainer::new(encoder, decoder, content_images, style_images, config)?;
+        let adam = r.adam(t.config.adam)?;
+        check_same_params(&adam, &t.adam).map_err(|m| r.err(m))?;
+        t.adam = adam;
+        t.step = r.meta_parse("step")?;
+        t.ema = r.ema()?;
+        Ok(t)
+    }
+
+    /// Completed iterations.
+    pub fn step(&self) -> u64 {
+        self.step
+    }
+
+    /// The decoder being trained.
+    pub fn decoder(&self) -> &Decoder<f32> {
+        &self.decoder
+    }
+
+    /// The frozen encoder.
+    pub fn encoder(&self) -> &Encoder<f32> {
+        &self.encoder
+    }
+
+    /// The optimiser state.
+    pub fn adam(&self) -> &Adam<f32> {
+        &self.adam
+    }
+
+    /// Running averages (factor 0.4 on the newest value) of the total, content and style loss.
+    pub fn running_averages(&self) -> Option<[f64; 3]> {
+        self.ema
+    }
+
+    /// The decoder loss of one batch and its gradients, without a step.
+    fn batch_loss(
+        &self,
+        content: &Array4<f32>,
+        style: &StyleFeatureStats<f32>,
+    ) -> Result<style::DecoderLoss<f32>, TrainError> {
+        let feats = self.encoder.forward(content.view()).map_err(net_err)?;
+        let deepest = feats.last().expect("encoder depth >= 1");
+        let t = adain_with_stats(deepest, style.deepest()).map_err(style_err)?;
+        decoder_training_loss(
+            &self.encoder,
+            &self.decoder,
+            &t,
+            &t,
+            style,
+            self.config.style_weight,
+        )
+        .map_err(style_err)
+    }
+
+    /// Runs one iteration.
+    pub fn train_step(&mut self) -> Result<DecoderStepReport, TrainError> {
+        let it = self.step + 1;
+        let cfg = &self.config;
+        let mut rng = StdRng::seed_from_u64(mix(cfg.seed, STEP_STREAM, it));
+        let mut contents = Vec::with_capacity(cfg.batch_size);
+        for _ in 0..cfg.batch_size {
+            let i = rng.random_range(0..self.content.len());
+            contents.push(
+                self.content
+                    .random_crop(i, cfg.resize, cfg.crop, &mut rng)?,
+            );
+        }
+        let mut styles = Vec::with_capacity(cfg.batch_size);
+        for _ in 0..cfg.batch_size {
+            let i = rng.random_range(0..self.styles.len());
+            styles.push(self.styles.random_crop(i, cfg.resize, cfg.crop, &mut rng)?);
+        }
+        let content = stack(&contents)?;
+        let style = encode_style(&self.encoder, &stack(&styles)?).map_err(style_err)?;
+        let out = self.batch_loss(&content, &style)?;
+        let lr = self.config.lr_at(it);
+        for i in 0..self.adam.params().len() {
+            self.adam.set_lr(i, lr);
+        }
+        for (k, (layer, grad)) in self.decoder.layers_mut().zip(&out.grad_params).enumerate() {
+            if layer.name != grad.name {
+                return Err(TrainError::Shape(format!(
+                    "decoder gradient of `{}` returned for layer `{}`",
+                    grad.name, layer.name
+                )));
+            }
+            let gw = grad.weight.as_standard_layout();
+            let w = layer
+                .weight
+                .as_slice_mut()
+                .ok_or_else(|| TrainError::Shape("decoder weight is not contiguous".into()))?;
+            self.adam.step(
+                2 * k,
+                w,
+                gw.as_slice().expect("standard layout is contiguous"),
+            )?;
+            let b = layer
+                .bias
+                .as_slice_mut()
+                .ok_or_else(|| TrainError::Shape("decoder bias is not contiguous".into()))?;
+            let gb = grad.bias.to_vec();
+            self.adam.step(2 * k + 1, b, &gb)?;
+        }
+        self.step = it;
+        let (c, s, l) = (
+            out.loss_content as f64,
+            out.loss_style as f64,
+            out.loss as f64,
+        );
+        self.ema = Some(match self.ema {
+            None => [l, c, s],
+            Some(e) => [
+                0.4 * l + 0.6 * e[0],
+                0.4 * c + 0.6 * e[1],
+                0.4 * s + 0.6 * e[2],
+            ],
+        });
+        Ok(DecoderStepReport {
+            step: it,
+            lr,
+            loss_content: c,
+            loss_style: s,
+            loss: l,
+        })
+    }
+
+    /// The mean loss over the evaluation pairs (`None` without pairs).
+    pub fn evaluate(&self) -> Result<Option<DecoderEvaluation>, TrainError> {
+        if self.eval.is_empty() {
+            return Ok(None);
+        }
+        let (mut c, mut s, mut l) = (0.0, 0.0, 0.0);
+        for p in &self.eval {
+            let out = self.batch_loss(&p.content, &p.style)?;
+            c += out.loss_content as f64;
+            s += out.loss_style as f64;
+            l += out.loss as f64;
+        }
+        let n = self.eval.len() as f64;
+        Ok(Some(DecoderEvaluation {
+            step: self.step,
+            pairs: self.eval.len(),
+            loss_content: c / n,
+            loss_style: s / n,
+            loss: l / n,
+        }))
+    }
+
+    /// The checkpoint as safetensors bytes.
+    pub fn checkpoint_bytes(&self) -> Result<Vec<u8>, TrainError> {
+        let mut w = StateWriter::new(DECODER_CHECKPOINT_FORMAT);
+        w.meta("step", self.step);
+        w.meta("seed", self.config.seed);
+        w.meta("encoder_fingerprint", weights_fingerprint(&self.encoder));
+        w.meta(
+            "config",
+            serde_json::to_string(&self.config).map_err(|e| TrainError::Config(e.to_string()))?,
+        );
+        w.ema(self.ema.as_ref().map(|e| e.as_slice()));
+        let nets = NetWeights {
+            decoder: Some(self.decoder.clone()),
+            ..Default::default()
+        };
+        w.bytes("decoder", nets.to_bytes().map_err(net_err)?);
+        w.adam(&self.adam);
+        w.finish()
+    }
+
+    /// Writes a checkpoint atomically.
+    pub fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
+        write_atomic(path, &self.checkpoint_bytes()?)
+    }
+
+    /// Writes the encoder and the trained decoder as canonical weights ([`NetWeights`]),
+    /// atomically.
+    pub fn save_weights(&self, path: &Path) -> Result<(), TrainError> {
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
+                path: dir.to_path_buf(),
+                source,
+            })?;
+        }
+        let nets = NetWeights {
+            encoder: Some(self.encoder.clone()),
+            decoder: Some(self.decoder.clone()),
+            lifter: None,
+        };
+        nets.save(path).map_err(|e| TrainError::Checkpoint {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })
+    }
+
+    /// Trains up to `config.iterations`. With `out_dir`, a checkpoint
+    /// (`out_dir/checkpoint.safetensors`, replaced each time) is written every
+    /// `checkpoint_interval` iterations and when the stop flag ends the run, and the final
+    /// weights (`out_dir/decoder.safetensors`, encoder and decoder) when it completes.
+    /// Evaluations run every `eval_interval` iterations and at the end.
+    pub fn train(
+        &mut self,
+        out_dir: Option<&Path>,
+        stop: Option<&AtomicBool>,
+    ) -> Result<DecoderTrainSummary, TrainError> {
+        let start = Instant::now();
+        let first = self.step;
+        let total = self.config.iterations;
+        let bar = progress_bar(self.config.progress, total, self.step);
+        let mut evaluations = Vec::new();
+        let mut interrupted = false;
+        while self.step < total {
+            if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+                interrupted = true;
+                break;
+            }
+            let r = self.train_step()?;
+            let it = r.step;
+            let e = self.ema.unwrap_or_default();
+            bar.set_message(format!(
+                "loss {:.4}  content {:.4}  style {:.4}  lr {:.2e}",
+                e[0], e[1], e[2], r.lr
+            ));
+            bar.set_position(it);
+            if self.config.log_interval > 0 && it % self.config.log_interval == 0 {
+                let secs = start.elapsed().as_secs_f64();
+                say(&bar, format!(
+                    "[ITER {it}] loss {:.5} content {:.5} style {:.5} lr {:.3e} | {:.3} it/s, {:.0} s",
+                    e[0],
+                    e[1],
+                    e[2],
+                    r.lr,
+                    (it - first) as f64 / secs,
+                    secs
+                ));
+            }
+            let eval_now = (self.config.eval_interval > 0 && it % self.config.eval_interval == 0)
+                || it == total;
+            if eval_now {
+                if let Some(ev) = self.evaluate()? {
+                    say(
+                        &bar,
+                        format!(
+                            "[ITER {it}] held-out: loss {:.5} content {:.5} style {:.5} ({} pairs)",
+                            ev.loss, ev.loss_content, ev.loss_style, ev.pairs
+                        ),
+                    );
+                    evaluations.push(ev);
+                }
+            }
+            if let Some(dir) = out_dir {
+                let k = self.config.checkpoint_interval;
+                if k > 0 && it % k == 0 && it < total {
+                    self.save_checkpoint(&dir.join(DECODER_CHECKPOINT_FILE))?;
+                }
+            }
+        }
+        bar.finish();
+        let mut weights = None;
+        if let Some(dir) = out_dir {
+            if interrupted {
+                let p = dir.join(DECODER_CHECKPOINT_FILE);
+                self.save_checkpoint(&p)?;
+                say(
+                    &bar,
+                    format!(
+                        "stopped at iteration {}; checkpoint {}",
+                        self.step,
+                        p.display()
+                    ),
+                );
+            } else {
+                let p = dir.join(DECODER_WEIGHTS_FILE);
+                self.save_weights(&p)?;
+                say(&bar, format!("saved the decoder to {}", p.display()));
+                weights = Some(p);
+            }
+        }
+        Ok(DecoderTrainSummary {
+            step: self.step,
+            interrupted,
+            evaluations,
+            seconds: start.elapsed().as_secs_f64(),
+            weights,
+        })
+    }
+}
+
+/// The fixed evaluation pairs: `eval_pairs` (content, style) index pairs drawn from the seed,
+/// centre-cropped, the styles encoded once.
+fn eval_pairs(
+    encoder: &Encoder<f32>,
+    cfg: &DecoderTrainConfig,
+    content: &ImageSet,
+    styles: &ImageSet,
+) -> Result<Vec<EvalPair>, TrainError> {
+    let mut rng = StdRng::seed_from_u64(mix(cfg.seed, EVAL_STREAM, 0));
+    let mut out = Vec::with_capacity(cfg.eval_pairs);
+    for _ in 0..cfg.eval_pairs {
+        let ci = rng.random_range(0..content.len());
+        let si = rng.random_range(0..styles.len());
+        let c = content.center_crop(ci, cfg.resize, cfg.crop)?;
+        let s = styles.center_crop(si, cfg.resize, cfg.crop)?;
+        out.push(EvalPair {
+            content: c,
+            style: encode_style(encoder, &s).map_err(style_err)?,
+        });
+    }
+    Ok(out)
+}
+
+/// Checks that a restored optimiser has the parameters (names and sizes) of a fresh one.
+fn check_same_params(restored: &Adam<f32>, fresh: &Adam<f32>) -> Result<(), String> {
+    let a = restored.params();
+    let b = fresh.params();
+    if a.len() != b.len() {
+        return Err(format!(
+            "the optimiser has {} parameter tensors, this run has {}",
+            a.len(),
+            b.len()
+        ));
+    }
+    for (x, y) in a.iter().zip(b) {
+        if x.name != y.name || x.rows() != y.rows() || x.width() != y.width() {
+            return Err(format!(
+                "optimiser tensor `{}` ({} x {}) does not match `{}` ({} x {})",
+                x.name,
+                x.rows(),
+                x.width(),
+                y.name,
+                y.rows(),
+                y.width()
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// A progress bar in the style of the geometry stage (hidden when `show` is false).
+pub(crate) fn progress_bar(show: bool, total: u64, position: u64) -> ProgressBar {
+    if !show {
+        return ProgressBar::hidden();
+    }
+    let b = ProgressBar::new(total);
+    b.set_style(
+        ProgressStyle::with_template(
+            "{bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {per_sec} {msg}",
+        )
+        .expect("valid template"),
+    );
+    b.set_position(position);
+    b
+}
+
+/// Random streams derived from the seed.
+pub(crate) const STEP_STREAM: u64 = 1;
+pub(crate) const EVAL_STREAM: u64 = 2;
+pub(crate) const INIT_STREAM: u64 = 3;
+
+/// A 64-bit seed for `(seed, stream, index)`: SplitMix64 finalisers chained, so neighbouring
+/// iterations and streams get unrelated generators.
+pub(crate) fn mix(seed: u64, stream: u64, index: u64) -> u64 {
+    splitmix64(seed ^ splitmix64(stream ^ splitmix64(index)))
+}
+
+fn splitmix64(x: u64) -> u64 {
+    let mut z = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// PyTorch's default `Conv2d` initialisation: weight and bias uniform in
+/// `[-1/sqrt(fan_in), 1/sqrt(fan_in)]` with `fan_in = in_channels * k * k` (Kaiming uniform with
+/// `a = sqrt(5)`, whose bound `sqrt(6 / ((1 + a^2) fan_in))` is `1/sqrt(fan_in)`). Same
+/// distribution, not the same numbers: the values come from `rng`, weights first (OIHW order),
+/// then biases.
+pub fn conv_default_init<R: Rng>(
+    out_channels: usize,
+    in_channels: usize,
+    kernel: usize,
+    rng: &mut R,
+) -> (Array4<f32>, Array1<f32>) {
+    let fan_in = (in_channels * kernel * kernel).max(1) as f64;
+    let bound = 1.0 / fan_in.sqrt();
+    let mut draw = || rng.random_range(-bound..bound) as f32;
+    let w = Array4::from_shape_fn((out_channels, in_channels, kernel, kernel), |_| draw());
+    let b = Array1::from_shape_fn(out_channels, |_| draw());
+    (w, b)
+}
+
+/// A decoder mirroring `encoder`, initialised from `seed` with [`conv_default_init`] (the
+/// initialisation the AdaIN decoder is trained from): decoder conv `conv{K}_{J}` maps the
+/// output width of encoder `conv{K}_{J}` back to its input width, levels run from the deepest
+/// up with nearest 2x upsampling between them, and the last conv has no ReLU.
+pub fn init_decoder(encoder: &Encoder<f32>, seed: u64) -> Result<Decoder<f32>, TrainError> {
+    let mut rng = StdRng::seed_from_u64(mix(seed, INIT_STREAM, 0));
+    // The encoder's 3x3 convs grouped by level (conv0, the 1x1 input conv, is skipped).
+    let mut levels: Vec<Vec<(usize, usize)>> = Vec::new();
+    let mut convs = encoder.layers().skip(1);
+    for n in encoder.convs_per_level() {
+        let lv = (0..n)
+            .map(|_| {
+                let l = convs.next().expect("convs_per_level counts the layers");
+                (l.in_channels(), l.out_channels())
+            })
+            .collect();
+        levels.push(lv);
+    }
+    // Sequential (AdaIN) layout: the first conv at index 1, then 3 apart within a level
+    // (pad, conv, ReLU) and 4 apart across an upsampling.
+    let mut sd = StateDict::new();
+    let mut index = 1usize;
+    for (g, lv) in levels.iter().rev().enumerate() {
+        if g > 0 {
+            index += 1;
+        }
+        for &(enc_in, enc_out) in lv.iter().rev() {
+            let (w, b) = conv_default_init(enc_in, enc_out, 3, &mut rng);
+            sd.insert(format!("{index}.weight"), TensorF32::from_array(&w));
+            sd.insert(format!("{index}.bias"), TensorF32::from_array(&b));
+            index += 3;
+        }
+    }
+    Decoder::from_state_dict(&sd).map_err(net_err)
+}
+
+/// Safetensors state files of the style stages: tensors plus string metadata, written with
+/// [`write_atomic`]. Floating-point metadata uses Rust's shortest round-trip form.
+pub(crate) struct StateWriter {
+    tensors: Vec<(String, Dtype, Vec<usize>, Vec<u8>)>,
+    meta: HashMap<String, String>,
+}
+
+impl StateWriter {
+    pub(crate) fn new(format: &str) -> Self {
+        let mut meta = HashMap::new();
+        meta.insert("format".to_string(), format.to_string());
+        StateWriter {
+            tensors: Vec::new(),
+            meta,
+        }
+    }
+
+    pub(crate) fn meta(&mut self, key: &str, value: impl ToString) {
+        self.meta.insert(key.to_string(), value.to_string());
+    }
+
+    pub(crate) fn f32s(&mut self, name: &str, shape: Vec<usize>, v: &[f32]) {
+        let bytes = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+        self.tensors
+            .push((name.to_string(), Dtype::F32, shape, bytes));
+    }
+
+    pub(crate) fn bytes(&mut self, name: &str, v: Vec<u8>) {
+        self.tensors
+            .push((name.to_string(), Dtype::U8, vec![v.len()], v));
+    }
+
+    /// Running averages shown by the progress display, comma-separated.
+    pub(crate) fn ema(&mut self, ema: Option<&[f64]>) {
+        if let Some(e) = ema {
+            let v: Vec<String> = e.iter().map(f64::to_string).collect();
+            self.meta("ema", v.join(","));
+        }
+    }
+
+    /// The optimiser: hyper-parameters, per-tensor names, learning rates, step counts and widths
+    /// as metadata, moments as `adam.{name}.exp_avg` / `adam.{name}.exp_avg_sq`.
+    pub(crate) fn adam(&mut self, adam: &Adam<f32>) {
+        self.meta("adam.beta1", adam.config.beta1);
+        self.meta("adam.beta2", adam.config.beta2);
+        self.meta("adam.eps", adam.config.eps);
+        let names: Vec<&str> = adam.params().iter().map(|p| p.name.as_str()).collect();
+        self.meta("adam.groups", names.join(","));
+        for p in adam.params() {
+            self.meta(&format!("adam.{}.lr", p.name), p.lr);
+            self.meta(&format!("adam.{}.step", p.name), p.step_count());
+            self.meta(&format!("adam.{}.width", p.name), p.width());
+            let shape = vec![p.rows(), p.width()];
+            self.f32s(
+                &format!("adam.{}.exp_avg", p.name),
+                shape.clone(),
+                p.exp_avg(),
+            );
+            self.f32s(
+                &format!("adam.{}.exp_avg_sq", p.name),
+                shape,
+                p.exp_avg_sq(),
+            );
+        }
+    }
+
+    pub(crate) fn finish(self) -> Result<Vec<u8>, TrainError> {
+        let views = self
+            .tensors
+            .iter()
+            .map(|(name, dtype, shape, bytes)| {
+                safetensors::tensor::TensorView::new(*dtype, shape.clone(), bytes)
+                    .map(|v| (name.clone(), v))
+                    .map_err(|e| TrainError::Shape(format!("state tensor {name}: {e}")))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        safetensors::serialize(views, Some(self.meta))
+            .map_err(|e| TrainError::Shape(format!("cannot serialise the state: {e}")))
+    }
+}
+
+/// Validating access to a file written by [`StateWriter`]; errors name the file.
+pub(crate) struct StateReader<'a> {
+    st: SafeTensors<'a>,
+    meta: HashMap<String, String>,
+    path: &'a Path,
+}
+
+impl<'a> StateReader<'a> {
+    pub(crate) fn new(bytes: &'a [u8], path: &'a Path, format: &str) -> Result<Self, TrainError> {
+        let err = |message: String| TrainError::Checkpoint {
+            path: path.to_path_buf(),
+            message,
+        };
+        let st = SafeTensors::deserialize(bytes)
+            .map_err(|e| err(format!("not a safetensors file: {e}")))?;
+        let meta = SafeTensors::read_metadata(bytes)
+            .ok()
+            .and_then(|(_, m)| m.metadata().clone())
+            .unwrap_or_default();
+        let r = StateReader { st, meta, path };
+        let found = r.meta_str("format")?;
+        if found != format {
+            return Err(err(format!("format `{found}`, expected `{format}`")));
+        }
+        Ok(r)
+    }
+
+    pub(crate) fn err(&self, message: String) -> TrainError {
+        TrainError::Checkpoint {
+            path: self.path.to_path_buf(),
+            message,
+        }
+    }
+
+    pub(crate) fn meta_str(&self, key: &str) -> Result<&str, TrainError> {
+        self.meta
+            .get(key)
+            .map(String::as_str)
+            .ok_or_else(|| self.err(format!("metadata entry `{key}` is missing")))
+    }
+
+    pub(crate) fn meta_parse<V: std::str::FromStr>(&self, key: &str) -> Result<V, TrainError> {
+        let s = self.meta_str(key)?;
+        s.parse()
+            .map_err(|_| self.err(format!("metadata entry `{key}` = `{s}` is malformed")))
+    }
+
+    /// The running averages written by [`StateWriter::ema`], which must have `n` values.
+    pub(crate) fn ema<const N: usize>(&self) -> Result<Option<[f64; N]>, TrainError> {
+        let Some(s) = self.meta.get("ema") else {
+            return Ok(None);
+        };
+        let bad = || self.err(format!("metadata entry `ema` = `{s}` is malformed"));
+        let v: Vec<f64> = s
+            .split(',')
+            .map(str::parse)
+            .collect::<Result<_, _>>()
+            .map_err(|_| bad())?;
+        let a: [f64; N] = v.try_into().map_err(|_| bad())?;
+        Ok(Some(a))
+    }
+
+    fn raw(&self, name: &str, dtype: Dtype) -> Result<(Vec<usize>, &'a [u8]), TrainError> {
+        let t = self
+            .st
+            .tensor(name)
+            .map_err(|_| self.err(format!("tensor `{name}` is missing")))?;
+        if t.dtype() != dtype {
+            return Err(self.err(format!(
+                "tensor `{name}` is {:?}, expected {dtype:?}",
+                t.dtype()
+            )));
+        }
+        Ok((t.shape().to_vec(), t.data()))
+    }
+
+    pub(crate) fn bytes(&self, name: &str) -> Result<&'a [u8], TrainError> {
+        Ok(self.raw(name, Dtype::U8)?.1)
+    }
+
+    /// An `f32` tensor whose shape must be `shape`.
+    pub(crate) fn f32s(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>, TrainError> {
+        let (found, data) = self.raw(name, Dtype::F32)?;
+        if found != shape {
+            return Err(self.err(format!(
+                "tensor `{name}` has shape {found:?}, expected {shape:?}"
+            )));
+        }
+        Ok(data
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect())
+    }
+
+    /// The optimiser written by [`StateWriter::adam`]; `config` must match the stored
+    /// hyper-parameters.
+    pub(crate) fn adam(&self, config: AdamConfig) -> Result<Adam<f32>, TrainError> {
+        let stored = AdamConfig {
+            beta1: self.meta_parse("adam.beta1")?,
+            beta2: self.meta_parse("adam.beta2")?,
+            eps: self.meta_parse("adam.eps")?,
+        };
+        if stored != config {
+            return Err(self.err(format!(
+                "the optimiser ran with {stored:?}, the configuration asks for {config:?}"
+            )));
+        }
+        let mut adam = Adam::new(stored);
+        for name in self.meta_str("adam.groups")?.split(',') {
+            let width: usize = self.meta_parse(&format!("adam.{name}.width"))?;
+            let (shape, _) = self.raw(&format!("adam.{name}.exp_avg"), Dtype::F32)?;
+            let rows = shape.first().copied().unwrap_or(0);
+            let m = self.f32s(&format!("adam.{name}.exp_avg"), &[rows, width])?;
+            let v = self.f32s(&format!("adam.{name}.exp_avg_sq"), &[rows, width])?;
+            let state = ParamState::from_parts(
+                name,
+                self.meta_parse(&format!("adam.{name}.lr"))?,
+                width,
+                self.meta_parse(&format!("adam.{name}.step"))?,
+                m,
+                v,
+            )
+            .map_err(|e| self.err(e.to_string()))?;
+            adam.push_state(state);
+        }
+        Ok(adam)
+    }
+}

@@ -2,5 +2,23 @@
 //!
 //! Each module maps onto one group of subcommands and speaks in files: it reads inputs, reports
 //! clear errors naming the file and the problem, and writes outputs atomically.
+//!
+//! * [`weights`]: importing and describing network weights (`dsgs weights`).
+//! * [`config`]: TOML configurations of the training commands, saved beside their outputs.
+//! * [`fit_geometry`]: the geometry stage on a dataset (`dsgs fit-geometry`).
+//! * [`cameras`]: camera sequences (dataset, held-out, interpolated path, orbit).
+//! * [`render`]: colour, depth, alpha and feature renders of a scene (`dsgs render`).
+//! * [`stylize`]: zero-shot stylization of a scene bundle (`dsgs stylize`).
+//! * [`consistency`]: multi-view consistency by depth warping; [`eval`]: the evaluation
+//!   report (`dsgs eval`).
+//! * [`image_io`]: PNG, GIF, contact sheets, MP4 through `ffmpeg`.
 
+pub mod cameras;
+pub mod config;
+pub mod consistency;
+pub mod eval;
+pub mod fit_geometry;
+pub mod image_io;
+pub mod render;
+pub mod stylize;
 pub mod weights;

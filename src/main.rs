@@ -1,10 +1,17 @@
 //! The `dsgs` command-line program.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-use anyhow::{Context, Result};
-use clap::{Parser, Subcommand};
+use anyhow::{bail, Context, Result};
+use clap::{Args, Parser, Subcommand};
+use dsgs::cameras::{CameraRequest, CameraSource, KnownCameras};
+use dsgs::consistency::WarpOptions;
+use dsgs::fit_geometry::{FitSettings, GeometryOverrides};
+use dsgs::render::{DepthStyle, RenderKind, SceneInput};
+use glam::DVec3;
+use indicatif::{ProgressBar, ProgressStyle};
+use train::Variant;
 
 /// Zero-shot 3D style transfer on Gaussian splatting (DS-StyleGaussian), exact and CPU-only.
 #[derive(Parser)]
@@ -19,6 +26,14 @@ enum Command {
     /// Import PyTorch checkpoints into the canonical weights format, or describe a weights file.
     #[command(subcommand)]
     Weights(WeightsCommand),
+    /// Fit 3D Gaussians to a dataset of posed images (the geometry stage).
+    FitGeometry(FitGeometryArgs),
+    /// Render a scene (.ply or bundle) as colour, depth, alpha or feature PCA images.
+    Render(RenderArgs),
+    /// Stylize a scene bundle with one or more style images.
+    Stylize(StylizeArgs),
+    /// Measure multi-view consistency, style and content losses and stage timings.
+    Eval(EvalArgs),
 }
 
 #[derive(Subcommand)]
@@ -42,6 +57,236 @@ enum WeightsCommand {
     },
 }
 
+fn vector3(s: &str) -> Result<DVec3, String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| {
+            x.trim()
+                .parse::<f64>()
+                .map_err(|_| format!("`{x}` is not a number"))
+        })
+        .collect::<Result<_, _>>()?;
+    match v.as_slice() {
+        [x, y, z] => Ok(DVec3::new(*x, *y, *z)),
+        _ => Err(format!("expected three comma-separated numbers, got `{s}`")),
+    }
+}
+
+#[derive(Args)]
+struct FitGeometryArgs {
+    /// Dataset directory (COLMAP, NeRF-synthetic or LLFF layout).
+    dataset: PathBuf,
+    /// Output directory.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// TOML configuration (train::GeometryConfig keys plus a [dataset] table); flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Total iterations.
+    #[arg(long)]
+    iterations: Option<u64>,
+    /// Resize the images by 1/F on load.
+    #[arg(long, conflicts_with = "resolution")]
+    downscale: Option<f64>,
+    /// Read the images from the images_N folder.
+    #[arg(long)]
+    resolution: Option<u32>,
+    /// White background (NeRF-synthetic scenes).
+    #[arg(long)]
+    white: bool,
+    /// Iterations at which to evaluate the held-out views and save the scene (comma-separated).
+    #[arg(long, value_delimiter = ',')]
+    test_iterations: Option<Vec<u64>>,
+    /// Iterations at which to save the scene, when they differ from the test iterations.
+    #[arg(long, value_delimiter = ',')]
+    save_iterations: Option<Vec<u64>>,
+    /// Iterations at which to write a resumable checkpoint (comma-separated).
+    #[arg(long, value_delimiter = ',')]
+    checkpoint_iterations: Option<Vec<u64>>,
+    /// Continue from a checkpoint (chkpnt_N.safetensors).
+    #[arg(long)]
+    resume: Option<PathBuf>,
+    /// Train on every image (no held-out split).
+    #[arg(long)]
+    no_eval: bool,
+    /// Seed of every random choice.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Maximum SH degree (0..=3).
+    #[arg(long)]
+    sh_degree: Option<usize>,
+    /// Print a progress line every N iterations (for logs).
+    #[arg(long)]
+    log_every: Option<u64>,
+    /// No progress bar.
+    #[arg(long)]
+    no_progress: bool,
+}
+
+#[derive(Args, Clone)]
+struct CameraArgs {
+    /// Camera source: the dataset's or bundle's cameras, the held-out ones, a path through
+    /// them, or an orbit.
+    #[arg(long, value_enum, default_value = "orbit")]
+    cameras: CameraSource,
+    /// Number of frames (path and orbit), or at most this many cameras (dataset and test).
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Image width (alone: keeps the aspect ratio).
+    #[arg(long)]
+    width: Option<u32>,
+    /// Image height (alone: keeps the aspect ratio).
+    #[arg(long)]
+    height: Option<u32>,
+    /// Scale every camera's image by this factor.
+    #[arg(long)]
+    scale: Option<f64>,
+    /// Take the cameras from this dataset directory instead of the scene.
+    #[arg(long)]
+    dataset: Option<PathBuf>,
+    /// World up axis of orbits, as x,y,z (default: from the cameras, else -y).
+    #[arg(long, value_parser = vector3, allow_hyphen_values = true)]
+    up: Option<DVec3>,
+}
+
+impl CameraArgs {
+    fn request(&self) -> CameraRequest {
+        CameraRequest {
+            source: self.cameras,
+            frames: self.frames,
+            width: self.width,
+            height: self.height,
+            scale: self.scale,
+            up: self.up,
+        }
+    }
+
+    fn known(&self, scene: KnownCameras) -> Result<KnownCameras> {
+        match &self.dataset {
+            Some(d) => KnownCameras::from_dataset(d),
+            None => Ok(scene),
+        }
+    }
+}
+
+#[derive(Args)]
+struct RenderArgs {
+    /// The scene: a .ply file or a scene bundle directory.
+    #[arg(long)]
+    scene: PathBuf,
+    #[command(flatten)]
+    cameras: CameraArgs,
+    /// What to draw.
+    #[arg(long, value_enum, default_value = "color")]
+    what: RenderKind,
+    /// How depth is drawn.
+    #[arg(long, value_enum, default_value = "colour")]
+    depth_style: DepthStyle,
+    /// Output directory (frame_XXXX.png).
+    #[arg(short, long)]
+    output: PathBuf,
+}
+
+#[derive(Args)]
+struct StyleArgs {
+    /// Style image (repeat for several styles).
+    #[arg(long = "style", required = true)]
+    styles: Vec<PathBuf>,
+    /// Mix the styles with these weights into one output (comma-separated, one per style).
+    #[arg(long, value_delimiter = ',')]
+    weights: Option<Vec<f64>>,
+    /// Style strength: 0 reconstructs the scene, 1 is the full style.
+    #[arg(long, default_value_t = 1.0)]
+    alpha: f64,
+    /// Keep the scene's colours (the style images are colour-matched to the colour renders).
+    #[arg(long)]
+    preserve_colour: bool,
+    /// Longest side of the style images after loading.
+    #[arg(long, default_value_t = dsgs::stylize::DEFAULT_STYLE_SIDE)]
+    style_size: u32,
+    /// Network variant (default: the bundle's).
+    #[arg(long)]
+    variant: Option<Variant>,
+    /// Replace the bundle's decoder (.safetensors or a PyTorch checkpoint).
+    #[arg(long)]
+    decoder: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct StylizeArgs {
+    /// Scene bundle directory.
+    bundle: PathBuf,
+    #[command(flatten)]
+    style: StyleArgs,
+    #[command(flatten)]
+    cameras: CameraArgs,
+    /// Output directory.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Also write an animated GIF per style.
+    #[arg(long)]
+    gif: bool,
+    /// Also write an MP4 per style (needs ffmpeg on PATH).
+    #[arg(long)]
+    mp4: bool,
+    /// Frames per second of the animations.
+    #[arg(long, default_value_t = 10.0)]
+    fps: f64,
+    /// Views (columns) in the contact sheet.
+    #[arg(long, default_value_t = 4)]
+    sheet_views: usize,
+}
+
+#[derive(Args)]
+struct EvalArgs {
+    /// Scene bundle directory (to render and evaluate stylized sequences).
+    bundle: Option<PathBuf>,
+    #[command(flatten)]
+    style: EvalStyleArgs,
+    #[command(flatten)]
+    cameras: CameraArgs,
+    /// Evaluate the existing frames (*.png in name order) of this directory instead.
+    #[arg(long, requires = "scene")]
+    frames_dir: Option<PathBuf>,
+    /// The geometry for --frames-dir: a .ply file or a bundle directory.
+    #[arg(long)]
+    scene: Option<PathBuf>,
+    /// Pixels with alpha at or below this are not compared.
+    #[arg(long, default_value_t = 0.5)]
+    alpha_threshold: f32,
+    /// Relative depth tolerance of the occlusion test.
+    #[arg(long, default_value_t = 0.02)]
+    depth_tolerance: f64,
+    /// Write the report as JSON.
+    #[arg(short, long)]
+    output: Option<PathBuf>,
+}
+
+#[derive(Args)]
+struct EvalStyleArgs {
+    /// Style image (repeat for several styles).
+    #[arg(long = "style")]
+    styles: Vec<PathBuf>,
+    /// Mix the styles with these weights into one output.
+    #[arg(long, value_delimiter = ',')]
+    weights: Option<Vec<f64>>,
+    /// Style strength.
+    #[arg(long, default_value_t = 1.0)]
+    alpha: f64,
+    /// Keep the scene's colours.
+    #[arg(long)]
+    preserve_colour: bool,
+    /// Longest side of the style images after loading.
+    #[arg(long, default_value_t = dsgs::stylize::DEFAULT_STYLE_SIDE)]
+    style_size: u32,
+    /// Network variant (default: the bundle's).
+    #[arg(long)]
+    variant: Option<Variant>,
+    /// Replace the bundle's decoder.
+    #[arg(long)]
+    decoder: Option<PathBuf>,
+}
+
 fn main() -> ExitCode {
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
@@ -50,6 +295,18 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+fn progress(len: usize, what: &str) -> ProgressBar {
+    let b = ProgressBar::new(len as u64);
+    b.set_style(
+        ProgressStyle::with_template(
+            "{msg:>10} {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}]",
+        )
+        .expect("valid template"),
+    );
+    b.set_message(what.to_string());
+    b
 }
 
 fn run(cli: Cli) -> Result<()> {
@@ -67,6 +324,193 @@ fn run(cli: Cli) -> Result<()> {
         Command::Weights(WeightsCommand::Info { path }) => {
             print!("{}", dsgs::weights::describe(&path)?);
         }
+        Command::FitGeometry(a) => fit_geometry(a)?,
+        Command::Render(a) => render(a)?,
+        Command::Stylize(a) => stylize(a)?,
+        Command::Eval(a) => eval(a)?,
+    }
+    Ok(())
+}
+
+fn fit_geometry(a: FitGeometryArgs) -> Result<()> {
+    let settings = FitSettings {
+        dataset: a.dataset,
+        out_dir: a.output,
+        config: a.config,
+        resume: a.resume,
+        overrides: GeometryOverrides {
+            iterations: a.iterations,
+            downscale: a.downscale,
+            images_folder: a.resolution,
+            white: a.white,
+            no_eval: a.no_eval,
+            test_iterations: a.test_iterations,
+            save_iterations: a.save_iterations,
+            checkpoint_iterations: a.checkpoint_iterations,
+            seed: a.seed,
+            sh_degree: a.sh_degree,
+            log_every: a.log_every,
+            no_progress: a.no_progress,
+        },
+    };
+    let r = dsgs::fit_geometry::run(&settings, None)?;
+    println!(
+        "{} training and {} test views at {}x{}, {} initial Gaussians",
+        r.train_views, r.test_views, r.width, r.height, r.initial_gaussians
+    );
+    for e in &r.evaluations {
+        println!(
+            "iteration {}: held-out PSNR {:.3} dB, SSIM {:.4}, L1 {:.5}, {} Gaussians",
+            e.step, e.psnr, e.ssim, e.l1, e.gaussians
+        );
+    }
+    let done = r.step - r.first_step;
+    println!(
+        "{done} iterations in {:.1} s ({:.2} it/s), {} Gaussians; scene written to {}",
+        r.seconds,
+        done as f64 / r.seconds.max(1e-9),
+        r.gaussians,
+        r.ply.display()
+    );
+    if let Some(p) = &r.stop_checkpoint {
+        println!(
+            "stopped early at iteration {}; resume with --resume {}",
+            r.step,
+            p.display()
+        );
+    }
+    Ok(())
+}
+
+fn render(a: RenderArgs) -> Result<()> {
+    let scene = SceneInput::open(&a.scene)?;
+    let known = a.cameras.known(scene.known_cameras())?;
+    let cams = dsgs::cameras::select(&a.cameras.request(), &known, scene.gaussians())?;
+    let bar = progress(cams.len(), "render");
+    let written =
+        dsgs::render::render_views(&scene, &cams, a.what, a.depth_style, &a.output, || {
+            bar.inc(1)
+        })?;
+    bar.finish_and_clear();
+    println!("{} images written to {}", written.len(), a.output.display());
+    Ok(())
+}
+
+fn bundle_with(
+    dir: &Path,
+    variant: Option<Variant>,
+    decoder: Option<&Path>,
+) -> Result<train::SceneBundle> {
+    dsgs::stylize::load_bundle(dir, variant, decoder)
+}
+
+fn stylize(a: StylizeArgs) -> Result<()> {
+    let bundle = bundle_with(&a.bundle, a.style.variant, a.style.decoder.as_deref())?;
+    let known = a.cameras.known(KnownCameras::from_bundle(
+        &bundle,
+        &a.bundle.display().to_string(),
+    ))?;
+    let cams = dsgs::cameras::select(&a.cameras.request(), &known, &bundle.scene)?;
+    let settings = dsgs::stylize::StylizeSettings {
+        styles: a.style.styles,
+        weights: a.style.weights,
+        alpha: a.style.alpha,
+        preserve_colour: a.style.preserve_colour,
+        style_side: a.style.style_size,
+        out_dir: a.output.clone(),
+        gif: a.gif,
+        mp4: a.mp4,
+        fps: a.fps,
+        sheet_views: a.sheet_views,
+    };
+    let outputs = if settings.weights.is_some() {
+        1
+    } else {
+        settings.styles.len()
+    };
+    let bar = progress(cams.len() * (1 + outputs), "stylize");
+    let out = dsgs::stylize::run(&bundle, &cams, &settings, |stage| {
+        bar.set_message(stage.to_string());
+        bar.inc(1)
+    })?;
+    bar.finish_and_clear();
+    for (name, frames) in &out.outputs {
+        println!(
+            "{name}: {} frames in {}",
+            frames.len(),
+            a.output.join(name).display()
+        );
+    }
+    for p in out.gifs.iter().chain(&out.mp4s).chain(&out.contact_sheet) {
+        println!("wrote {}", p.display());
+    }
+    let s = out.seconds;
+    println!(
+        "seconds per view: raster {:.4}, lift+transform {:.4}, decode {:.4}",
+        s.raster, s.lift_transform, s.decode
+    );
+    Ok(())
+}
+
+fn eval(a: EvalArgs) -> Result<()> {
+    let warp = WarpOptions {
+        alpha_threshold: a.alpha_threshold,
+        depth_tolerance: a.depth_tolerance,
+    };
+    let report = if let Some(frames_dir) = &a.frames_dir {
+        let scene_path = a
+            .scene
+            .as_ref()
+            .or(a.bundle.as_ref())
+            .context("--frames-dir needs --scene")?;
+        let scene = SceneInput::open(scene_path)?;
+        let known = a.cameras.known(scene.known_cameras())?;
+        let cams = dsgs::cameras::select(&a.cameras.request(), &known, scene.gaussians())?;
+        let bar = progress(cams.len(), "eval");
+        let r = dsgs::eval::evaluate_frames(&scene, &cams, frames_dir, &warp, || bar.inc(1))?;
+        bar.finish_and_clear();
+        r
+    } else {
+        let Some(dir) = &a.bundle else {
+            bail!("give a scene bundle to evaluate (or --frames-dir DIR --scene SCENE)");
+        };
+        if a.style.styles.is_empty() {
+            bail!("give at least one --style image to evaluate");
+        }
+        let bundle = bundle_with(dir, a.style.variant, a.style.decoder.as_deref())?;
+        let known = a.cameras.known(KnownCameras::from_bundle(
+            &bundle,
+            &dir.display().to_string(),
+        ))?;
+        let cams = dsgs::cameras::select(&a.cameras.request(), &known, &bundle.scene)?;
+        let settings = dsgs::eval::EvalSettings {
+            styles: a.style.styles,
+            weights: a.style.weights,
+            alpha: a.style.alpha,
+            preserve_colour: a.style.preserve_colour,
+            style_side: a.style.style_size,
+            warp,
+        };
+        let outputs = if settings.weights.is_some() {
+            1
+        } else {
+            settings.styles.len()
+        };
+        let bar = progress(cams.len() * (1 + outputs), "eval");
+        let r = dsgs::eval::evaluate_bundle(
+            &bundle,
+            &dir.display().to_string(),
+            &cams,
+            &settings,
+            || bar.inc(1),
+        )?;
+        bar.finish_and_clear();
+        r
+    };
+    print!("{}", dsgs::eval::table(&report));
+    if let Some(p) = &a.output {
+        dsgs::eval::write_report(p, &report)?;
+        println!("report written to {}", p.display());
     }
     Ok(())
 }

@@ -1,0 +1,367 @@
+//! Where rendering commands put their cameras: the cameras of a dataset or a bundle, the
+//! held-out split, an interpolated path through them, or an orbit.
+//!
+//! Cameras follow `gaussian::camera` (`camera_from_world` in OpenCV axes, pixel centres at
+//! `i + 0.5`).
+//!
+//! * `dataset`: every known camera (at most `frames` of them, evenly spaced, when given).
+//! * `test`: the held-out ones (a bundle's `held_out` flags; for a dataset every 8th image,
+//!   index `% 8 == 0`, as `gaussian::dataset::eval_split`).
+//! * `path`: `frames` cameras interpolated through all known cameras in order
+//!   ([`gaussian::camera_path::interpolate`]).
+//! * `orbit`: `frames` cameras on a circle. With known cameras it starts at the first one and
+//!   circles the point nearest to all their optical axes (least squares) about their mean
+//!   image-up direction ([`gaussian::camera_path::orbit_from`]). Without cameras it circles the
+//!   per-axis median of the Gaussian means at `ORBIT_RADIUS_FACTOR` times their median distance
+//!   from it, 20 degrees above the plane orthogonal to `up` (default world `-y`, the usual up
+//!   axis of COLMAP reconstructions), with a 60 degree horizontal field of view.
+//!
+//! Image sizes: `width` and `height` resize every camera (one of them alone keeps each camera's
+//! aspect ratio); `scale` scales them ([`gaussian::Camera::scaled`]); without any, the cameras
+//! keep their size, and cameras made from nothing are 256 x 256.
+
+use anyhow::{bail, Context, Result};
+use gaussian::camera_path::{interpolate, orbit, orbit_from};
+use gaussian::{Camera, FeatureGaussians, Intrinsics};
+use glam::{DMat3, DVec3};
+
+/// The orbit radius, in median distances of the Gaussians from their median centre.
+pub const ORBIT_RADIUS_FACTOR: f64 = 2.5;
+/// Default number of frames of generated paths and orbits.
+pub const DEFAULT_FRAMES: usize = 30;
+/// Default image side of cameras made from nothing.
+pub const DEFAULT_SIDE: u32 = 256;
+
+/// Which cameras to render from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CameraSource {
+    /// Every camera of the dataset or bundle.
+    Dataset,
+    /// The held-out cameras.
+    Test,
+    /// A path interpolated through the cameras.
+    Path,
+    /// An orbit around the scene.
+    Orbit,
+}
+
+/// Cameras known for a scene (from a dataset or a bundle), with held-out flags and names.
+#[derive(Clone, Debug, Default)]
+pub struct KnownCameras {
+    pub cameras: Vec<Camera>,
+    pub held_out: Vec<bool>,
+    pub names: Vec<String>,
+    /// Where they came from, for error messages (a dataset or bundle path).
+    pub origin: String,
+}
+
+impl KnownCameras {
+    /// The cameras of a dataset directory, held-out flags from the every-8th split.
+    pub fn from_dataset(dir: &std::path::Path) -> Result<KnownCameras> {
+        let d = gaussian::Dataset::load(dir, &gaussian::LoadOptions::default())
+            .with_context(|| format!("loading the dataset {}", dir.display()))?;
+        let split = d.split();
+        let mut held_out = vec![false; d.len()];
+        for i in split.test {
+            held_out[i] = true;
+        }
+        Ok(KnownCameras {
+            cameras: d.cameras,
+            held_out,
+            names: d.names,
+            origin: dir.display().to_string(),
+        })
+    }
+
+    /// The cameras stored in a bundle.
+    pub fn from_bundle(bundle: &train::SceneBundle, origin: &str) -> KnownCameras {
+        KnownCameras {
+            cameras: bundle.cameras(),
+            held_out: bundle.info.cameras.iter().map(|c| c.held_out).collect(),
+            names: bundle.info.cameras.iter().map(|c| c.name.clone()).collect(),
+            origin: origin.to_string(),
+        }
+    }
+}
+
+/// A camera request.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CameraRequest {
+    pub source: CameraSource,
+    pub frames: Option<usize>,
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    pub scale: Option<f64>,
+    /// The orbit axis when no cameras are known (default `-y`).
+    pub up: Option<DVec3>,
+}
+
+impl CameraRequest {
+    /// A request for `source` with no size or frame options.
+    pub fn new(source: CameraSource) -> CameraRequest {
+        CameraRequest {
+            source,
+            frames: None,
+            width: None,
+            height: None,
+            scale: None,
+            up: None,
+        }
+    }
+}
+
+/// `n` indices spread evenly over `0..len` (all of them when `n >= len`).
+pub fn evenly_spaced(len: usize, n: usize) -> Vec<usize> {
+    if n >= len {
+        return (0..len).collect();
+    }
+    if n == 1 {
+        return vec![0];
+    }
+    (0..n)
+        .map(|k| ((k * (len - 1)) as f64 / (n - 1) as f64).round() as usize)
+        .collect()
+}
+
+/// The per-axis median of the Gaussian means.
+pub fn median_centre(scene: &FeatureGaussians<f32>) -> DVec3 {
+    let median = |axis: usize| {
+        let mut v: Vec<f64> = scene.means.iter().map(|m| m[axis] as f64).collect();
+        v.sort_by(f64::total_cmp);
+        if v.is_empty() {
+            0.0
+        } else {
+            v[v.len() / 2]
+        }
+    };
+    DVec3::new(median(0), median(1), median(2))
+}
+
+/// The point nearest (least squares) to the optical axes of the cameras; `None` when the axes
+/// are (nearly) parallel.
+pub fn look_at_point(cameras: &[Camera]) -> Option<DVec3> {
+    let mut a = DMat3::ZERO;
+    let mut b = DVec3::ZERO;
+    for c in cameras {
+        let d = c.view_direction().normalize();
+        let p = DMat3::IDENTITY - DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+        a += p;
+        b += p * c.center();
+    }
+    // Parallel axes make `a` singular; require a reasonably conditioned system.
+    let det = a.determinant();
+    let scale = (cameras.len() as f64).powi(3);
+    if cameras.len() < 2 || det.abs() < 1e-6 * scale {
+        return None;
+    }
+    Some(a.inverse() * b)
+}
+
+/// The mean image-up direction (camera `-y`) of the cameras in world coordinates.
+pub fn mean_up(cameras: &[Camera]) -> Option<DVec3> {
+    let sum: DVec3 = cameras
+        .iter()
+        .map(|c| c.rotation().transpose() * DVec3::NEG_Y)
+        .sum();
+    sum.try_normalize()
+}
+
+fn resize_all(cameras: Vec<Camera>, req: &CameraRequest) -> Result<Vec<Camera>> {
+    if let Some(s) = req.scale {
+        if !(s > 0.0 && s.is_finite()) {
+            bail!("--scale {s} is not a positive factor");
+        }
+    }
+    for (flag, v) in [("--width", req.width), ("--height", req.height)] {
+        if v == Some(0) {
+            bail!("{flag} must be at least 1");
+        }
+    }
+    Ok(cameras
+        .into_iter()
+        .map(|c| {
+            let c = match req.scale {
+                Some(s) => c.scaled(s),
+                None => c,
+            };
+            let k = c.intrinsics;
+            let aspect = k.height as f64 / k.width as f64;
+            match (req.width, req.height) {
+                (Some(w), Some(h)) => c.resized(w, h),
+                (Some(w), None) => c.resized(w, ((w as f64 * aspect).round() as u32).max(1)),
+                (None, Some(h)) => c.resized(((h as f64 / aspect).round() as u32).max(1), h),
+                (None, None) => c,
+            }
+        })
+        .collect())
+}
+
+fn no_cameras(known: &KnownCameras, what: &str) -> anyhow::Error {
+    let origin = if known.origin.is_empty() {
+        "the scene".to_string()
+    } else {
+        known.origin.clone()
+    };
+    anyhow::anyhow!(
+        "{origin} has no cameras for `--cameras {what}`; give --dataset DIR with the scene's \
+         cameras, or use `--cameras orbit`"
+    )
+}
+
+/// The cameras of a request. `scene` places orbits when no cameras are known.
+pub fn select(
+    req: &CameraRequest,
+    known: &KnownCameras,
+    scene: &FeatureGaussians<f32>,
+) -> Result<Vec<Camera>> {
+    if req.frames == Some(0) {
+        bail!("--frames must be at least 1");
+    }
+    let cams = match req.source {
+        CameraSource::Dataset => {
+            if known.cameras.is_empty() {
+                return Err(no_cameras(known, "dataset"));
+            }
+            let idx = evenly_spaced(known.cameras.len(), req.frames.unwrap_or(usize::MAX));
+            idx.iter().map(|&i| known.cameras[i]).collect()
+        }
+        CameraSource::Test => {
+            let held: Vec<Camera> = known
+                .cameras
+                .iter()
+                .zip(&known.held_out)
+                .filter(|(_, &h)| h)
+                .map(|(c, _)| *c)
+                .collect();
+            if held.is_empty() {
+                return Err(no_cameras(known, "test"));
+            }
+            let idx = evenly_spaced(held.len(), req.frames.unwrap_or(usize::MAX));
+            idx.iter().map(|&i| held[i]).collect()
+        }
+        CameraSource::Path => {
+            if known.cameras.is_empty() {
+                return Err(no_cameras(known, "path"));
+            }
+            interpolate(&known.cameras, req.frames.unwrap_or(DEFAULT_FRAMES))?
+        }
+        CameraSource::Orbit => orbit_cameras(req, known, scene)?,
+    };
+    resize_all(cams, req)
+}
+
+fn orbit_cameras(
+    req: &CameraRequest,
+    known: &KnownCameras,
+    scene: &FeatureGaussians<f32>,
+) -> Result<Vec<Camera>> {
+    let frames = req.frames.unwrap_or(DEFAULT_FRAMES);
+    if let Some(start) = known.cameras.first() {
+        let centre = look_at_point(&known.cameras).unwrap_or_else(|| median_centre(scene));
+        let up = req
+            .up
+            .or_else(|| mean_up(&known.cameras))
+            .unwrap_or(DVec3::NEG_Y);
+        return Ok(orbit_from(start, centre, frames, up)?);
+    }
+    if scene.is_empty() {
+        bail!("an orbit around an empty scene is undefined");
+    }
+    let centre = median_centre(scene);
+    let mut dist: Vec<f64> = scene
+        .means
+        .iter()
+        .map(|m| (DVec3::new(m[0] as f64, m[1] as f64, m[2] as f64) - centre).length())
+        .collect();
+    dist.sort_by(f64::total_cmp);
+    let radius = ORBIT_RADIUS_FACTOR * dist[dist.len() / 2].max(1e-6);
+    let side = DEFAULT_SIDE;
+    let (w, h) = (req.width.unwrap_or(side), req.height.unwrap_or(side));
+    let focal = 0.5 * w as f64 / 30f64.to_radians().tan();
+    let k = Intrinsics {
+        fx: focal,
+        fy: focal,
+        cx: 0.5 * w as f64,
+        cy: 0.5 * h as f64,
+        width: w,
+        height: h,
+    };
+    let up = req.up.unwrap_or(DVec3::NEG_Y);
+    Ok(orbit(k, centre, radius, 20f64.to_radians(), frames, up)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use gaussian::camera_path::look_at;
+
+    fn k() -> Intrinsics {
+        Intrinsics {
+            fx: 40.0,
+            fy: 40.0,
+            cx: 16.0,
+            cy: 12.0,
+            width: 32,
+            height: 24,
+        }
+    }
+
+    fn ring(n: usize) -> Vec<Camera> {
+        (0..n)
+            .map(|i| {
+                let a = i as f64 * 0.4;
+                let eye = DVec3::new(3.0 * a.cos(), 1.0, 3.0 * a.sin()) + DVec3::new(1.0, 2.0, 3.0);
+                look_at(k(), eye, DVec3::new(1.0, 2.0, 3.0), DVec3::Y).unwrap()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn look_at_point_finds_the_common_target() {
+        let p = look_at_point(&ring(5)).unwrap();
+        assert!((p - DVec3::new(1.0, 2.0, 3.0)).length() < 1e-9, "{p}");
+        let up = mean_up(&ring(5)).unwrap();
+        assert!(up.dot(DVec3::Y) > 0.9);
+    }
+
+    #[test]
+    fn evenly_spaced_keeps_ends() {
+        assert_eq!(evenly_spaced(10, 3), vec![0, 5, 9]);
+        assert_eq!(evenly_spaced(3, 10), vec![0, 1, 2]);
+        assert_eq!(evenly_spaced(7, 1), vec![0]);
+    }
+
+    #[test]
+    fn sources_and_sizes() {
+        let known = KnownCameras {
+            cameras: ring(17),
+            held_out: (0..17).map(|i| i % 8 == 0).collect(),
+            names: Vec::new(),
+            origin: "ring".into(),
+        };
+        let scene = FeatureGaussians::<f32>::default();
+        let mut req = CameraRequest::new(CameraSource::Test);
+        assert_eq!(select(&req, &known, &scene).unwrap().len(), 3);
+        req.source = CameraSource::Path;
+        req.frames = Some(9);
+        req.width = Some(64);
+        let path = select(&req, &known, &scene).unwrap();
+        assert_eq!(path.len(), 9);
+        assert_eq!(
+            (path[0].intrinsics.width, path[0].intrinsics.height),
+            (64, 48)
+        );
+        req.source = CameraSource::Orbit;
+        let orbit = select(&req, &known, &scene).unwrap();
+        assert_eq!(orbit.len(), 9);
+        assert!((orbit[0].center() - known.cameras[0].center()).length() < 1e-9);
+        let empty = KnownCameras {
+            origin: "scene.ply".into(),
+            ..KnownCameras::default()
+        };
+        req.source = CameraSource::Dataset;
+        let e = select(&req, &empty, &scene).unwrap_err().to_string();
+        assert!(e.contains("scene.ply") && e.contains("no cameras"), "{e}");
+    }
+}

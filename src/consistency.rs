@@ -1,0 +1,617 @@
+//! Multi-view consistency of rendered sequences: image `j` warped into view `i` through the
+//! scene's geometry, compared with image `i` where the warp is valid.
+//!
+//! # Warp
+//! Conventions of `docs/conventions.md`: `camera_from_world` in OpenCV axes, pixel `(x, y)`
+//! centred at `(x + 0.5, y + 0.5)`, depth = camera z. View `i` comes with its rendered
+//! normalised depth `D_i` and alpha `A_i` (from the rasterizer at the image size). For a pixel of
+//! `i` with `A_i > alpha_threshold` and `D_i > 0`:
+//!
+//! 1. back-project: `X_cam = ((x + 0.5 - cx) / fx * D, (y + 0.5 - cy) / fy * D, D)`, then
+//!    `X = world_from_camera_i X_cam`;
+//! 2. project into `j`: `(u, v, z_j)` = `camera_j.project_point(X)`; the sample is at index-space
+//!    coordinates `(u - 0.5, v - 0.5)`;
+//! 3. keep it when `z_j > 0`, the sample lies inside `j` with all four bilinear neighbours in the
+//!    image (`0 <= u - 0.5 <= W - 1`, same for `v`), all four neighbours have
+//!    `A_j > alpha_threshold`, and it is not occluded: `|D_j(u, v) - z_j| <= depth_tolerance z_j`
+//!    with `D_j(u, v)` the bilinear interpolation of view `j`'s own depth;
+//! 4. the warped value is the bilinear interpolation of image `j` there.
+//!
+//! All of the geometry runs in `f64`.
+//!
+//! # Metrics
+//! * Masked RMSE: `sqrt(sum_{p in mask, c} (I_i - W_j)^2 / (3 |mask|))`, on images clamped to
+//!   `[0, 1]` (the values written as PNGs, before quantisation).
+//! * Perceptual distance, LPIPS-style without learned weights, on the features of an encoder
+//!   (the normalised VGG of the bundle, standard resolution): image `i` and the composite
+//!   `B = W_j` inside the mask and `I_i` outside (both clamped) are encoded; at every level
+//!   `relu1_1 .. relu_k_1`, each position's channel vector is divided by its Euclidean norm
+//!   (plus `1e-10`), and the squared distance between the two unit vectors (summed over
+//!   channels, in `[0, 2]` for ReLU features) is averaged over the *valid positions* of that
+//!   level: those whose whole pixel block (`ceil(H / h_l) x ceil(W / w_l)` pixels) is in the
+//!   mask. The distance is the mean over the levels that have a valid position.
+//!
+//! Both are exactly 0 when the warped image equals image `i` on the mask.
+//!
+//! Along a sequence, pairs `(i, i + offset)` are compared (short range: offset 1; long range:
+//! offset 7). The RMSE is pooled over the masked pixels of all pairs; the perceptual distance is
+//! the mean over pairs that have a valid position.
+
+use anyhow::{bail, Result};
+use gaussian::Camera;
+use glam::DVec3;
+use ndarray::Array4;
+use nets::{Encoder, Resolution};
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::image_io::{clamped, nchw_from_rgb, RgbImage};
+
+/// Masking thresholds of the warp.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct WarpOptions {
+    /// Pixels with alpha at or below this are not compared.
+    pub alpha_threshold: f32,
+    /// Relative depth tolerance of the occlusion test.
+    pub depth_tolerance: f64,
+}
+
+impl Default for WarpOptions {
+    fn default() -> Self {
+        WarpOptions {
+            alpha_threshold: 0.5,
+            depth_tolerance: 0.02,
+        }
+    }
+}
+
+/// A camera with the geometry rendered from it: normalised depth and alpha, row-major.
+#[derive(Clone, Copy, Debug)]
+pub struct DepthView<'a> {
+    pub camera: &'a Camera,
+    pub depth: &'a [f32],
+    pub alpha: &'a [f32],
+}
+
+impl DepthView<'_> {
+    fn size(&self) -> (usize, usize) {
+        let k = self.camera.intrinsics;
+        (k.width as usize, k.height as usize)
+    }
+
+    fn check(&self) -> Result<()> {
+        let (w, h) = self.size();
+        if self.depth.len() != w * h || self.alpha.len() != w * h {
+            bail!(
+                "depth ({}) and alpha ({}) do not match the {w}x{h} camera",
+                self.depth.len(),
+                self.alpha.len()
+            );
+        }
+        Ok(())
+    }
+}
+
+/// The position in `to` (continuous pixel coordinates) and camera z there of the point seen at
+/// continuous pixel coordinates `(px, py)` of `from` at camera z `depth`.
+pub fn reproject(from: &Camera, to: &Camera, px: f64, py: f64, depth: f64) -> (f64, f64, f64) {
+    let k = from.intrinsics;
+    let cam = DVec3::new(
+        (px - k.cx) / k.fx * depth,
+        (py - k.cy) / k.fy * depth,
+        depth,
+    );
+    let world = from.world_from_camera().transform_point3(cam);
+    to.project_point(world)
+}
+
+/// Bilinear sampling position: the top-left neighbour and the weights, for index-space
+/// coordinates inside `[0, w - 1] x [0, h - 1]`.
+fn bilinear(fx: f64, fy: f64, w: usize, h: usize) -> Option<(usize, usize, f64, f64)> {
+    if w < 2 || h < 2 || !(fx >= 0.0 && fy >= 0.0) {
+        return None;
+    }
+    if fx > (w - 1) as f64 || fy > (h - 1) as f64 {
+        return None;
+    }
+    let x0 = (fx.floor() as usize).min(w - 2);
+    let y0 = (fy.floor() as usize).min(h - 2);
+    Some((x0, y0, fx - x0 as f64, fy - y0 as f64))
+}
+
+fn lerp2(v: [f64; 4], tx: f64, ty: f64) -> f64 {
+    let top = v[0] * (1.0 - tx) + v[1] * tx;
+    let bottom = v[2] * (1.0 - tx) + v[3] * tx;
+    top * (1.0 - ty) + bottom * ty
+}
+
+/// A sampling position in view `j` for each pixel of view `i` (`None` where masked).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Correspondence {
+    pub width: usize,
+    pub height: usize,
+    /// Per pixel of `i`: the top-left neighbour in `j` and the bilinear weights.
+    pub samples: Vec<Option<(usize, usize, f64, f64)>>,
+}
+
+impl Correspondence {
+    /// Number of pixels with a valid sample.
+    pub fn valid(&self) -> usize {
+        self.samples.iter().filter(|s| s.is_some()).count()
+    }
+
+    /// The mask (row-major).
+    pub fn mask(&self) -> Vec<bool> {
+        self.samples.iter().map(Option::is_some).collect()
+    }
+}
+
+/// The correspondence from view `i` to view `j` (see the module documentation).
+pub fn correspond(i: &DepthView, j: &DepthView, opts: &WarpOptions) -> Result<Correspondence> {
+    i.check()?;
+    j.check()?;
+    let (wi, hi) = i.size();
+    let (wj, hj) = j.size();
+    // Every pixel is independent: the parallel loop gives the same result for any thread count.
+    let samples = (0..wi * hi)
+        .into_par_iter()
+        .map(|p| {
+            let (d, a) = (i.depth[p] as f64, i.alpha[p]);
+            if a <= opts.alpha_threshold || d.is_nan() || d <= 0.0 {
+                return None;
+            }
+            let (x, y) = ((p % wi) as f64 + 0.5, (p / wi) as f64 + 0.5);
+            let (u, v, z) = reproject(i.camera, j.camera, x, y, d);
+            if z.is_nan() || z <= 0.0 {
+                return None;
+            }
+            let (x0, y0, tx, ty) = bilinear(u - 0.5, v - 0.5, wj, hj)?;
+            let idx = [
+                y0 * wj + x0,
+                y0 * wj + x0 + 1,
+                (y0 + 1) * wj + x0,
+                (y0 + 1) * wj + x0 + 1,
+            ];
+            if idx.iter().any(|&q| j.alpha[q] <= opts.alpha_threshold) {
+                return None;
+            }
+            let dj = lerp2(idx.map(|q| j.depth[q] as f64), tx, ty);
+            if (dj - z).abs() > opts.depth_tolerance * z {
+                return None;
+            }
+            Some((x0, y0, tx, ty))
+        })
+        .collect();
+    Ok(Correspondence {
+        width: wi,
+        height: hi,
+        samples,
+    })
+}
+
+/// Image `j` (`wj` pixels wide, `channels` values per pixel) warped into view `i`: bilinear
+/// samples where the correspondence is valid, 0 elsewhere.
+pub fn warp(corr: &Correspondence, image_j: &[f32], wj: usize, channels: usize) -> Vec<f32> {
+    let mut out = vec![0.0f32; corr.samples.len() * channels];
+    for (p, s) in corr.samples.iter().enumerate() {
+        let Some((x0, y0, tx, ty)) = *s else { continue };
+        for c in 0..channels {
+            let at = |x: usize, y: usize| image_j[(y * wj + x) * channels + c] as f64;
+            let v = lerp2(
+                [
+                    at(x0, y0),
+                    at(x0 + 1, y0),
+                    at(x0, y0 + 1),
+                    at(x0 + 1, y0 + 1),
+                ],
+                tx,
+                ty,
+            );
+            out[p * channels + c] = v as f32;
+        }
+    }
+    out
+}
+
+/// Sum of squared differences over the masked pixels of two RGB images, and the pixel count.
+pub fn masked_squared_error(a: &[f32], b: &[f32], mask: &[bool]) -> (f64, usize) {
+    let mut sum = 0.0f64;
+    let mut n = 0;
+    for (p, &m) in mask.iter().enumerate() {
+        if m {
+            n += 1;
+            for c in 0..3 {
+                let d = a[p * 3 + c] as f64 - b[p * 3 + c] as f64;
+                sum += d * d;
+            }
+        }
+    }
+    (sum, n)
+}
+
+/// Masked RMSE (see the module documentation); `None` for an empty mask.
+pub fn masked_rmse(a: &[f32], b: &[f32], mask: &[bool]) -> Option<f64> {
+    let (s, n) = masked_squared_error(a, b, mask);
+    (n > 0).then(|| (s / (3 * n) as f64).sqrt())
+}
+
+/// Whether the whole pixel block of each position of an `h_l x w_l` feature level is in the mask.
+fn level_mask(mask: &[bool], w: usize, h: usize, wl: usize, hl: usize) -> Vec<bool> {
+    let (bx, by) = (w.div_ceil(wl), h.div_ceil(hl));
+    let mut out = vec![false; wl * hl];
+    for py in 0..hl {
+        for px in 0..wl {
+            let (y0, y1) = (py * by, ((py + 1) * by).min(h));
+            let (x0, x1) = (px * bx, ((px + 1) * bx).min(w));
+            out[py * wl + px] =
+                y0 < y1 && x0 < x1 && (y0..y1).all(|y| (x0..x1).all(|x| mask[y * w + x]));
+        }
+    }
+    out
+}
+
+/// The perceptual distance between image `a` and the warped image `b` on `mask` (see the
+/// module documentation); `None` when no level has a valid position.
+pub fn perceptual_distance(
+    encoder: &Encoder<f32>,
+    a: &RgbImage,
+    warped: &RgbImage,
+    mask: &[bool],
+) -> Result<Option<f64>> {
+    let (w, h) = (a.width as usize, a.height as usize);
+    if (warped.width, warped.height) != (a.width, a.height) || mask.len() != w * h {
+        bail!("perceptual distance: images and mask differ in size");
+    }
+    let a = clamped(a);
+    let mut b = a.clone();
+    for (p, &m) in mask.iter().enumerate() {
+        if m {
+            for c in 0..3 {
+                b.data[p * 3 + c] = warped.data[p * 3 + c].clamp(0.0, 1.0);
+            }
+        }
+    }
+    let enc = if encoder.resolution() == Resolution::Standard {
+        encoder.clone()
+    } else {
+        encoder.clone().with_resolution(Resolution::Standard)
+    };
+    let fa = enc.forward(nchw_from_rgb(&a).view())?;
+    let fb = enc.forward(nchw_from_rgb(&b).view())?;
+    let mut levels = Vec::new();
+    for (la, lb) in fa.iter().zip(&fb) {
+        if let Some(d) = level_distance(la, lb, mask, w, h) {
+            levels.push(d);
+        }
+    }
+    Ok((!levels.is_empty()).then(|| levels.iter().sum::<f64>() / levels.len() as f64))
+}
+
+fn level_distance(
+    a: &Array4<f32>,
+    b: &Array4<f32>,
+    mask: &[bool],
+    w: usize,
+    h: usize,
+) -> Option<f64> {
+    let (_, c, hl, wl) = a.dim();
+    let valid = level_mask(mask, w, h, wl, hl);
+    let mut sum = 0.0f64;
+    let mut n = 0usize;
+    for y in 0..hl {
+        for x in 0..wl {
+            if !valid[y * wl + x] {
+                continue;
+            }
+            let na = (0..c)
+                .map(|k| (a[[0, k, y, x]] as f64).powi(2))
+                .sum::<f64>()
+                .sqrt()
+                + 1e-10;
+            let nb = (0..c)
+                .map(|k| (b[[0, k, y, x]] as f64).powi(2))
+                .sum::<f64>()
+                .sqrt()
+                + 1e-10;
+            sum += (0..c)
+                .map(|k| (a[[0, k, y, x]] as f64 / na - b[[0, k, y, x]] as f64 / nb).powi(2))
+                .sum::<f64>();
+            n += 1;
+        }
+    }
+    (n > 0).then(|| sum / n as f64)
+}
+
+/// Consistency of one pair.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct PairMetrics {
+    pub valid_pixels: usize,
+    pub squared_error: f64,
+    pub rmse: Option<f64>,
+    pub perceptual: Option<f64>,
+}
+
+/// Compares image `i` with image `j` warped into view `i`.
+pub fn compare_pair(
+    image_i: &RgbImage,
+    view_i: &DepthView,
+    image_j: &RgbImage,
+    view_j: &DepthView,
+    opts: &WarpOptions,
+    encoder: Option<&Encoder<f32>>,
+) -> Result<PairMetrics> {
+    for (img, v) in [(image_i, view_i), (image_j, view_j)] {
+        let k = v.camera.intrinsics;
+        if (img.width, img.height) != (k.width, k.height) {
+            bail!(
+                "an image is {}x{} but its camera is {}x{}",
+                img.width,
+                img.height,
+                k.width,
+                k.height
+            );
+        }
+    }
+    let corr = correspond(view_i, view_j, opts)?;
+    let a = clamped(image_i);
+    let bj = clamped(image_j);
+    let warped = RgbImage {
+        width: image_i.width,
+        height: image_i.height,
+        data: warp(&corr, &bj.data, image_j.width as usize, 3),
+    };
+    let mask = corr.mask();
+    let (squared_error, valid_pixels) = masked_squared_error(&a.data, &warped.data, &mask);
+    let rmse = (valid_pixels > 0).then(|| (squared_error / (3 * valid_pixels) as f64).sqrt());
+    let perceptual = match encoder {
+        Some(e) if valid_pixels > 0 => perceptual_distance(e, &a, &warped, &mask)?,
+        _ => None,
+    };
+    Ok(PairMetrics {
+        valid_pixels,
+        squared_error,
+        rmse,
+        perceptual,
+    })
+}
+
+/// Consistency over the pairs `(i, i + offset)` of a sequence.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct RangeMetrics {
+    pub offset: usize,
+    /// Pairs compared.
+    pub pairs: usize,
+    /// Masked pixels over all pairs, as a fraction of the pixels of the views `i`.
+    pub valid_fraction: f64,
+    /// RMSE pooled over the masked pixels of all pairs (`None` without any).
+    pub rmse: Option<f64>,
+    /// Mean perceptual distance over the pairs that have one.
+    pub perceptual: Option<f64>,
+}
+
+/// Compares the pairs `(i, i + offset)` of `images` along `views`.
+pub fn sequence_consistency(
+    images: &[RgbImage],
+    views: &[DepthView],
+    offset: usize,
+    opts: &WarpOptions,
+    encoder: Option<&Encoder<f32>>,
+) -> Result<RangeMetrics> {
+    if images.len() != views.len() {
+        bail!("{} images for {} views", images.len(), views.len());
+    }
+    if offset == 0 {
+        bail!("consistency offset must be at least 1");
+    }
+    let (mut sq, mut valid, mut total) = (0.0f64, 0usize, 0usize);
+    let mut perceptual = Vec::new();
+    let mut pairs = 0;
+    for i in 0..images.len().saturating_sub(offset) {
+        let j = i + offset;
+        let m = compare_pair(&images[i], &views[i], &images[j], &views[j], opts, encoder)?;
+        pairs += 1;
+        sq += m.squared_error;
+        valid += m.valid_pixels;
+        total += images[i].data.len() / 3;
+        if let Some(d) = m.perceptual {
+            perceptual.push(d);
+        }
+    }
+    Ok(RangeMetrics {
+        offset,
+        pairs,
+        valid_fraction: if total > 0 {
+            valid as f64 / total as f64
+        } else {
+            0.0
+        },
+        rmse: (valid > 0).then(|| (sq / (3 * valid) as f64).sqrt()),
+        perceptual: (!perceptual.is_empty())
+            .then(|| perceptual.iter().sum::<f64>() / perceptual.len() as f64),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use gaussian::camera_path::look_at;
+    use gaussian::Intrinsics;
+    use glam::{DMat3, DVec3};
+
+    fn k(w: u32, h: u32) -> Intrinsics {
+        Intrinsics {
+            fx: 50.0,
+            fy: 52.0,
+            cx: 0.5 * w as f64 + 0.3,
+            cy: 0.5 * h as f64 - 0.7,
+            width: w,
+            height: h,
+        }
+    }
+
+    /// Depth of the plane `n . X = d` seen through pixel (px, py) of `cam` (ray-plane
+    /// intersection, written independently of `reproject`).
+    fn plane_depth(cam: &Camera, n: DVec3, d: f64, px: f64, py: f64) -> f64 {
+        let kk = cam.intrinsics;
+        let ray_cam = DVec3::new((px - kk.cx) / kk.fx, (py - kk.cy) / kk.fy, 1.0);
+        let r = cam.rotation().transpose();
+        let ray = r * ray_cam;
+        let o = cam.center();
+        // The ray parameter is the camera z, since ray_cam has z = 1.
+        (d - n.dot(o)) / n.dot(ray)
+    }
+
+    #[test]
+    fn reprojection_matches_the_plane_homography() {
+        // A tilted plane n . X = d; pixel correspondences between two views of a plane are given
+        // by the homography H = K_j (R + t n_c^T / d_c) K_i^{-1}, with (R, t) the pose of j
+        // relative to i and n_c . X_c = d_c the plane in camera i's frame (then
+        // X_j = R X_c + t = (R + t n_c^T / d_c) X_c on the plane).
+        let a = look_at(
+            k(40, 30),
+            DVec3::new(0.3, -0.2, -4.0),
+            DVec3::ZERO,
+            DVec3::NEG_Y,
+        )
+        .unwrap();
+        let b = look_at(
+            k(40, 30),
+            DVec3::new(1.1, 0.4, -3.5),
+            DVec3::new(0.1, 0.0, 0.2),
+            DVec3::NEG_Y,
+        )
+        .unwrap();
+        let n = DVec3::new(0.2, -0.3, 1.0).normalize();
+        let d = 0.25;
+        let rel = b.camera_from_world * a.world_from_camera();
+        let r = DMat3::from_mat4(rel);
+        let t = rel.w_axis.truncate();
+        let ra = a.rotation();
+        let n_c = ra * n;
+        let d_c = d - n.dot(a.center()); // n . X = d  =>  n_c . X_c = d - n . C
+        let kmat = |c: &Camera| {
+            let q = c.intrinsics;
+            DMat3::from_cols(
+                DVec3::new(q.fx, 0.0, 0.0),
+                DVec3::new(0.0, q.fy, 0.0),
+                DVec3::new(q.cx, q.cy, 1.0),
+            )
+        };
+        let outer = DMat3::from_cols(t * n_c.x, t * n_c.y, t * n_c.z);
+        let hmat = kmat(&b) * (r + outer * (1.0 / d_c)) * kmat(&a).inverse();
+        for (px, py) in [(3.5, 4.5), (20.0, 15.0), (37.25, 28.75), (0.5, 29.5)] {
+            let z = plane_depth(&a, n, d, px, py);
+            let (u, v, _) = reproject(&a, &b, px, py, z);
+            let hp = hmat * DVec3::new(px, py, 1.0);
+            assert!((u - hp.x / hp.z).abs() < 1e-9, "u {u} vs {}", hp.x / hp.z);
+            assert!((v - hp.y / hp.z).abs() < 1e-9, "v {v} vs {}", hp.y / hp.z);
+        }
+    }
+
+    /// A fronto-parallel plane z = Z seen by translated cameras (same rotation); image values are
+    /// an affine function of the world point, so bilinear sampling is exact and the warp must
+    /// reproduce image i on its mask up to rounding.
+    #[test]
+    fn affine_texture_on_a_plane_warps_exactly() {
+        let (w, h) = (24usize, 18usize);
+        let z_plane = 3.0;
+        let cam_at =
+            |c: DVec3| Camera::from_rotation_center(k(w as u32, h as u32), DMat3::IDENTITY, c);
+        let ci = cam_at(DVec3::ZERO);
+        let cj = cam_at(DVec3::new(0.137, -0.071, 0.0));
+        let texture = |p: DVec3| [0.5 + 0.1 * p.x, 0.4 - 0.05 * p.y + 0.02 * p.x, 0.3];
+        let view_of = |cam: &Camera| {
+            let mut img = Vec::new();
+            for p in 0..w * h {
+                let (x, y) = ((p % w) as f64 + 0.5, (p / w) as f64 + 0.5);
+                let kk = cam.intrinsics;
+                let world = cam.world_from_camera().transform_point3(DVec3::new(
+                    (x - kk.cx) / kk.fx * z_plane,
+                    (y - kk.cy) / kk.fy * z_plane,
+                    z_plane,
+                ));
+                img.extend(texture(world).map(|v| v as f32));
+            }
+            img
+        };
+        let depth = vec![z_plane as f32; w * h];
+        let alpha = vec![1.0f32; w * h];
+        let vi = DepthView {
+            camera: &ci,
+            depth: &depth,
+            alpha: &alpha,
+        };
+        let vj = DepthView {
+            camera: &cj,
+            depth: &depth,
+            alpha: &alpha,
+        };
+        let corr = correspond(&vi, &vj, &WarpOptions::default()).unwrap();
+        // The shift is (0.137 * 50 / 3, -0.071 * 52 / 3) = (2.28, -1.23) pixels, so most of the
+        // image stays inside view j.
+        assert!(corr.valid() > w * h / 2, "{}", corr.valid());
+        let img_i = view_of(&ci);
+        let img_j = view_of(&cj);
+        let warped = warp(&corr, &img_j, w, 3);
+        let rmse = masked_rmse(&img_i, &warped, &corr.mask()).unwrap();
+        // f32 storage of values below 1 rounds by at most 2^-24 each; the f64 interpolation adds
+        // nothing comparable, so 1e-6 bounds the error comfortably.
+        assert!(rmse < 1e-6, "rmse {rmse}");
+        // Pixels whose sample would leave view j are masked.
+        assert!(corr.samples[0].is_none() || corr.samples[w - 1].is_none());
+    }
+
+    #[test]
+    fn occluded_and_transparent_pixels_are_masked() {
+        let (w, h) = (16usize, 12usize);
+        let ci = Camera::from_rotation_center(k(16, 12), DMat3::IDENTITY, DVec3::ZERO);
+        let cj =
+            Camera::from_rotation_center(k(16, 12), DMat3::IDENTITY, DVec3::new(0.05, 0.0, 0.0));
+        let depth_i = vec![2.0f32; w * h];
+        let mut depth_j = vec![2.0f32; w * h];
+        let mut alpha_i = vec![1.0f32; w * h];
+        // An occluder in view j over columns 6..9: much nearer than the surface.
+        for y in 0..h {
+            for x in 6..9 {
+                depth_j[y * w + x] = 1.0;
+            }
+        }
+        alpha_i[5] = 0.2;
+        let alpha_j = vec![1.0f32; w * h];
+        let vi = DepthView {
+            camera: &ci,
+            depth: &depth_i,
+            alpha: &alpha_i,
+        };
+        let vj = DepthView {
+            camera: &cj,
+            depth: &depth_j,
+            alpha: &alpha_j,
+        };
+        let corr = correspond(&vi, &vj, &WarpOptions::default()).unwrap();
+        assert!(corr.samples[5].is_none(), "transparent pixel compared");
+        for (p, s) in corr.samples.iter().enumerate() {
+            if let Some((x0, _, _, _)) = s {
+                assert!(
+                    !(5..9).contains(x0),
+                    "pixel {p} samples the occluder at column {x0}"
+                );
+            }
+        }
+        assert!(corr.valid() > 0);
+    }
+
+    #[test]
+    fn rmse_and_level_masks() {
+        let a = [0.0f32, 0.0, 0.0, 1.0, 1.0, 1.0];
+        let b = [0.0f32, 0.0, 0.0, 0.0, 0.0, 0.0];
+        assert_eq!(masked_rmse(&a, &b, &[true, false]), Some(0.0));
+        assert_eq!(masked_rmse(&a, &b, &[true, true]), Some(0.5f64.sqrt()));
+        assert_eq!(masked_rmse(&a, &b, &[false, false]), None);
+        // 5x3 image, level of 3x2 positions (ceil pooling): blocks of 2x2 pixels, clipped.
+        let mut mask = vec![true; 15];
+        mask[7] = false; // pixel (2, 1)
+        let lm = level_mask(&mask, 5, 3, 3, 2);
+        assert_eq!(lm, vec![true, false, true, true, true, true]);
+    }
+}

@@ -1,0 +1,314 @@
+//! `dsgs fit-geometry`: the geometry stage on a dataset, from posed images to a trained 3DGS
+//! `.ply`, with held-out evaluation, checkpoints and resume.
+//!
+//! Configuration ([`FitGeometryConfig`], TOML): the keys of `train::GeometryConfig` at the top
+//! level (so a plain geometry configuration is valid) plus a `[dataset]` table with the image
+//! resolution and the evaluation split. The base configuration is `--config FILE` when given,
+//! otherwise, when resuming, the `config.toml` of the output directory if there is one,
+//! otherwise the defaults; command-line flags override it ([`GeometryOverrides`]), and the
+//! effective configuration is written to `OUT/config.toml` before training starts.
+//!
+//! Outputs: `OUT/point_cloud/iteration_N/point_cloud.ply` at the save iterations and at the last
+//! iteration run, `OUT/point_cloud.ply` (a copy of the last scene, not a link),
+//! `OUT/chkpnt_N.safetensors` at the checkpoint iterations, and a checkpoint of the last
+//! iteration when a run is stopped early.
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+
+use anyhow::{bail, Context, Result};
+use gaussian::dataset::{Dataset, LoadOptions, Resolution};
+use serde::{Deserialize, Serialize};
+use train::checkpoint::GeometryCheckpoint;
+use train::geometry::{checkpoint_path, load_views, ply_path};
+use train::{Evaluation, GeometryConfig, GeometryTrainer};
+
+use crate::config;
+
+/// How the dataset is read.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct DatasetConfig {
+    /// Resize the full-resolution images by `1 / downscale` on load (1: as stored).
+    pub downscale: f64,
+    /// Read the images from the `images_N` folder instead (COLMAP/LLFF layouts).
+    pub images_folder: Option<u32>,
+    /// Hold out every 8th image for evaluation.
+    pub eval: bool,
+}
+
+impl Default for DatasetConfig {
+    fn default() -> Self {
+        DatasetConfig {
+            downscale: 1.0,
+            images_folder: None,
+            eval: true,
+        }
+    }
+}
+
+/// The configuration of `dsgs fit-geometry`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct FitGeometryConfig {
+    pub dataset: DatasetConfig,
+    #[serde(flatten)]
+    pub geometry: GeometryConfig,
+}
+
+impl FitGeometryConfig {
+    /// The dataset load options.
+    pub fn load_options(&self) -> Result<LoadOptions> {
+        let d = &self.dataset;
+        let resolution = match (d.images_folder, d.downscale) {
+            (Some(n), 1.0) => {
+                if n == 0 {
+                    bail!("images_folder must be at least 1");
+                }
+                Resolution::Folder(n)
+            }
+            (Some(_), _) => bail!("give either a downscale factor or an images folder, not both"),
+            (None, 1.0) => Resolution::Full,
+            (None, f) if f > 0.0 && f.is_finite() => Resolution::Downscale(f),
+            (None, f) => bail!("downscale {f} is not a positive factor"),
+        };
+        Ok(LoadOptions {
+            resolution,
+            background: self.geometry.background,
+            ..LoadOptions::default()
+        })
+    }
+}
+
+/// Command-line values that override the configuration.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GeometryOverrides {
+    pub iterations: Option<u64>,
+    pub downscale: Option<f64>,
+    pub images_folder: Option<u32>,
+    pub white: bool,
+    pub no_eval: bool,
+    pub test_iterations: Option<Vec<u64>>,
+    pub save_iterations: Option<Vec<u64>>,
+    pub checkpoint_iterations: Option<Vec<u64>>,
+    pub seed: Option<u64>,
+    pub sh_degree: Option<usize>,
+    pub log_every: Option<u64>,
+    pub no_progress: bool,
+}
+
+impl GeometryOverrides {
+    /// Applies the overrides. A new iteration count drops test and save iterations beyond it
+    /// and adds it to both; explicit `test_iterations` also become the save iterations unless
+    /// `save_iterations` are given (as the 3DGS trainer does).
+    pub fn apply(&self, c: &mut FitGeometryConfig) {
+        let g = &mut c.geometry;
+        if let Some(n) = self.iterations {
+            g.iterations = n;
+            g.test_iterations.retain(|&t| t <= n);
+            g.save_iterations.retain(|&t| t <= n);
+            g.checkpoint_iterations.retain(|&t| t <= n);
+            for list in [&mut g.test_iterations, &mut g.save_iterations] {
+                if !list.contains(&n) {
+                    list.push(n);
+                }
+            }
+        }
+        if let Some(t) = &self.test_iterations {
+            g.test_iterations = t.clone();
+            g.save_iterations = t.clone();
+        }
+        if let Some(s) = &self.save_iterations {
+            g.save_iterations = s.clone();
+        }
+        if let Some(ck) = &self.checkpoint_iterations {
+            g.checkpoint_iterations = ck.clone();
+        }
+        if let Some(s) = self.seed {
+            g.seed = s;
+        }
+        if let Some(d) = self.sh_degree {
+            g.sh_degree = d;
+        }
+        if let Some(l) = self.log_every {
+            g.log_interval = l;
+        }
+        if self.white {
+            g.background = [1.0; 3];
+        }
+        if self.no_progress {
+            g.progress = false;
+        }
+        if let Some(f) = self.downscale {
+            c.dataset.downscale = f;
+            c.dataset.images_folder = None;
+        }
+        if let Some(n) = self.images_folder {
+            c.dataset.images_folder = Some(n);
+            c.dataset.downscale = 1.0;
+        }
+        if self.no_eval {
+            c.dataset.eval = false;
+        }
+    }
+}
+
+/// What to run.
+#[derive(Clone, Debug)]
+pub struct FitSettings {
+    pub dataset: PathBuf,
+    pub out_dir: PathBuf,
+    pub config: Option<PathBuf>,
+    pub resume: Option<PathBuf>,
+    pub overrides: GeometryOverrides,
+}
+
+/// What a run did.
+#[derive(Clone, Debug)]
+pub struct FitReport {
+    pub config: FitGeometryConfig,
+    pub train_views: usize,
+    pub test_views: usize,
+    pub width: u32,
+    pub height: u32,
+    pub initial_gaussians: usize,
+    pub first_step: u64,
+    pub step: u64,
+    pub gaussians: usize,
+    pub seconds: f64,
+    pub interrupted: bool,
+    pub evaluations: Vec<Evaluation>,
+    /// `OUT/point_cloud.ply`.
+    pub ply: PathBuf,
+    /// The checkpoint written when the run was stopped early.
+    pub stop_checkpoint: Option<PathBuf>,
+}
+
+/// The effective configuration of a run (base configuration plus overrides).
+pub fn effective_config(settings: &FitSettings) -> Result<FitGeometryConfig> {
+    let saved = settings.out_dir.join(config::CONFIG_FILE);
+    let base = match (&settings.config, &settings.resume) {
+        (Some(p), _) => Some(p.clone()),
+        (None, Some(_)) if saved.is_file() => Some(saved),
+        _ => None,
+    };
+    let mut c: FitGeometryConfig = config::load(base.as_deref())?;
+    settings.overrides.apply(&mut c);
+    Ok(c)
+}
+
+/// Runs the geometry stage. When `stop` becomes true the run ends after the current iteration
+/// and a checkpoint of it is written.
+pub fn run(settings: &FitSettings, stop: Option<&AtomicBool>) -> Result<FitReport> {
+    let cfg = effective_config(settings)?;
+    let options = cfg.load_options()?;
+    let dataset = Dataset::load(&settings.dataset, &options)
+        .with_context(|| format!("loading the dataset {}", settings.dataset.display()))?;
+    for w in &dataset.warnings {
+        eprintln!("warning: {w}");
+    }
+    config::save(&cfg, &settings.out_dir)?;
+    let eval = cfg.dataset.eval;
+    let mut trainer = match &settings.resume {
+        None => GeometryTrainer::from_dataset(cfg.geometry.clone(), &dataset, eval)?,
+        Some(p) => {
+            let (train_idx, test_idx) = if eval {
+                let s = dataset.split();
+                (s.train, s.test)
+            } else {
+                ((0..dataset.len()).collect(), Vec::new())
+            };
+            let ck = GeometryCheckpoint::load(p)
+                .with_context(|| format!("reading the checkpoint {}", p.display()))?;
+            GeometryTrainer::resume(
+                cfg.geometry.clone(),
+                ck,
+                load_views(&dataset, &train_idx)?,
+                load_views(&dataset, &test_idx)?,
+            )
+            .with_context(|| format!("resuming from {}", p.display()))?
+        }
+    };
+    let k = trainer.train_views[0].camera.intrinsics;
+    let first_step = trainer.step;
+    let initial_gaussians = trainer.model.len();
+    let summary = trainer.train(Some(&settings.out_dir), stop)?;
+    let mut stop_checkpoint = None;
+    if summary.interrupted {
+        let p = checkpoint_path(&settings.out_dir, trainer.step);
+        trainer.save_checkpoint(&p)?;
+        stop_checkpoint = Some(p);
+    }
+    trainer.save_ply(&ply_path(&settings.out_dir, trainer.step))?;
+    let ply = settings.out_dir.join("point_cloud.ply");
+    trainer.save_ply(&ply)?;
+    Ok(FitReport {
+        train_views: trainer.train_views.len(),
+        test_views: trainer.test_views.len(),
+        width: k.width,
+        height: k.height,
+        initial_gaussians,
+        first_step,
+        step: summary.step,
+        gaussians: summary.gaussians,
+        seconds: summary.seconds,
+        interrupted: summary.interrupted,
+        evaluations: summary.evaluations,
+        ply,
+        stop_checkpoint,
+        config: cfg,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    #[test]
+    fn plain_geometry_configs_are_valid_and_round_trip() {
+        let c: FitGeometryConfig =
+            config::parse("iterations = 500\n[densify]\n", Path::new("g.toml")).unwrap();
+        assert_eq!(c.geometry.iterations, 500);
+        assert_eq!(c.dataset, DatasetConfig::default());
+        let text = config::to_toml(&c).unwrap();
+        let back: FitGeometryConfig = config::parse(&text, Path::new("back.toml")).unwrap();
+        assert_eq!(back, c);
+        let e =
+            config::parse::<FitGeometryConfig>("[dataset]\ndownscal = 2.0\n", Path::new("g.toml"))
+                .unwrap_err()
+                .to_string();
+        assert!(e.contains("dataset.downscal"), "{e}");
+    }
+
+    #[test]
+    fn overrides_adjust_schedules() {
+        let mut c = FitGeometryConfig::default();
+        GeometryOverrides {
+            iterations: Some(5000),
+            seed: Some(3),
+            white: true,
+            downscale: Some(2.0),
+            ..Default::default()
+        }
+        .apply(&mut c);
+        assert_eq!(c.geometry.iterations, 5000);
+        assert_eq!(c.geometry.test_iterations, vec![5000]);
+        assert_eq!(c.geometry.save_iterations, vec![5000]);
+        assert_eq!(c.geometry.seed, 3);
+        assert_eq!(c.geometry.background, [1.0; 3]);
+        assert_eq!(
+            c.load_options().unwrap().resolution,
+            Resolution::Downscale(2.0)
+        );
+        GeometryOverrides {
+            images_folder: Some(8),
+            ..Default::default()
+        }
+        .apply(&mut c);
+        assert_eq!(c.load_options().unwrap().resolution, Resolution::Folder(8));
+        c.dataset.downscale = -1.0;
+        c.dataset.images_folder = None;
+        assert!(c.load_options().is_err());
+    }
+}

@@ -1,0 +1,324 @@
+//! Images in and out: PNG frames, animated GIFs, contact sheets, MP4 through an external
+//! `ffmpeg`, and the conversions between the two image layouts of dsgs.
+//!
+//! Images are [`RgbImage`]s (row-major RGB `f32`, channels interleaved, nominally in `[0, 1]`)
+//! or network tensors `[1, 3, H, W]`. Writing quantises `round(255 clamp(v, 0, 1))`. Every file
+//! is written atomically (temporary file in the same directory, then rename).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use gaussian::dataset::images::{load_rgb, resize};
+pub use gaussian::dataset::RgbImage;
+use gaussian::ply::write_atomic;
+use image::codecs::gif::{GifEncoder, Repeat};
+use image::{Delay, Frame, ImageEncoder};
+use ndarray::Array4;
+
+/// A blank (black) image.
+pub fn blank(width: u32, height: u32) -> RgbImage {
+    RgbImage {
+        width,
+        height,
+        data: vec![0.0; width as usize * height as usize * 3],
+    }
+}
+
+/// The first image of an RGB batch `[N, 3, H, W]`.
+pub fn rgb_from_nchw(t: &Array4<f32>) -> Result<RgbImage> {
+    let (n, c, h, w) = t.dim();
+    if n < 1 || c != 3 {
+        bail!("expected an RGB tensor [N, 3, H, W], got {:?}", t.shape());
+    }
+    let mut data = Vec::with_capacity(h * w * 3);
+    for y in 0..h {
+        for x in 0..w {
+            for ch in 0..3 {
+                data.push(t[[0, ch, y, x]]);
+            }
+        }
+    }
+    Ok(RgbImage {
+        width: w as u32,
+        height: h as u32,
+        data,
+    })
+}
+
+/// An image as a network input `[1, 3, H, W]`.
+pub fn nchw_from_rgb(img: &RgbImage) -> Array4<f32> {
+    let (w, h) = (img.width as usize, img.height as usize);
+    Array4::from_shape_fn((1, 3, h, w), |(_, c, y, x)| img.data[(y * w + x) * 3 + c])
+}
+
+/// Clamps every value to `[0, 1]`.
+pub fn clamped(img: &RgbImage) -> RgbImage {
+    RgbImage {
+        width: img.width,
+        height: img.height,
+        data: img.data.iter().map(|v| v.clamp(0.0, 1.0)).collect(),
+    }
+}
+
+/// 8-bit codes `round(255 clamp(v, 0, 1))` (non-finite values become 0).
+pub fn to_rgb8(img: &RgbImage) -> Vec<u8> {
+    img.data
+        .iter()
+        .map(|&v| {
+            if v.is_finite() {
+                (v.clamp(0.0, 1.0) * 255.0).round() as u8
+            } else {
+                0
+            }
+        })
+        .collect()
+}
+
+/// PNG bytes of an image.
+pub fn encode_png(img: &RgbImage) -> Result<Vec<u8>> {
+    let mut bytes = Vec::new();
+    image::codecs::png::PngEncoder::new(&mut bytes)
+        .write_image(
+            &to_rgb8(img),
+            img.width,
+            img.height,
+            image::ExtendedColorType::Rgb8,
+        )
+        .context("encoding a PNG")?;
+    Ok(bytes)
+}
+
+/// Writes an image as a PNG (atomically; values clamped to `[0, 1]`).
+pub fn write_png(path: &Path, img: &RgbImage) -> Result<()> {
+    let bytes = encode_png(img)?;
+    write_atomic(path, &bytes).with_context(|| format!("writing {}", path.display()))
+}
+
+/// Reads an image file as RGB (alpha composited onto black).
+pub fn load_image(path: &Path) -> Result<RgbImage> {
+    if !path.is_file() {
+        bail!("{}: no such image file", path.display());
+    }
+    Ok(load_rgb(path, [0.0; 3])?)
+}
+
+/// Reads a style image, reduced (aspect kept, averaging filter) so its longer side is at most
+/// `max_side` pixels; `0` keeps its size.
+pub fn load_style_image(path: &Path, max_side: u32) -> Result<RgbImage> {
+    let img = load_image(path).with_context(|| format!("style {}", path.display()))?;
+    let side = img.width.max(img.height);
+    if max_side == 0 || side <= max_side {
+        return Ok(img);
+    }
+    let s = max_side as f64 / side as f64;
+    let w = ((img.width as f64 * s).round() as u32).max(1);
+    let h = ((img.height as f64 * s).round() as u32).max(1);
+    Ok(resize(&img, w, h))
+}
+
+/// Encodes frames (all of one size) as a looping animated GIF at `fps` frames per second.
+pub fn encode_gif(frames: &[RgbImage], fps: f64) -> Result<Vec<u8>> {
+    let Some(first) = frames.first() else {
+        bail!("an animation needs at least one frame");
+    };
+    if !(fps > 0.0 && fps.is_finite()) {
+        bail!("frame rate {fps} is not positive");
+    }
+    let mut bytes = Vec::new();
+    {
+        // Speed 10: the encoder's colour quantiser trades quality for time; 10 is its default.
+        let mut enc = GifEncoder::new_with_speed(&mut bytes, 10);
+        enc.set_repeat(Repeat::Infinite)?;
+        let delay = Delay::from_numer_denom_ms((1000.0 / fps).round().max(1.0) as u32, 1);
+        for f in frames {
+            if (f.width, f.height) != (first.width, first.height) {
+                bail!(
+                    "animation frames differ in size: {}x{} and {}x{}",
+                    first.width,
+                    first.height,
+                    f.width,
+                    f.height
+                );
+            }
+            let rgba: Vec<u8> = to_rgb8(f)
+                .chunks_exact(3)
+                .flat_map(|p| [p[0], p[1], p[2], 255])
+                .collect();
+            let buf =
+                image::RgbaImage::from_raw(f.width, f.height, rgba).context("frame buffer size")?;
+            enc.encode_frame(Frame::from_parts(buf, 0, 0, delay))
+                .context("encoding a GIF frame")?;
+        }
+    }
+    Ok(bytes)
+}
+
+/// Writes an animated GIF (atomically).
+pub fn write_gif(path: &Path, frames: &[RgbImage], fps: f64) -> Result<()> {
+    let bytes = encode_gif(frames, fps)?;
+    write_atomic(path, &bytes).with_context(|| format!("writing {}", path.display()))
+}
+
+/// Tiles rows of equally sized images into one image (row `r`, column `c` at
+/// `(c * width, r * height)`); missing cells stay black.
+pub fn contact_sheet(rows: &[Vec<RgbImage>]) -> Result<RgbImage> {
+    let Some(first) = rows.iter().flatten().next() else {
+        bail!("a contact sheet needs at least one image");
+    };
+    let (cw, ch) = (first.width as usize, first.height as usize);
+    let cols = rows.iter().map(Vec::len).max().unwrap_or(0);
+    let (sw, sh) = (cw * cols, ch * rows.len());
+    let mut sheet = blank(sw as u32, sh as u32);
+    for (r, row) in rows.iter().enumerate() {
+        for (c, cell) in row.iter().enumerate() {
+            if (cell.width as usize, cell.height as usize) != (cw, ch) {
+                bail!(
+                    "contact sheet cells differ in size: {cw}x{ch} and {}x{}",
+                    cell.width,
+                    cell.height
+                );
+            }
+            for y in 0..ch {
+                let dst = ((r * ch + y) * sw + c * cw) * 3;
+                sheet.data[dst..dst + cw * 3]
+                    .copy_from_slice(&cell.data[y * cw * 3..(y + 1) * cw * 3]);
+            }
+        }
+    }
+    Ok(sheet)
+}
+
+/// A colour map from `t` in `[0, 1]` (clamped) to RGB: piecewise linear through dark blue,
+/// blue, cyan, yellow and dark red at `t = 0, 0.25, 0.5, 0.75, 1`.
+pub fn colour_map(t: f32) -> [f32; 3] {
+    const STOPS: [[f32; 3]; 5] = [
+        [0.05, 0.03, 0.30],
+        [0.10, 0.35, 0.90],
+        [0.20, 0.85, 0.85],
+        [0.98, 0.85, 0.15],
+        [0.60, 0.05, 0.05],
+    ];
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let s = t * 4.0;
+    let k = (s.floor() as usize).min(3);
+    let f = s - k as f32;
+    std::array::from_fn(|c| STOPS[k][c] * (1.0 - f) + STOPS[k + 1][c] * f)
+}
+
+/// The path of an executable found on `PATH`.
+pub fn find_executable(name: &str) -> Option<PathBuf> {
+    let path = std::env::var_os("PATH")?;
+    std::env::split_paths(&path)
+        .map(|d| d.join(name))
+        .find(|p| p.is_file())
+}
+
+/// The `ffmpeg` executable, or an error saying MP4 output needs it.
+pub fn ffmpeg() -> Result<PathBuf> {
+    find_executable("ffmpeg").context(
+        "--mp4 needs an `ffmpeg` executable on PATH, and none was found (the GIF and PNG frames \
+         are written without it)",
+    )
+}
+
+/// Encodes `dir/frame_%04d.png` into an H.264 MP4 at `fps` with `ffmpeg` (written to a temporary
+/// name, then renamed). Odd image sizes are padded by one pixel, as yuv420p requires even sizes.
+pub fn encode_mp4(ffmpeg: &Path, dir: &Path, fps: f64, out: &Path) -> Result<()> {
+    let tmp = out.with_extension("tmp.mp4");
+    let status = std::process::Command::new(ffmpeg)
+        .args(["-y", "-loglevel", "error", "-framerate"])
+        .arg(format!("{fps}"))
+        .arg("-i")
+        .arg(dir.join("frame_%04d.png"))
+        .args([
+            "-vf",
+            "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+            "-c:v",
+            "libx264",
+            "-pix_fmt",
+            "yuv420p",
+        ])
+        .arg(&tmp)
+        .status()
+        .with_context(|| format!("running {}", ffmpeg.display()))?;
+    if !status.success() {
+        let _ = std::fs::remove_file(&tmp);
+        bail!(
+            "{} failed ({status}) making {}",
+            ffmpeg.display(),
+            out.display()
+        );
+    }
+    std::fs::rename(&tmp, out).with_context(|| format!("writing {}", out.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::io::Cursor;
+
+    fn ramp(w: u32, h: u32, k: f32) -> RgbImage {
+        RgbImage {
+            width: w,
+            height: h,
+            data: (0..w * h * 3).map(|i| (i as f32 * k) % 1.0).collect(),
+        }
+    }
+
+    #[test]
+    fn tensor_layout_round_trips() {
+        let img = ramp(5, 3, 0.013);
+        let back = rgb_from_nchw(&nchw_from_rgb(&img)).unwrap();
+        assert_eq!(back, img);
+        let t = nchw_from_rgb(&img);
+        // [1, 3, H, W]: channel-major planes, pixel (x=2, y=1) green at data[(1*5+2)*3+1]
+        assert_eq!(t[[0, 1, 1, 2]], img.data[(5 + 2) * 3 + 1]);
+    }
+
+    #[test]
+    fn png_round_trips_quantised_values() {
+        let img = ramp(7, 4, 0.0371);
+        let bytes = encode_png(&img).unwrap();
+        let dec = image::load_from_memory(&bytes).unwrap().to_rgb8();
+        assert_eq!(dec.dimensions(), (7, 4));
+        assert_eq!(dec.into_raw(), to_rgb8(&img));
+    }
+
+    #[test]
+    fn gif_has_every_frame() {
+        use image::AnimationDecoder;
+        let frames = vec![ramp(6, 4, 0.01), ramp(6, 4, 0.02), ramp(6, 4, 0.03)];
+        let bytes = encode_gif(&frames, 10.0).unwrap();
+        let dec = image::codecs::gif::GifDecoder::new(Cursor::new(bytes)).unwrap();
+        let decoded = dec.into_frames().collect_frames().unwrap();
+        assert_eq!(decoded.len(), 3);
+        assert_eq!(decoded[0].buffer().dimensions(), (6, 4));
+        assert!(encode_gif(&[ramp(6, 4, 0.1), ramp(5, 4, 0.1)], 10.0).is_err());
+    }
+
+    #[test]
+    fn contact_sheet_places_cells() {
+        let a = ramp(2, 2, 0.05);
+        let b = ramp(2, 2, 0.07);
+        let sheet = contact_sheet(&[vec![a.clone(), b.clone()], vec![b.clone()]]).unwrap();
+        assert_eq!((sheet.width, sheet.height), (4, 4));
+        assert_eq!(sheet.pixel(3, 1), b.pixel(1, 1));
+        assert_eq!(sheet.pixel(0, 0), a.pixel(0, 0));
+        assert_eq!(sheet.pixel(1, 3), b.pixel(1, 1));
+        assert_eq!(sheet.pixel(3, 3), [0.0; 3]);
+    }
+
+    #[test]
+    fn colour_map_hits_its_stops_and_clamps() {
+        assert_eq!(colour_map(0.0), [0.05, 0.03, 0.30]);
+        assert_eq!(colour_map(1.0), [0.60, 0.05, 0.05]);
+        assert_eq!(colour_map(-3.0), colour_map(0.0));
+        assert_eq!(colour_map(f32::NAN), colour_map(0.0));
+        let m = colour_map(0.5);
+        assert!((m[0] - 0.20).abs() < 1e-6 && (m[2] - 0.85).abs() < 1e-6);
+    }
+}

@@ -1,0 +1,435 @@
+//! `dsgs stylize`: zero-shot stylization of a scene bundle along a camera sequence.
+//!
+//! Each camera's feature map is rasterized once and kept in memory ([`FeatureView`]), so every
+//! further style costs only the lift, the transform and the decode of that map. The stages
+//! follow `train::bundle` exactly ([`decode_view`] is `SceneBundle::decode` split into timed
+//! stages).
+//!
+//! Styles:
+//! * each `--style` image is read, reduced so its longer side is at most `max_side`, and encoded
+//!   with the bundle's encoder (at the bundle's variant); its statistics at every level are kept
+//!   (the deepest drive the transform, all of them serve the style loss);
+//! * with weights, the styles are mixed into one target: the weights are normalised to sum 1 and
+//!   each level's mean and std are the weighted sums ([`style::mix_stats`]);
+//! * with colour preservation, each style image's colours are first matched
+//!   ([`style::preserve_colour`]) to the plain colour renders of up to [`COLOUR_VIEWS`] evenly
+//!   spaced cameras of the sequence placed side by side, one content for the whole sequence, so
+//!   the target does not change from view to view.
+//!
+//! The decoded image is written clamped to `[0, 1]`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use gaussian::Camera;
+use ndarray::Array4;
+use serde::Serialize;
+use style::{ChannelStats, StyleFeatureStats};
+use train::{SceneBundle, Variant};
+
+use crate::cameras::evenly_spaced;
+use crate::image_io::{self, rgb_from_nchw, RgbImage};
+use crate::render::{render_colour, ColourRender};
+
+/// Camera views whose colour renders make the content of colour preservation.
+pub const COLOUR_VIEWS: usize = 8;
+/// Default longest side of style images.
+pub const DEFAULT_STYLE_SIDE: u32 = 512;
+
+/// Loads a bundle, optionally switching the variant and replacing the decoder (a canonical
+/// `.safetensors` or a PyTorch checkpoint holding a decoder).
+pub fn load_bundle(
+    dir: &Path,
+    variant: Option<Variant>,
+    decoder: Option<&Path>,
+) -> Result<SceneBundle> {
+    let bundle = SceneBundle::load(dir)
+        .with_context(|| format!("loading the scene bundle {}", dir.display()))?;
+    let variant = variant.unwrap_or(bundle.info.variant);
+    let dec = match decoder {
+        None => bundle.decoder.clone(),
+        Some(p) => crate::weights::load_any(p)
+            .with_context(|| format!("reading the decoder {}", p.display()))?
+            .decoder
+            .with_context(|| format!("{} holds no decoder", p.display()))?,
+    };
+    let from = decoder.map_or_else(|| dir.display().to_string(), |p| p.display().to_string());
+    bundle.with_decoder(dec, variant).with_context(|| {
+        format!(
+            "using the decoder of {from} with the bundle {}",
+            dir.display()
+        )
+    })
+}
+
+/// A loaded style image with its output name.
+#[derive(Clone, Debug)]
+pub struct StyleImage {
+    pub name: String,
+    pub path: PathBuf,
+    pub image: RgbImage,
+}
+
+/// Output names from file stems, made unique with `_2`, `_3`, ... suffixes.
+pub fn style_names(paths: &[PathBuf]) -> Vec<String> {
+    let mut names: Vec<String> = Vec::new();
+    for p in paths {
+        let stem = p
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .filter(|s| !s.is_empty())
+            .unwrap_or_else(|| "style".into());
+        let mut name = stem.clone();
+        let mut k = 2;
+        while names.contains(&name) || name == "colour" {
+            name = format!("{stem}_{k}");
+            k += 1;
+        }
+        names.push(name);
+    }
+    names
+}
+
+/// Reads every style image (failing on the first that is missing or not an image).
+pub fn load_styles(paths: &[PathBuf], max_side: u32) -> Result<Vec<StyleImage>> {
+    if paths.is_empty() {
+        bail!("no style image given (--style IMG)");
+    }
+    let names = style_names(paths);
+    paths
+        .iter()
+        .zip(names)
+        .map(|(p, name)| {
+            Ok(StyleImage {
+                name,
+                path: p.clone(),
+                image: image_io::load_style_image(p, max_side)?,
+            })
+        })
+        .collect()
+}
+
+/// One stylization target: an output name and the statistics of every encoder level.
+#[derive(Clone, Debug)]
+pub struct StyleTarget {
+    pub name: String,
+    pub stats: StyleFeatureStats<f32>,
+}
+
+/// Checks mixture weights: one per style, finite, non-negative, positive sum; returns them
+/// normalised to sum 1.
+pub fn normalised_weights(weights: &[f64], styles: usize) -> Result<Vec<f64>> {
+    if weights.len() != styles {
+        bail!(
+            "--weights has {} values for {styles} style image(s)",
+            weights.len()
+        );
+    }
+    if weights.iter().any(|w| !(w.is_finite() && *w >= 0.0)) {
+        bail!("--weights must be finite and non-negative, got {weights:?}");
+    }
+    let sum: f64 = weights.iter().sum();
+    if sum <= 0.0 {
+        bail!("--weights sum to zero");
+    }
+    Ok(weights.iter().map(|w| w / sum).collect())
+}
+
+/// The content of colour preservation: the colour renders of the given views side by side
+/// (clamped), as `[1, 3, H, sum W]`.
+pub fn colour_content(renders: &[&RgbImage]) -> Result<Array4<f32>> {
+    let Some(first) = renders.first() else {
+        bail!("colour preservation needs at least one colour render");
+    };
+    let h = first.height;
+    let mut rows = Vec::new();
+    for r in renders {
+        if r.height != h {
+            bail!("colour renders differ in height");
+        }
+        rows.push(image_io::clamped(r));
+    }
+    let sheet = image_io::contact_sheet(&[rows])?;
+    Ok(image_io::nchw_from_rgb(&sheet))
+}
+
+/// Encodes the styles into targets: one per style, or one mixture (`"mix"`) with weights.
+pub fn style_targets(
+    bundle: &SceneBundle,
+    styles: &[StyleImage],
+    weights: Option<&[f64]>,
+    colour: Option<&Array4<f32>>,
+) -> Result<Vec<StyleTarget>> {
+    let mut encoded = Vec::new();
+    for s in styles {
+        let mut img = image_io::nchw_from_rgb(&s.image);
+        if let Some(content) = colour {
+            img = style::preserve_colour(&img, content)
+                .with_context(|| format!("colour preservation of {}", s.path.display()))?;
+        }
+        let stats = style::encode_style(&bundle.encoder, &img)
+            .with_context(|| format!("encoding the style {}", s.path.display()))?;
+        encoded.push(StyleTarget {
+            name: s.name.clone(),
+            stats,
+        });
+    }
+    let Some(w) = weights else {
+        return Ok(encoded);
+    };
+    let w = normalised_weights(w, encoded.len())?;
+    let depth = encoded[0].stats.levels.len();
+    let levels = (0..depth)
+        .map(|l| {
+            let members: Vec<(&ChannelStats<f32>, f64)> = encoded
+                .iter()
+                .zip(&w)
+                .map(|(t, &wt)| (&t.stats.levels[l], wt))
+                .collect();
+            style::mix_stats(&members)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(vec![StyleTarget {
+        name: "mix".into(),
+        stats: StyleFeatureStats { levels },
+    }])
+}
+
+/// A camera's rasterized feature map (`[1, F, h, w]` at the feature resolution).
+#[derive(Clone, Debug)]
+pub struct FeatureView {
+    pub camera: Camera,
+    pub features: Array4<f32>,
+    pub raster_seconds: f64,
+}
+
+/// Rasterizes the feature map of one camera.
+pub fn render_feature_view(bundle: &SceneBundle, camera: &Camera) -> Result<FeatureView> {
+    let t = Instant::now();
+    let features = bundle.render_features(camera)?;
+    Ok(FeatureView {
+        camera: *camera,
+        features,
+        raster_seconds: t.elapsed().as_secs_f64(),
+    })
+}
+
+/// Wall time of the stages of one decoded view, in seconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct StageSeconds {
+    pub raster: f64,
+    pub lift_transform: f64,
+    pub decode: f64,
+}
+
+/// `SceneBundle::decode` in timed stages: lift, transform with `stats` (the target statistics
+/// from `SceneBundle::target_stats`), decode, crop to `width x height`. Returns the image
+/// `[1, 3, height, width]` (not clamped) and the seconds of lift + transform and of decode.
+pub fn decode_view(
+    bundle: &SceneBundle,
+    features: &Array4<f32>,
+    stats: &ChannelStats<f32>,
+    width: u32,
+    height: u32,
+) -> Result<(Array4<f32>, f64, f64)> {
+    let t0 = Instant::now();
+    let lifted = bundle.lifter.forward(features.view())?;
+    let t = style::style_transform(&lifted, stats)?;
+    let t1 = Instant::now();
+    let image = bundle.decoder.forward(t.view())?;
+    let image = train::bundle::crop(image, width, height)?;
+    let t2 = Instant::now();
+    Ok((image, (t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64()))
+}
+
+/// Decodes a cached view for a target at strength `alpha`: the clamped RGB image and the stage
+/// times (raster time from the cache).
+pub fn stylize_view(
+    bundle: &SceneBundle,
+    view: &FeatureView,
+    target: &StyleTarget,
+    alpha: f64,
+) -> Result<(RgbImage, StageSeconds)> {
+    let stats = bundle.target_stats(target.stats.deepest(), alpha)?;
+    let k = view.camera.intrinsics;
+    let (img, lt, dec) = decode_view(bundle, &view.features, &stats, k.width, k.height)?;
+    Ok((
+        image_io::clamped(&rgb_from_nchw(&img)?),
+        StageSeconds {
+            raster: view.raster_seconds,
+            lift_transform: lt,
+            decode: dec,
+        },
+    ))
+}
+
+/// Settings of `dsgs stylize`.
+#[derive(Clone, Debug)]
+pub struct StylizeSettings {
+    pub styles: Vec<PathBuf>,
+    pub weights: Option<Vec<f64>>,
+    pub alpha: f64,
+    pub preserve_colour: bool,
+    pub style_side: u32,
+    pub out_dir: PathBuf,
+    pub gif: bool,
+    pub mp4: bool,
+    pub fps: f64,
+    /// Columns of the contact sheet (views, evenly spaced).
+    pub sheet_views: usize,
+}
+
+/// What `dsgs stylize` wrote.
+#[derive(Clone, Debug, Default)]
+pub struct StylizeOutput {
+    /// Per output: its name and frame paths.
+    pub outputs: Vec<(String, Vec<PathBuf>)>,
+    pub gifs: Vec<PathBuf>,
+    pub mp4s: Vec<PathBuf>,
+    pub contact_sheet: Option<PathBuf>,
+    /// Mean stage seconds per view.
+    pub seconds: StageSeconds,
+}
+
+/// Colour renders of the views at `indices`.
+pub fn colour_renders(
+    bundle: &SceneBundle,
+    cameras: &[Camera],
+    indices: &[usize],
+) -> Result<Vec<ColourRender>> {
+    indices
+        .iter()
+        .map(|&i| render_colour(&bundle.scene, &cameras[i], bundle.info.background))
+        .collect()
+}
+
+/// Runs `dsgs stylize` on a loaded bundle along `cameras`. `tick` is called once per rasterized
+/// view and once per decoded frame.
+pub fn run(
+    bundle: &SceneBundle,
+    cameras: &[Camera],
+    settings: &StylizeSettings,
+    mut tick: impl FnMut(&str),
+) -> Result<StylizeOutput> {
+    if cameras.is_empty() {
+        bail!("no cameras to render");
+    }
+    if !(settings.alpha.is_finite()) {
+        bail!("--alpha {} is not finite", settings.alpha);
+    }
+    // Fail early on everything that does not need rendering.
+    let ffmpeg = if settings.mp4 {
+        Some(image_io::ffmpeg()?)
+    } else {
+        None
+    };
+    let styles = load_styles(&settings.styles, settings.style_side)?;
+    if let Some(w) = &settings.weights {
+        normalised_weights(w, styles.len())?;
+    }
+    std::fs::create_dir_all(&settings.out_dir)
+        .with_context(|| format!("creating {}", settings.out_dir.display()))?;
+
+    let sheet_idx = evenly_spaced(cameras.len(), settings.sheet_views.max(1));
+    let colour_idx = evenly_spaced(cameras.len(), COLOUR_VIEWS);
+    let sheet_colour = colour_renders(bundle, cameras, &sheet_idx)?;
+    let content = if settings.preserve_colour {
+        let renders = colour_renders(bundle, cameras, &colour_idx)?;
+        let imgs: Vec<&RgbImage> = renders.iter().map(|r| &r.image).collect();
+        Some(colour_content(&imgs)?)
+    } else {
+        None
+    };
+    let targets = style_targets(
+        bundle,
+        &styles,
+        settings.weights.as_deref(),
+        content.as_ref(),
+    )?;
+
+    let mut views = Vec::with_capacity(cameras.len());
+    for c in cameras {
+        views.push(render_feature_view(bundle, c)?);
+        tick("rasterize");
+    }
+    let mut out = StylizeOutput::default();
+    let mut sheet_rows = vec![sheet_colour
+        .iter()
+        .map(|r| image_io::clamped(&r.image))
+        .collect::<Vec<_>>()];
+    let mut total = StageSeconds::default();
+    let mut decoded = 0usize;
+    for target in &targets {
+        let dir = settings.out_dir.join(&target.name);
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        let mut frames = Vec::new();
+        let mut gif_frames = Vec::new();
+        let mut row = Vec::new();
+        for (i, v) in views.iter().enumerate() {
+            let (img, s) = stylize_view(bundle, v, target, settings.alpha)?;
+            total.raster += s.raster;
+            total.lift_transform += s.lift_transform;
+            total.decode += s.decode;
+            decoded += 1;
+            let path = dir.join(format!("frame_{i:04}.png"));
+            image_io::write_png(&path, &img)?;
+            frames.push(path);
+            if sheet_idx.contains(&i) {
+                row.push(img.clone());
+            }
+            if settings.gif {
+                gif_frames.push(img);
+            }
+            tick("decode");
+        }
+        if settings.gif {
+            let p = settings.out_dir.join(format!("{}.gif", target.name));
+            image_io::write_gif(&p, &gif_frames, settings.fps)?;
+            out.gifs.push(p);
+        }
+        if let Some(ff) = &ffmpeg {
+            let p = settings.out_dir.join(format!("{}.mp4", target.name));
+            image_io::encode_mp4(ff, &dir, settings.fps, &p)?;
+            out.mp4s.push(p);
+        }
+        sheet_rows.push(row);
+        out.outputs.push((target.name.clone(), frames));
+    }
+    let sheet = image_io::contact_sheet(&sheet_rows)?;
+    let sheet_path = settings.out_dir.join("contact_sheet.png");
+    image_io::write_png(&sheet_path, &sheet)?;
+    out.contact_sheet = Some(sheet_path);
+    let n = decoded.max(1) as f64;
+    out.seconds = StageSeconds {
+        raster: views.iter().map(|v| v.raster_seconds).sum::<f64>() / views.len() as f64,
+        lift_transform: total.lift_transform / n,
+        decode: total.decode / n,
+    };
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_are_unique_stems() {
+        let p: Vec<PathBuf> = ["a/x.jpg", "b/x.png", "y.jpg", "colour.jpg"]
+            .iter()
+            .map(PathBuf::from)
+            .collect();
+        assert_eq!(style_names(&p), vec!["x", "x_2", "y", "colour_2"]);
+    }
+
+    #[test]
+    fn weights_are_checked_and_normalised() {
+        assert_eq!(
+            normalised_weights(&[1.0, 3.0], 2).unwrap(),
+            vec![0.25, 0.75]
+        );
+        assert!(normalised_weights(&[1.0], 2).is_err());
+        assert!(normalised_weights(&[1.0, -1.0], 2).is_err());
+        assert!(normalised_weights(&[0.0, 0.0], 2).is_err());
+    }
+}

@@ -1,0 +1,149 @@
+//! `dsgs eval` on the tiny bundle: the report's metrics are finite and in range, frames written
+//! by `dsgs stylize` evaluate to the same consistency, and the timed decode equals the bundle's.
+
+mod common;
+
+use common::{dsgs, fails, ok, scratch};
+use dsgs_testkit::shared_path;
+use serde_json::Value;
+
+fn num(v: &Value, path: &[&str]) -> f64 {
+    let mut x = v;
+    for k in path {
+        x = &x[*k];
+    }
+    x.as_f64()
+        .unwrap_or_else(|| panic!("{path:?} is not a number: {x}"))
+}
+
+#[test]
+fn eval_report_and_frames_agree() {
+    let dir = scratch("eval");
+    let bundle = common::save_tiny_bundle(&dir);
+    let style = shared_path("data/styles/mondrian.jpg");
+    let report_path = dir.join("report.json");
+    let out = ok(dsgs()
+        .arg("eval")
+        .arg(&bundle)
+        .arg("--style")
+        .arg(&style)
+        .args([
+            "--style-size",
+            "64",
+            "--cameras",
+            "path",
+            "--frames",
+            "9",
+            "-o",
+        ])
+        .arg(&report_path));
+    let table = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        table.contains("mondrian") && table.contains("seconds per view"),
+        "{table}"
+    );
+    let r: Value = serde_json::from_slice(&std::fs::read(&report_path).unwrap()).unwrap();
+    assert_eq!(r["frames"], 9);
+    let outputs = r["outputs"].as_array().unwrap();
+    assert_eq!(outputs.len(), 2);
+    assert_eq!(outputs[0]["name"], "colour");
+    assert_eq!(outputs[1]["name"], "mondrian");
+    for o in outputs {
+        for (range, pairs) in [("short_range", 8.0), ("long_range", 2.0)] {
+            assert_eq!(num(o, &[range, "pairs"]), pairs);
+            let f = num(o, &[range, "valid_fraction"]);
+            assert!(f > 0.0 && f <= 1.0, "{o}");
+            let rmse = num(o, &[range, "rmse"]);
+            assert!((0.0..=1.0).contains(&rmse), "{o}");
+            // Unit vectors of non-negative features are at most sqrt(2) apart.
+            let p = num(o, &[range, "perceptual"]);
+            assert!((0.0..=2.0).contains(&p), "{o}");
+        }
+    }
+    let s = &outputs[1];
+    assert!(
+        num(s, &["style_loss"]) > 0.0 && num(s, &["content_loss"]) > 0.0,
+        "{s}"
+    );
+    assert!(outputs[0]["style_loss"].is_null());
+    for stage in ["raster", "lift_transform", "decode"] {
+        assert!(num(&r, &["seconds_per_view", stage]) >= 0.0);
+    }
+
+    // The same sequence written by `dsgs stylize` and evaluated from its PNG files: quantising
+    // to 8 bits moves each value by at most 0.5/255, so each RMSE by at most 1/255.
+    let frames = dir.join("frames");
+    ok(dsgs()
+        .arg("stylize")
+        .arg(&bundle)
+        .arg("--style")
+        .arg(&style)
+        .args([
+            "--style-size",
+            "64",
+            "--cameras",
+            "path",
+            "--frames",
+            "9",
+            "-o",
+        ])
+        .arg(&frames));
+    let report2 = dir.join("frames.json");
+    ok(dsgs()
+        .arg("eval")
+        .arg("--frames-dir")
+        .arg(frames.join("mondrian"))
+        .arg("--scene")
+        .arg(&bundle)
+        .args(["--cameras", "path", "--frames", "9", "-o"])
+        .arg(&report2));
+    let r2: Value = serde_json::from_slice(&std::fs::read(&report2).unwrap()).unwrap();
+    let o2 = &r2["outputs"][0];
+    for range in ["short_range", "long_range"] {
+        let a = num(&outputs[1], &[range, "rmse"]);
+        let b = num(o2, &[range, "rmse"]);
+        assert!((a - b).abs() <= 1.0 / 255.0, "{range}: {a} vs {b}");
+        assert_eq!(
+            num(&outputs[1], &[range, "valid_fraction"]),
+            num(o2, &[range, "valid_fraction"])
+        );
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn bad_eval_input_is_refused_with_a_message() {
+    let dir = scratch("eval-bad");
+    let err = fails(
+        dsgs()
+            .arg("eval")
+            .arg(dir.join("nothing"))
+            .args(["--style", "x.jpg"]),
+    );
+    assert!(err.contains("nothing"), "{err}");
+    let err = fails(
+        dsgs()
+            .args(["eval", "--frames-dir"])
+            .arg(&dir)
+            .arg("--scene")
+            .arg(shared_path("data/gaussians/trained_9080.ply"))
+            .args(["--frames", "3"]),
+    );
+    assert!(err.contains("no .png frames"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn timed_decode_equals_the_bundle_decode() {
+    let bundle = common::tiny_bundle();
+    let cam = bundle.cameras()[3];
+    let feats = bundle.render_features(&cam).unwrap();
+    let style =
+        dsgs::image_io::load_style_image(&shared_path("data/styles/mondrian.jpg"), 64).unwrap();
+    let stats =
+        style::encode_style(&bundle.encoder, &dsgs::image_io::nchw_from_rgb(&style)).unwrap();
+    let target = bundle.target_stats(stats.deepest(), 0.7).unwrap();
+    let expect = bundle.decode(&feats, &target, 64, 64).unwrap();
+    let (got, _, _) = dsgs::stylize::decode_view(&bundle, &feats, &target, 64, 64).unwrap();
+    assert_eq!(got, expect);
+}

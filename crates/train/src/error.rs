@@ -33,4 +33,7 @@ pub enum TrainError {
     /// The rasterizer refused its input.
     #[error(transparent)]
     Raster(#[from] raster::RasterError),
+    /// A stop request ended a step that leaves nothing usable behind.
+    #[error("interrupted while {0}")]
+    Interrupted(String),
 }

@@ -15,6 +15,7 @@
 //!   [`checkpoint`]: exact, atomic checkpoints.
 
 pub mod adam;
+pub mod bake;
 pub mod bundle;
 pub mod checkpoint;
 pub mod decoder_training;
@@ -30,6 +31,7 @@ pub mod schedule;
 pub mod ssim;
 
 pub use adam::{Adam, AdamConfig, ParamState};
+pub use bake::{bake, BakeCameras, BakeConfig, BakeReport};
 pub use bundle::{BundleInfo, CameraRecord, SceneBundle, Variant};
 pub use checkpoint::GeometryCheckpoint;
 pub use density::{DensifyConfig, DensifyReport};

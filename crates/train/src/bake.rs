@@ -1,0 +1,800 @@
+//! Baking a style into a plain 3DGS scene.
+//!
+//! A [`SceneBundle`] renders a stylized view by rasterizing its per-Gaussian features and decoding
+//! them ([`crate::bundle`]); a 3DGS viewer only shows SH colours. Baking fits the SH colours of
+//! the bundle's frozen geometry to stylized renders, so that the geometry alone, saved in the
+//! official `.ply` layout without features, reproduces the style:
+//!
+//! 1. Target cameras ([`bake_cameras`]): the bundle's cameras scaled by `resolution_scale`; for
+//!    each camera and its nearest neighbour (by centre distance), `interpolated_per_pair`
+//!    cameras in between ([`gaussian::camera_path::interpolate_pair`] at `s = k / (m + 1)`), which
+//!    are not dataset views; optionally `orbit_views` cameras on an orbit around the point the
+//!    cameras look at. `held_out` of the interpolated cameras, evenly spread over them, are kept
+//!    for evaluation and never trained on; the rest are subsampled evenly to `target_views`.
+//! 2. Targets ([`render_targets`]): every camera's stylized view under the given target
+//!    statistics, decoded once and clamped to `[0, 1]`. By default
+//!    ([`BakeConfig::composite_background`]) the view is then composited over the bundle's RGB
+//!    background with the geometry's accumulated opacity `a` from the same camera:
+//!    `a * stylized + (1 - a) * background`. The decoder paints every pixel, including those no
+//!    Gaussian covers, and a plain scene shows its viewer's background there; fitting the
+//!    painted background would only bleed it into the Gaussians at the silhouette. Views are
+//!    decoded `render_batch` at a time in parallel (each view on its own, so the images do not
+//!    depend on the thread count).
+//! 3. Optimisation ([`bake`]): the geometry stage's loss `0.8 L1 + 0.2 (1 - SSIM)`
+//!    ([`crate::loss`]) of the colour render ([`crate::render`]) against one target per
+//!    iteration, drawn without replacement within a pass over the targets (a seeded shuffle), and
+//!    one Adam step of the SH coefficients (3DGS groups `f_dc` and `f_rest`, the latter at the DC
+//!    rate divided by 20).
+//!
+//! # The baked scene
+//! Means, rotations and (by default) opacities and scales are those of the bundle; features are
+//! dropped (`feature_dim = 0`). SH coefficients are always stored at degree 3, so the `.ply` has
+//! the official 62-property layout whatever degree is optimised: the coefficients above
+//! [`BakeConfig::sh_degree`] stay zero, which makes a degree-3 render identical to a render at
+//! the optimised degree. The DC term starts from the bundle scene's own DC (its diffuse colour);
+//! the higher bands start at zero, because the stylized targets are decoded from a view-consistent
+//! feature field and share no view-dependent effects with the photographs the geometry was fitted
+//! to; whatever view dependence the decoded views have is learnt from them.
+//!
+//! # Adapting the geometry
+//! With [`BakeConfig::adapt_geometry`], opacity logits and log-scales are optimised too, at small
+//! rates (defaults a fifth of the 3DGS rates), and after every step each is projected back into a
+//! box around its initial value: `|logit - logit_0| <= opacity_logit_budget` and
+//! `|log_scale - log_scale_0| <= log_scale_budget` per axis (defaults 0.5 and 0.1, i.e. scales
+//! within a factor `e^{±0.1}`, about ±10%). Means and rotations never change.
+//!
+//! The background behind the Gaussians is the bundle's RGB background. Every kernel is
+//! deterministic for any thread count and the view order comes from the seed, so a bake is
+//! reproducible bit for bit.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use gaussian::camera_path::{interpolate_pair, orbit_from};
+use gaussian::{Camera, FeatureGaussians};
+use glam::{DMat3, DVec3};
+use indicatif::{ProgressBar, ProgressStyle};
+use rand::rngs::StdRng;
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use style::ChannelStats;
+
+use crate::adam::{Adam, AdamConfig};
+use crate::bundle::SceneBundle;
+use crate::error::TrainError;
+use crate::geometry::View;
+use crate::loss::{photometric_loss_with_grad, psnr};
+use crate::model::{F_DC, F_REST, OPACITY, SCALING};
+use crate::render::{render_color, render_color_backward};
+
+/// The SH degree the baked scene stores (the official 3DGS layout).
+pub const STORED_SH_DEGREE: usize = 3;
+
+/// Settings of a bake.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct BakeConfig {
+    /// SH degree that is optimised and rendered (0..=3). The scene always stores degree 3; the
+    /// coefficients above this degree stay zero.
+    pub sh_degree: usize,
+    /// Optimisation iterations, one target view each.
+    pub iterations: u64,
+    /// Adam rate of the SH DC coefficients (3DGS: 0.0025).
+    pub feature_lr: f64,
+    /// The higher SH coefficients use `feature_lr / feature_rest_divisor` (3DGS: 20).
+    pub feature_rest_divisor: f64,
+    /// Weight of `1 - SSIM` in the loss (3DGS: 0.2).
+    pub lambda_dssim: f64,
+    /// Adam hyper-parameters (3DGS uses eps 1e-15).
+    pub adam: AdamConfig,
+    /// Composite the stylized targets over the background with the geometry's opacity (see the
+    /// module documentation); without it the targets are the decoded views as they are.
+    pub composite_background: bool,
+    /// Also optimise opacity logits and log-scales, within the budgets below.
+    pub adapt_geometry: bool,
+    /// Adam rate of the opacity logits when adapting (a fifth of the 3DGS 0.05).
+    pub opacity_lr: f64,
+    /// Adam rate of the log-scales when adapting (a fifth of the 3DGS 0.005).
+    pub scaling_lr: f64,
+    /// Largest change of an opacity logit from its initial value.
+    pub opacity_logit_budget: f32,
+    /// Largest change of a log-scale from its initial value, per axis.
+    pub log_scale_budget: f32,
+    /// Number of training targets; the candidates (dataset, interpolated and orbit cameras, less
+    /// the held-out ones) are subsampled evenly to this many. 0 keeps them all.
+    pub target_views: usize,
+    /// Interpolated cameras between each camera and its nearest neighbour.
+    pub interpolated_per_pair: usize,
+    /// Cameras on an orbit around the point the bundle's cameras look at (0: none).
+    pub orbit_views: usize,
+    /// Interpolated cameras held out for evaluation (never trained on).
+    pub held_out: usize,
+    /// Image size of the targets relative to the bundle's cameras.
+    pub resolution_scale: f64,
+    /// Views decoded at the same time while rendering targets (bounds the memory).
+    pub render_batch: usize,
+    /// Seed of the view order.
+    pub seed: u64,
+    /// Show progress bars.
+    pub progress: bool,
+    /// Print a plain progress line to standard error every this many iterations (0: never).
+    pub log_interval: u64,
+}
+
+impl Default for BakeConfig {
+    fn default() -> Self {
+        BakeConfig {
+            sh_degree: 3,
+            iterations: 3000,
+            feature_lr: 0.0025,
+            feature_rest_divisor: 20.0,
+            lambda_dssim: 0.2,
+            adam: AdamConfig {
+                eps: 1e-15,
+                ..AdamConfig::default()
+            },
+            composite_background: true,
+            adapt_geometry: false,
+            opacity_lr: 0.01,
+            scaling_lr: 0.001,
+            opacity_logit_budget: 0.5,
+            log_scale_budget: 0.1,
+            target_views: 0,
+            interpolated_per_pair: 2,
+            orbit_views: 0,
+            held_out: 4,
+            resolution_scale: 1.0,
+            render_batch: 4,
+            seed: 0,
+            progress: true,
+            log_interval: 0,
+        }
+    }
+}
+
+impl BakeConfig {
+    /// Checks that every value can work.
+    pub fn validate(&self) -> Result<(), TrainError> {
+        let bad = |m: String| Err(TrainError::Config(m));
+        if self.sh_degree > STORED_SH_DEGREE {
+            return bad(format!("bake sh_degree {} is above 3", self.sh_degree));
+        }
+        if !(0.0..=1.0).contains(&self.lambda_dssim) {
+            return bad(format!(
+                "lambda_dssim {} is outside [0, 1]",
+                self.lambda_dssim
+            ));
+        }
+        if !(self.resolution_scale.is_finite() && self.resolution_scale > 0.0) {
+            return bad(format!(
+                "resolution_scale {} is not a positive number",
+                self.resolution_scale
+            ));
+        }
+        if self.render_batch == 0 {
+            return bad("render_batch is 0".into());
+        }
+        let rates = [
+            ("feature_lr", self.feature_lr),
+            ("opacity_lr", self.opacity_lr),
+            ("scaling_lr", self.scaling_lr),
+        ];
+        for (name, v) in rates {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(format!("{name} {v} is not a non-negative number"));
+            }
+        }
+        if !(self.feature_rest_divisor.is_finite() && self.feature_rest_divisor > 0.0) {
+            return bad(format!(
+                "feature_rest_divisor {} is not a positive number",
+                self.feature_rest_divisor
+            ));
+        }
+        let budgets = [
+            ("opacity_logit_budget", self.opacity_logit_budget),
+            ("log_scale_budget", self.log_scale_budget),
+        ];
+        for (name, v) in budgets {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(format!("{name} {v} is not a non-negative number"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A named target camera.
+#[derive(Clone, Debug, PartialEq)]
+pub struct NamedCamera {
+    pub name: String,
+    pub camera: Camera,
+}
+
+/// The cameras of a bake.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BakeCameras {
+    /// Cameras whose stylized views are fitted.
+    pub train: Vec<NamedCamera>,
+    /// Interpolated cameras kept for evaluation.
+    pub held_out: Vec<NamedCamera>,
+}
+
+/// `count` indices spread evenly over `0..len` (`floor((i + 0.5) len / count)`), all of them
+/// when `count >= len`.
+fn even_indices(len: usize, count: usize) -> Vec<usize> {
+    if count >= len {
+        return (0..len).collect();
+    }
+    (0..count)
+        .map(|i| ((2 * i + 1) * len) / (2 * count))
+        .collect()
+}
+
+/// The point nearest to every camera's optical axis in the least-squares sense, or `None` when
+/// the axes are (nearly) parallel.
+fn look_at_point(cameras: &[Camera]) -> Option<DVec3> {
+    let mut a = DMat3::ZERO;
+    let mut b = DVec3::ZERO;
+    for c in cameras {
+        let d = c.view_direction().normalize();
+        let p = DMat3::IDENTITY - DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+        a += p;
+        b += p * c.center();
+    }
+    // The smallest eigenvalue of a sum of projectors vanishes for parallel axes; compare the
+    // determinant with the cube of the trace (scale-free).
+    let tr = a.x_axis.x + a.y_axis.y + a.z_axis.z;
+    if a.determinant().abs() <= 1e-9 * tr * tr * tr {
+        return None;
+    }
+    Some(a.inverse() * b)
+}
+
+/// The target and held-out cameras for `cameras` (the bundle's) under `config`
+/// (see the module documentation).
+pub fn bake_cameras(cameras: &[Camera], config: &BakeConfig) -> Result<BakeCameras, TrainError> {
+    config.validate()?;
+    if cameras.is_empty() {
+        return Err(TrainError::Config(
+            "the bundle has no cameras to bake from".into(),
+        ));
+    }
+    let scaled: Vec<Camera> = cameras
+        .iter()
+        .map(|c| c.scaled(config.resolution_scale))
+        .collect();
+    let dataset: Vec<NamedCamera> = scaled
+        .iter()
+        .enumerate()
+        .map(|(i, &camera)| NamedCamera {
+            name: format!("view_{i:04}"),
+            camera,
+        })
+        .collect();
+
+    // Each camera with its nearest neighbour; every unordered pair once, in first-seen order.
+    let mut pairs: Vec<(usize, usize)> = Vec::new();
+    for (i, c) in scaled.iter().enumerate() {
+        let nearest = scaled
+            .iter()
+            .enumerate()
+            .filter(|&(j, _)| j != i)
+            .map(|(j, o)| (c.center().distance_squared(o.center()), j))
+            .min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)));
+        if let Some((_, j)) = nearest {
+            let p = (i.min(j), i.max(j));
+            if !pairs.contains(&p) {
+                pairs.push(p);
+            }
+        }
+    }
+    let m = config.interpolated_per_pair;
+    let mut interpolated = Vec::with_capacity(pairs.len() * m);
+    for &(i, j) in &pairs {
+        for k in 1..=m {
+            let s = k as f64 / (m + 1) as f64;
+            interpolated.push(NamedCamera {
+                name: format!("interp_{i:04}_{j:04}_{k}"),
+                camera: interpolate_pair(&scaled[i], &scaled[j], s),
+            });
+        }
+    }
+    if config.held_out > interpolated.len() {
+        return Err(TrainError::Config(format!(
+            "{} held-out views asked for, but there are only {} interpolated cameras \
+             ({} camera pairs x {m})",
+            config.held_out,
+            interpolated.len(),
+            pairs.len()
+        )));
+    }
+    let held_idx = even_indices(interpolated.len(), config.held_out);
+    let mut held_out = Vec::with_capacity(held_idx.len());
+    let mut train_interp = Vec::with_capacity(interpolated.len() - held_idx.len());
+    for (i, c) in interpolated.into_iter().enumerate() {
+        if held_idx.contains(&i) {
+            held_out.push(c);
+        } else {
+            train_interp.push(c);
+        }
+    }
+
+    let mut orbit = Vec::new();
+    if config.orbit_views > 0 {
+        let center = look_at_point(&scaled).ok_or_else(|| {
+            TrainError::Config(
+                "orbit cameras need cameras that look at a common point, but their axes are \
+                 parallel"
+                    .into(),
+            )
+        })?;
+        // Image "up" is the camera's -y axis; average it over the cameras.
+        let up: DVec3 = scaled
+            .iter()
+            .map(|c| c.rotation().transpose() * DVec3::NEG_Y)
+            .sum();
+        let path = orbit_from(&scaled[0], center, config.orbit_views, up)
+            .map_err(|e| TrainError::Config(format!("orbit cameras: {e}")))?;
+        orbit = path
+            .into_iter()
+            .enumerate()
+            .map(|(k, camera)| NamedCamera {
+                name: format!("orbit_{k:04}"),
+                camera,
+            })
+            .collect();
+    }
+
+    let candidates: Vec<NamedCamera> = dataset
+        .into_iter()
+        .chain(train_interp)
+        .chain(orbit)
+        .collect();
+    let keep = if config.target_views == 0 {
+        candidates.len()
+    } else {
+        config.target_views
+    };
+    let picked = even_indices(candidates.len(), keep);
+    let train = picked.iter().map(|&i| candidates[i].clone()).collect();
+    Ok(BakeCameras { train, held_out })
+}
+
+/// An NCHW `[1, 3, H, W]` image as row-major interleaved RGB, clamped to `[0, 1]`.
+fn to_hwc_clamped(image: &ndarray::Array4<f32>) -> Vec<f32> {
+    let (h, w) = (image.shape()[2], image.shape()[3]);
+    let mut out = Vec::with_capacity(h * w * 3);
+    for y in 0..h {
+        for x in 0..w {
+            for c in 0..3 {
+                out.push(image[[0, c, y, x]].clamp(0.0, 1.0));
+            }
+        }
+    }
+    out
+}
+
+/// The stylized view of `camera`: features rendered and decoded under `stats`, clamped to
+/// `[0, 1]`, row-major RGB; with `composite`, blended over the bundle's background with the
+/// geometry's accumulated opacity (see the module documentation).
+pub fn stylized_view(
+    bundle: &SceneBundle,
+    stats: &ChannelStats<f32>,
+    camera: &Camera,
+    composite: bool,
+) -> Result<Vec<f32>, TrainError> {
+    let k = camera.intrinsics;
+    let features = bundle.render_features(camera)?;
+    let image = bundle.decode(&features, stats, k.width, k.height)?;
+    if image.shape()[1] != 3 {
+        return Err(TrainError::Shape(format!(
+            "the decoder makes {} channels, a colour image needs 3",
+            image.shape()[1]
+        )));
+    }
+    let mut rgb = to_hwc_clamped(&image);
+    if composite {
+        let bg = bundle.info.background;
+        let alpha = render_color(camera, &bundle.scene, 0, bg)?.raster.alpha;
+        for (px, &a) in rgb.chunks_exact_mut(3).zip(&alpha) {
+            for (v, &b) in px.iter_mut().zip(&bg) {
+                *v = a * *v + (1.0 - a) * b;
+            }
+        }
+    }
+    Ok(rgb)
+}
+
+/// The stylized views of `cameras` ([`stylized_view`]), `batch` at a time in parallel. Returns
+/// `Ok(None)` when `stop` is raised (checked between batches).
+pub fn render_targets(
+    bundle: &SceneBundle,
+    stats: &ChannelStats<f32>,
+    cameras: &[NamedCamera],
+    composite: bool,
+    batch: usize,
+    stop: Option<&AtomicBool>,
+    bar: &ProgressBar,
+) -> Result<Option<Vec<View>>, TrainError> {
+    let mut views = Vec::with_capacity(cameras.len());
+    for chunk in cameras.chunks(batch.max(1)) {
+        if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+            return Ok(None);
+        }
+        let images: Vec<Vec<f32>> = chunk
+            .par_iter()
+            .map(|c| stylized_view(bundle, stats, &c.camera, composite))
+            .collect::<Result<_, _>>()?;
+        for (c, image) in chunk.iter().zip(images) {
+            views.push(View {
+                name: c.name.clone(),
+                camera: c.camera,
+                image,
+            });
+        }
+        bar.inc(chunk.len() as u64);
+    }
+    Ok(Some(views))
+}
+
+/// Mean over `views` of the PSNR of `scene`'s colour render (SH degree `sh_degree`, over
+/// `background`, clamped to `[0, 1]`) against each view's image. `None` without views.
+pub fn mean_psnr(
+    scene: &FeatureGaussians<f32>,
+    sh_degree: usize,
+    background: [f32; 3],
+    views: &[View],
+) -> Result<Option<f64>, TrainError> {
+    if views.is_empty() {
+        return Ok(None);
+    }
+    let mut total = 0.0;
+    for v in views {
+        let fwd = render_color(&v.camera, scene, sh_degree, background)?;
+        let img: Vec<f32> = fwd.raster.image.iter().map(|x| x.clamp(0.0, 1.0)).collect();
+        total += psnr(&img, &v.image, v.shape())?;
+    }
+    Ok(Some(total / views.len() as f64))
+}
+
+/// The mean PSNR of a baked scene against the stylized views of arbitrary `cameras` (rendered
+/// here from `bundle` under `stats` as `config` renders targets), with the baked scene rendered
+/// at its stored SH degree over the bundle's background. `None` without cameras.
+pub fn evaluate_baked(
+    bundle: &SceneBundle,
+    stats: &ChannelStats<f32>,
+    baked: &FeatureGaussians<f32>,
+    cameras: &[Camera],
+    config: &BakeConfig,
+) -> Result<Option<f64>, TrainError> {
+    let named: Vec<NamedCamera> = cameras
+        .iter()
+        .enumerate()
+        .map(|(i, &camera)| NamedCamera {
+            name: format!("eval_{i:04}"),
+            camera,
+        })
+        .collect();
+    // Without a stop flag the rendering always completes.
+    let views = render_targets(
+        bundle,
+        stats,
+        &named,
+        config.composite_background,
+        config.render_batch,
+        None,
+        &ProgressBar::hidden(),
+    )?
+    .unwrap_or_default();
+    mean_psnr(baked, baked.sh_degree, bundle.info.background, &views)
+}
+
+/// The scene baking starts from: the bundle's geometry without features, SH stored at degree 3
+/// with the bundle's DC and zero higher bands.
+pub fn initial_baked_scene(
+    scene: &FeatureGaussians<f32>,
+) -> Result<FeatureGaussians<f32>, TrainError> {
+    let n = scene.len();
+    let k_in = scene.sh_coeffs_per_gaussian();
+    if scene.sh.len() != n * k_in
+        || scene.log_scales.len() != n
+        || scene.quats.len() != n
+        || scene.opacity_logits.len() != n
+    {
+        return Err(TrainError::Shape(format!(
+            "inconsistent bundle scene: {n} means, {} log-scales, {} quaternions, {} opacities, \
+             {} SH rows for degree {}",
+            scene.log_scales.len(),
+            scene.quats.len(),
+            scene.opacity_logits.len(),
+            scene.sh.len(),
+            scene.sh_degree
+        )));
+    }
+    let k = (STORED_SH_DEGREE + 1) * (STORED_SH_DEGREE + 1);
+    let mut sh = vec![[0.0f32; 3]; n * k];
+    for i in 0..n {
+        sh[i * k] = scene.sh[i * k_in];
+    }
+    Ok(FeatureGaussians {
+        means: scene.means.clone(),
+        log_scales: scene.log_scales.clone(),
+        quats: scene.quats.clone(),
+        opacity_logits: scene.opacity_logits.clone(),
+        sh_degree: STORED_SH_DEGREE,
+        sh,
+        feature_dim: 0,
+        features: Vec::new(),
+    })
+}
+
+/// What a bake produced.
+#[derive(Clone, Debug)]
+pub struct BakeReport {
+    /// The baked scene: `feature_dim = 0`, SH stored at degree 3 (official layout).
+    pub scene: FeatureGaussians<f32>,
+    /// Completed optimisation iterations.
+    pub iterations: u64,
+    /// Whether the stop flag ended the optimisation early (`scene` is then the partial bake).
+    pub interrupted: bool,
+    /// Training and held-out target counts.
+    pub train_views: usize,
+    pub held_out_views: usize,
+    /// Mean PSNR of the baked scene against the training targets.
+    pub train_psnr: f64,
+    /// Mean PSNR of the baked scene against the held-out targets (`None` without held-out views).
+    pub held_out_psnr: Option<f64>,
+    /// The same for the bundle's own colours (its SH at its degree), before baking.
+    pub unbaked_train_psnr: f64,
+    pub unbaked_held_out_psnr: Option<f64>,
+    /// Wall time of the target rendering and of the optimisation, in seconds.
+    pub target_seconds: f64,
+    pub optimise_seconds: f64,
+}
+
+fn progress_bar(len: u64, show: bool, template: &str) -> ProgressBar {
+    if !show {
+        return ProgressBar::hidden();
+    }
+    let b = ProgressBar::new(len);
+    b.set_style(ProgressStyle::with_template(template).expect("valid template"));
+    b
+}
+
+/// Projects every value of `values` into `[initial - budget, initial + budget]`.
+fn project_into_budget(values: &mut [f32], initial: &[f32], budget: f32) {
+    values
+        .par_iter_mut()
+        .zip(initial)
+        .for_each(|(v, &v0)| *v = v.clamp(v0 - budget, v0 + budget));
+}
+
+/// Bakes the style given by `stats` (from [`SceneBundle::target_stats`], or any statistics of
+/// the lifter's width) into the bundle's geometry (see the module documentation). When `stop` is
+/// raised the optimisation ends after the current iteration and the partial bake is reported;
+/// raised while the targets are rendered, the bake fails with [`TrainError::Interrupted`].
+pub fn bake(
+    bundle: &SceneBundle,
+    stats: &ChannelStats<f32>,
+    config: &BakeConfig,
+    stop: Option<&AtomicBool>,
+) -> Result<BakeReport, TrainError> {
+    config.validate()?;
+    bundle.validate()?;
+    let c = bundle.lifter.out_channels();
+    if stats.batch() != 1 || stats.channels() != c {
+        return Err(TrainError::Shape(format!(
+            "target statistics are {}x{}, expected 1x{c}",
+            stats.batch(),
+            stats.channels()
+        )));
+    }
+    let cameras = bake_cameras(&bundle.cameras(), config)?;
+    let background = bundle.info.background;
+
+    let start = Instant::now();
+    let total = (cameras.train.len() + cameras.held_out.len()) as u64;
+    let bar = progress_bar(
+        total,
+        config.progress,
+        "targets {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}]",
+    );
+    let interrupted = || TrainError::Interrupted("rendering the stylized targets".into());
+    let held_out = render_targets(
+        bundle,
+        stats,
+        &cameras.held_out,
+        config.composite_background,
+        config.render_batch,
+        stop,
+        &bar,
+    )?
+    .ok_or_else(interrupted)?;
+    let train = render_targets(
+        bundle,
+        stats,
+        &cameras.train,
+        config.composite_background,
+        config.render_batch,
+        stop,
+        &bar,
+    )?
+    .ok_or_else(interrupted)?;
+    bar.finish_and_clear();
+    let target_seconds = start.elapsed().as_secs_f64();
+    if train.is_empty() {
+        return Err(TrainError::Config("no training targets to bake".into()));
+    }
+
+    let unbaked_train_psnr =
+        mean_psnr(&bundle.scene, bundle.scene.sh_degree, background, &train)?.unwrap_or(0.0);
+    let unbaked_held_out_psnr =
+        mean_psnr(&bundle.scene, bundle.scene.sh_degree, background, &held_out)?;
+
+    let start = Instant::now();
+    let mut scene = initial_baked_scene(&bundle.scene)?;
+    let (iterations, stopped) = optimise(&mut scene, &train, background, config, stop)?;
+    let optimise_seconds = start.elapsed().as_secs_f64();
+
+    let d = config.sh_degree;
+    Ok(BakeReport {
+        train_psnr: mean_psnr(&scene, d, background, &train)?.unwrap_or(0.0),
+        held_out_psnr: mean_psnr(&scene, d, background, &held_out)?,
+        scene,
+        iterations,
+        interrupted: stopped,
+        train_views: train.len(),
+        held_out_views: held_out.len(),
+        unbaked_train_psnr,
+        unbaked_held_out_psnr,
+        target_seconds,
+        optimise_seconds,
+    })
+}
+
+/// Fits `scene`'s SH colours (and, with `adapt_geometry`, its opacities and scales within their
+/// budgets) to `targets` for `config.iterations` iterations. `scene` must store SH at degree 3.
+/// Returns the completed iterations and whether `stop` ended the run early.
+pub fn optimise(
+    scene: &mut FeatureGaussians<f32>,
+    targets: &[View],
+    background: [f32; 3],
+    config: &BakeConfig,
+    stop: Option<&AtomicBool>,
+) -> Result<(u64, bool), TrainError> {
+    config.validate()?;
+    if targets.is_empty() {
+        return Err(TrainError::Config("no training targets to bake".into()));
+    }
+    if scene.sh_degree != STORED_SH_DEGREE {
+        return Err(TrainError::Shape(format!(
+            "the scene stores SH degree {}, baking needs {STORED_SH_DEGREE}",
+            scene.sh_degree
+        )));
+    }
+    for v in targets {
+        let s = v.shape();
+        if v.image.len() != s.len() {
+            return Err(TrainError::Shape(format!(
+                "target `{}` has {} values for a {}x{} camera",
+                v.name,
+                v.image.len(),
+                s.width,
+                s.height
+            )));
+        }
+    }
+    let n = scene.len();
+    let d = config.sh_degree;
+    let k_all = scene.sh_coeffs_per_gaussian();
+    let k_opt = (d + 1) * (d + 1);
+    let stride = 3 * k_all;
+
+    let mut adam = Adam::<f32>::new(config.adam);
+    let g_dc = adam.add_param(F_DC, config.feature_lr, n, 3);
+    let g_rest = (k_opt > 1).then(|| {
+        adam.add_param(
+            F_REST,
+            config.feature_lr / config.feature_rest_divisor,
+            n,
+            3 * (k_opt - 1),
+        )
+    });
+    let geometry_groups = config.adapt_geometry.then(|| {
+        (
+            adam.add_param(OPACITY, config.opacity_lr, n, 1),
+            adam.add_param(SCALING, config.scaling_lr, n, 3),
+        )
+    });
+    let opacity0 = scene.opacity_logits.clone();
+    let log_scales0: Vec<f32> = scene.log_scales.as_flattened().to_vec();
+
+    let bar = progress_bar(
+        config.iterations,
+        config.progress,
+        "bake {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {per_sec} {msg}",
+    );
+    let mut rng = StdRng::seed_from_u64(config.seed);
+    let mut order: Vec<usize> = Vec::new();
+    let (mut ema_loss, mut ema_psnr) = (0.0, 0.0);
+    let start = Instant::now();
+    let mut step = 0u64;
+    let mut stopped = false;
+    while step < config.iterations {
+        if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+            stopped = true;
+            break;
+        }
+        if order.is_empty() {
+            order = (0..targets.len()).collect();
+            order.shuffle(&mut rng);
+            order.reverse(); // popped from the back: the shuffled order, front first
+        }
+        let view = &targets[order.pop().expect("refilled above")];
+        let shape = view.shape();
+        let fwd = render_color(&view.camera, scene, d, background)?;
+        let (loss, v_image) =
+            photometric_loss_with_grad(&fwd.raster.image, &view.image, shape, config.lambda_dssim)?;
+        let step_psnr = psnr(&fwd.raster.image, &view.image, shape)?;
+        let grads = render_color_backward(&view.camera, scene, d, background, &fwd, &v_image)?;
+        drop(fwd);
+
+        adam.step_strided(
+            g_dc,
+            scene.sh.as_flattened_mut(),
+            grads.sh.as_flattened(),
+            stride,
+            0,
+        )?;
+        if let Some(g) = g_rest {
+            adam.step_strided(
+                g,
+                scene.sh.as_flattened_mut(),
+                grads.sh.as_flattened(),
+                stride,
+                3,
+            )?;
+        }
+        if let Some((g_op, g_sc)) = geometry_groups {
+            adam.step(g_op, &mut scene.opacity_logits, &grads.opacity_logits)?;
+            project_into_budget(
+                &mut scene.opacity_logits,
+                &opacity0,
+                config.opacity_logit_budget,
+            );
+            adam.step(
+                g_sc,
+                scene.log_scales.as_flattened_mut(),
+                grads.log_scales.as_flattened(),
+            )?;
+            project_into_budget(
+                scene.log_scales.as_flattened_mut(),
+                &log_scales0,
+                config.log_scale_budget,
+            );
+        }
+
+        step += 1;
+        if step == 1 {
+            (ema_loss, ema_psnr) = (loss.total, step_psnr);
+        } else {
+            ema_loss = 0.4 * loss.total + 0.6 * ema_loss;
+            ema_psnr = 0.4 * step_psnr + 0.6 * ema_psnr;
+        }
+        if step % 10 == 0 || step == config.iterations {
+            bar.set_message(format!("loss {ema_loss:.5}  psnr {ema_psnr:.2}"));
+            bar.set_position(step);
+        }
+        if config.log_interval > 0 && step % config.log_interval == 0 {
+            let secs = start.elapsed().as_secs_f64();
+            eprintln!(
+                "[BAKE {step}] loss {ema_loss:.5} psnr {ema_psnr:.2} | {:.2} it/s, {secs:.0} s",
+                step as f64 / secs
+            );
+        }
+    }
+    bar.finish();
+    Ok((step, stopped))
+}

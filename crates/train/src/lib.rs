@@ -21,6 +21,7 @@ pub mod checkpoint;
 pub mod decoder_training;
 pub mod density;
 pub mod error;
+pub mod features;
 pub mod geometry;
 pub mod image_folder;
 pub mod init;

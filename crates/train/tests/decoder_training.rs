@@ -421,3 +421,20 @@ fn crops_are_deterministic_given_the_generator_and_laid_out_nchw() {
         .unwrap();
     assert_eq!(via_set, to_tensor(&a));
 }
+
+#[test]
+fn the_configuration_reads_from_toml_with_defaults_for_the_rest() {
+    let cfg: DecoderTrainConfig =
+        toml::from_str("iterations = 100\nvariant = \"fullres\"\nbatch_size = 4\n").unwrap();
+    assert_eq!(cfg.iterations, 100);
+    assert_eq!(cfg.variant, Variant::Fullres);
+    assert_eq!(cfg.batch_size, 4);
+    let d = DecoderTrainConfig::default();
+    assert_eq!(
+        (d.resize, d.crop, d.style_weight, d.lr, d.lr_decay),
+        (256, 128, 10.0, 1e-4, 5e-5)
+    );
+    assert_eq!(cfg.crop, d.crop);
+    assert_eq!(d.lr_at(1), 1e-4);
+    assert_eq!(d.lr_at(20_001), 1e-4 / 2.0);
+}

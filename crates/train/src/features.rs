@@ -1,0 +1,978 @@
+//! Feature training (the third stage): learnable features on frozen Gaussians, and the lifter
+//! that maps them to the encoder's deepest feature space, trained so that decoding the
+//! style-transformed lifted features gives stylized views.
+//!
+//! Geometry, encoder and decoder are frozen. Per Gaussian there is a feature of `F` channels
+//! (initialised `N(0, feature_init_std^2)` from the seed); the lifter `l = relu(W r + b)` is
+//! initialised like PyTorch's default `Conv2d` (uniform in `+-1/sqrt(F)`, see
+//! [`conv_default_init`]). Feature maps follow the bundle's convention ([`crate::bundle`]):
+//! features are rasterized at the variant's feature resolution ([`feature_size`]) with the
+//! camera's intrinsics rescaled to it, over a zero feature background.
+//!
+//! Iteration `i` (counted from 1; the random choices come from a generator that is a function
+//! of the seed and `i` only, so a resumed run continues exactly):
+//! 1. draw a training view, then a style image, then a crop window of `crop x crop` feature
+//!    pixels (row offset, then column; the whole map when it is smaller);
+//! 2. rasterize the view's feature map `r` and cut the window out of it and out of the view's
+//!    cached alignment target;
+//! 3. evaluate the 3D stylization loss on the window ([`style::stage3_loss`]):
+//!    `L = align(l(r), target) + lambda_c content(phi_k(g(t)), t) + lambda_s style(phi(g(t)), S)`
+//!    with `t = std_s l(r) + mean_s`; with both lambdas zero (the alignment-only ablation) the
+//!    decoder and encoder are not run at all and the content and style terms are reported as 0;
+//! 4. scatter `dL/dr` of the window into an otherwise zero full-size cotangent and run the
+//!    rasterizer's backward pass ([`raster::render_backward`], feature channels) to per-Gaussian
+//!    feature gradients;
+//! 5. Adam steps the features and the lifter's weight and bias (nothing else changes).
+//!
+//! [`stage3_gradients`] is steps 2-4 for any precision, so the same code is checked against
+//! central differences in `f64`.
+//!
+//! Caches. Before training, every training view is encoded once: its alignment target (the
+//! instance-normalised `relu_k_1`, [`style::align_target`]) is kept at the feature resolution,
+//! `C x h x w` `f32` values per view (`C` the encoder's deepest width), i.e.
+//! `4 C h w` bytes per view: for the standard variant with `C = 512` and 400 x 400 views
+//! (50 x 50 features) 5 MB per view; for fullres, where `h x w` is the image size, 328 MB per
+//! 400 x 400 view, so fullres runs want small images. The unnormalised features' per-channel
+//! mean and std are averaged over the views into the scene statistics of the bundle. Every
+//! style image (short side resized to `style_size`) is encoded once and only its per-level
+//! statistics are kept.
+//!
+//! Checkpoints hold the features, the lifter, the Adam state and the step; they name the
+//! geometry and encoder they belong to by fingerprints, which resuming checks.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use gaussian::dataset::Dataset;
+use gaussian::{Camera, FeatureGaussians, Real};
+use ndarray::{s, Array4};
+use nets::{ConvGrad, Decoder, Encoder, Lifter};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal};
+use raster::{render, render_backward, Channels, RenderOptions};
+use serde::{Deserialize, Serialize};
+use style::{
+    align_loss, align_loss_backward, channel_stats, encode_style, instance_normalize, stage3_loss,
+    Scalar, Stage3Weights, StyleFeatureStats,
+};
+
+use crate::adam::{Adam, AdamConfig};
+use crate::bundle::{
+    feature_size, weights_fingerprint, BundleInfo, CameraRecord, SceneBundle, Variant,
+    BUNDLE_FORMAT,
+};
+use crate::checkpoint::write_atomic;
+use crate::decoder_training::{
+    conv_default_init, mix, progress_bar, StateReader, StateWriter, INIT_STREAM, STEP_STREAM,
+};
+use crate::error::TrainError;
+use crate::geometry::{load_views, say, View};
+use crate::image_folder::{to_tensor, ImageSet};
+
+/// The `format` metadata of a feature-training checkpoint.
+pub const FEATURE_CHECKPOINT_FORMAT: &str = "dsgs-feature-checkpoint-v1";
+
+/// Names inside a feature-training output folder: the checkpoint file and the bundle folder.
+pub const FEATURE_CHECKPOINT_FILE: &str = "checkpoint.safetensors";
+pub const BUNDLE_DIR: &str = "bundle";
+
+/// Settings of a feature training run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct FeatureTrainConfig {
+    /// Total iterations.
+    pub iterations: u64,
+    /// Channels `F` of each Gaussian's feature (the lifter's input width).
+    pub feature_dim: usize,
+    /// Standard deviation of the initial features.
+    pub feature_init_std: f64,
+    /// Adam learning rate of the features. Adam moves a parameter by about the learning rate per
+    /// step, and the features must grow from about 0.01 to values of order 1 (the lifted
+    /// features match unit-variance targets through a lifter with weights of order
+    /// `1/sqrt(F)`) within a few thousand iterations; 3DGS uses 2.5e-3 for colour coefficients
+    /// of order 0.5, and the features span a wider range, hence 1e-2.
+    pub lr_features: f64,
+    /// Adam learning rate of the lifter (PyTorch's default Adam rate; the lifter is one small
+    /// layer seeing every pixel of every view).
+    pub lr_lifter: f64,
+    /// Weight of the content term (0 together with `lambda_style = 0`: alignment only).
+    pub lambda_content: f64,
+    /// Weight of the style term.
+    pub lambda_style: f64,
+    /// Standard or fullres networks (decides the feature resolution).
+    pub variant: Variant,
+    /// Side of the random window of the feature map that runs through the networks, in feature
+    /// pixels (a map smaller than the window is taken whole). It bounds the cost of an
+    /// iteration. `None` picks [`FeatureTrainConfig::crop_side`]'s default for the variant:
+    /// 32 for standard networks (whose decoder turns it into a 256 x 256 image) and 64 for
+    /// fullres ones (a 64 x 64 image), windows of similar cost on 2 cores.
+    pub crop: Option<u32>,
+    /// The short side style images are resized to before they are encoded.
+    pub style_size: u32,
+    /// Seed of every random choice (initialisation, views, styles, windows).
+    pub seed: u64,
+    /// Iterations between checkpoints (0: none).
+    pub checkpoint_interval: u64,
+    /// Print a plain progress line to standard error every this many iterations (0: never).
+    pub log_interval: u64,
+    /// Show a progress bar.
+    pub progress: bool,
+    /// Adam hyper-parameters (PyTorch defaults).
+    pub adam: AdamConfig,
+}
+
+impl Default for FeatureTrainConfig {
+    fn default() -> Self {
+        FeatureTrainConfig {
+            iterations: 3000,
+            feature_dim: 32,
+            feature_init_std: 0.01,
+            lr_features: 1e-2,
+            lr_lifter: 1e-3,
+            lambda_content: 1.0,
+            lambda_style: 1.0,
+            variant: Variant::Standard,
+            crop: None,
+            style_size: 256,
+            seed: 0,
+            checkpoint_interval: 500,
+            log_interval: 0,
+            progress: true,
+            adam: AdamConfig::default(),
+        }
+    }
+}
+
+impl FeatureTrainConfig {
+    fn validate(&self) -> Result<(), TrainError> {
+        let bad = |m: String| Err(TrainError::Config(m));
+        if self.feature_dim == 0 {
+            return bad("feature_dim is 0".into());
+        }
+        if self.style_size == 0 {
+            return bad("style_size is 0".into());
+        }
+        if self.crop == Some(0) {
+            return bad("crop is 0".into());
+        }
+        for (name, v) in [
+            ("feature_init_std", self.feature_init_std),
+            ("lr_features", self.lr_features),
+            ("lr_lifter", self.lr_lifter),
+            ("lambda_content", self.lambda_content),
+            ("lambda_style", self.lambda_style),
+        ] {
+            if !v.is_finite() || v < 0.0 {
+                return bad(format!("{name} = {v} must be finite and non-negative"));
+            }
+        }
+        Ok(())
+    }
+
+    /// The window side in feature pixels: `crop`, or the variant's default.
+    pub fn crop_side(&self) -> u32 {
+        self.crop.unwrap_or(match self.variant {
+            Variant::Standard => 32,
+            Variant::Fullres => 64,
+        })
+    }
+
+    /// The loss weights.
+    pub fn weights(&self) -> Stage3Weights {
+        Stage3Weights {
+            lambda_content: self.lambda_content,
+            lambda_style: self.lambda_style,
+            ..Stage3Weights::default()
+        }
+    }
+}
+
+/// A window of a feature map, in feature pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CropWindow {
+    pub x: usize,
+    pub y: usize,
+    pub width: usize,
+    pub height: usize,
+}
+
+impl CropWindow {
+    /// The whole `width x height` map.
+    pub fn full(width: usize, height: usize) -> Self {
+        CropWindow {
+            x: 0,
+            y: 0,
+            width,
+            height,
+        }
+    }
+}
+
+/// The frozen networks and fixed settings of the 3D stylization loss.
+#[derive(Clone, Copy, Debug)]
+pub struct Stage3Setup<'a, T: Scalar> {
+    pub lifter: &'a Lifter<T>,
+    pub decoder: &'a Decoder<T>,
+    pub encoder: &'a Encoder<T>,
+    /// The feature-map background, one value per feature channel.
+    pub feature_background: &'a [T],
+    pub weights: Stage3Weights,
+}
+
+/// One sample of the loss: a view, its alignment target, a style and a window.
+#[derive(Clone, Copy, Debug)]
+pub struct Stage3Sample<'a, T> {
+    /// The view's camera (any resolution; it is rescaled to `feature_size`).
+    pub camera: &'a Camera,
+    /// `(width, height)` of the feature map.
+    pub feature_size: (u32, u32),
+    /// The whole view's target `[1, C, height, width]`.
+    pub align_target: &'a Array4<T>,
+    pub style: &'a StyleFeatureStats<T>,
+    pub window: CropWindow,
+}
+
+/// The loss terms of one sample and the gradients of the total.
+#[derive(Clone, Debug)]
+pub struct Stage3Gradients<T: Scalar> {
+    pub loss_align: f64,
+    pub loss_content: f64,
+    pub loss_style: f64,
+    /// `loss_align + lambda_c loss_content + lambda_s loss_style`.
+    pub loss: f64,
+    /// `dL/d(features)`, laid out like the scene's features (`N * F`).
+    pub features: Vec<T>,
+    /// `dL/d(W, b)` of the lifter.
+    pub lifter: ConvGrad<T>,
+}
+
+fn net_err(e: nets::NetError) -> TrainError {
+    TrainError::Shape(e.to_string())
+}
+
+fn style_err(e: style::StyleError) -> TrainError {
+    TrainError::Shape(e.to_string())
+}
+
+/// Rasterizes the scene's features for `sample`, evaluates the 3D stylization loss on the
+/// sample's window and returns the loss terms with the gradients with respect to the
+/// per-Gaussian features and the lifter (steps 2-4 of the module documentation).
+pub fn stage3_gradients<T: Real + Scalar>(
+    scene: &FeatureGaussians<T>,
+    setup: &Stage3Setup<'_, T>,
+    sample: &Stage3Sample<'_, T>,
+) -> Result<Stage3Gradients<T>, TrainError> {
+    let f = scene.feature_dim;
+    if setup.lifter.in_channels() != f {
+        return Err(TrainError::Shape(format!(
+            "the lifter takes {} channels, the Gaussians carry {f}",
+            setup.lifter.in_channels()
+        )));
+    }
+    let (fw, fh) = (
+        sample.feature_size.0 as usize,
+        sample.feature_size.1 as usize,
+    );
+    let c = setup.lifter.out_channels();
+    if sample.align_target.dim() != (1, c, fh, fw) {
+        return Err(TrainError::Shape(format!(
+            "alignment target is {:?}, expected [1, {c}, {fh}, {fw}]",
+            sample.align_target.shape()
+        )));
+    }
+    let win = sample.window;
+    if win.width == 0 || win.height == 0 || win.x + win.width > fw || win.y + win.height > fh {
+        return Err(TrainError::Shape(format!(
+            "window {}x{} at ({}, {}) does not fit a {fw}x{fh} feature map",
+            win.width, win.height, win.x, win.y
+        )));
+    }
+    let cam = sample
+        .camera
+        .resized(sample.feature_size.0, sample.feature_size.1);
+    let opts = RenderOptions::new(Channels::Features, setup.feature_background.to_vec());
+    let fwd = render(&cam, scene, &opts)?;
+    let img = &fwd.raster.image;
+    let r = Array4::from_shape_fn((1, f, win.height, win.width), |(_, ch, y, x)| {
+        img[((win.y + y) * fw + win.x + x) * f + ch]
+    });
+    let target = sample
+        .align_target
+        .slice(s![
+            ..,
+            ..,
+            win.y..win.y + win.height,
+            win.x..win.x + win.width
+        ])
+        .to_owned();
+    let w = setup.weights;
+    let (terms, grad_r, grad_lifter) = if w.lambda_content == 0.0 && w.lambda_style == 0.0 {
+        let (lifted, tape) = setup.lifter.forward_with_tape(r.view()).map_err(net_err)?;
+        let la = align_loss(&lifted, &target, w.align).map_err(style_err)?;
+        let g = align_loss_backward(&lifted, &target, w.align, <T as Scalar>::lit(1.0))
+            .map_err(style_err)?;
+        let grads = setup.lifter.backward(&tape, g.view()).map_err(net_err)?;
+        let la = Scalar::to_f64_exact(la);
+        ([la, 0.0, 0.0, la], grads.input, grads.params)
+    } else {
+        let out = stage3_loss(
+            setup.lifter,
+            setup.decoder,
+            setup.encoder,
+            &r,
+            &target,
+            sample.style,
+            w,
+        )
+        .map_err(style_err)?;
+        (
+            [
+                Scalar::to_f64_exact(out.loss_align),
+                Scalar::to_f64_exact(out.loss_content),
+                Scalar::to_f64_exact(out.loss_style),
+                Scalar::to_f64_exact(out.loss),
+            ],
+            out.grad_raster_features,
+            out.grad_lifter,
+        )
+    };
+    // The window's cotangent inside an otherwise zero full-size (HWC) cotangent.
+    let mut v_image = vec![<T as Real>::lit(0.0); fh * fw * f];
+    for ((_, ch, y, x), &g) in grad_r.indexed_iter() {
+        v_image[((win.y + y) * fw + win.x + x) * f + ch] = g;
+    }
+    let grads = render_backward(&cam, scene, &opts, &fwd, &v_image, None, None)?;
+    Ok(Stage3Gradients {
+        loss_align: terms[0],
+        loss_content: terms[1],
+        loss_style: terms[2],
+        loss: terms[3],
+        features: grads.features,
+        lifter: grad_lifter,
+    })
+}
+
+/// The geometry, views, styles and networks feature training starts from.
+pub struct FeatureInputs {
+    /// Trained geometry; any features it carries are replaced.
+    pub geometry: FeatureGaussians<f32>,
+    /// The training views (camera and RGB image, at the resolution to train at).
+    pub views: Vec<View>,
+    /// Every camera of the dataset with its held-out flag, recorded in the bundle (empty: the
+    /// training views' cameras).
+    pub cameras: Vec<CameraRecord>,
+    /// The style images.
+    pub styles: ImageSet,
+    /// The frozen encoder and decoder.
+    pub encoder: Encoder<f32>,
+    pub decoder: Decoder<f32>,
+    /// The RGB background the geometry was trained on (recorded in the bundle).
+    pub background: [f32; 3],
+    /// Where the inputs came from, recorded in the bundle.
+    pub provenance: Vec<(String, String)>,
+}
+
+/// The training views of a dataset (every image, or the training part of the every-8th split
+/// when `eval_split` is set) and the records of all its cameras with their held-out flags.
+pub fn dataset_views(
+    dataset: &Dataset,
+    eval_split: bool,
+) -> Result<(Vec<View>, Vec<CameraRecord>), TrainError> {
+    let held_out: Vec<bool> = if eval_split {
+        let test = dataset.split().test;
+        (0..dataset.len()).map(|i| test.contains(&i)).collect()
+    } else {
+        vec![false; dataset.len()]
+    };
+    let train: Vec<usize> = (0..dataset.len()).filter(|&i| !held_out[i]).collect();
+    let views = load_views(dataset, &train)?;
+    let cameras = (0..dataset.len())
+        .map(|i| CameraRecord::new(dataset.names[i].clone(), &dataset.cameras[i], held_out[i]))
+        .collect();
+    Ok((views, cameras))
+}
+
+/// A training view reduced to what the loss needs.
+#[derive(Clone, Debug)]
+struct CachedView {
+    camera: Camera,
+    target: Array4<f32>,
+}
+
+/// What one iteration did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FeatureStepReport {
+    /// The iteration number (from 1).
+    pub step: u64,
+    /// Index of the training view and of the style image used.
+    pub view: usize,
+    pub style: usize,
+    pub window: CropWindow,
+    pub loss_align: f64,
+    pub loss_content: f64,
+    pub loss_style: f64,
+    pub loss: f64,
+}
+
+/// Mean loss terms over (view, style) pairs on whole feature maps.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FeatureEvaluation {
+    pub step: u64,
+    pub pairs: usize,
+    pub loss_align: f64,
+    pub loss_content: f64,
+    pub loss_style: f64,
+    pub loss: f64,
+}
+
+/// The result of [`FeatureTrainer::train`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct FeatureTrainSummary {
+    /// Completed iterations when training stopped.
+    pub step: u64,
+    /// Whether the stop flag ended the run early.
+    pub interrupted: bool,
+    /// Wall time of the iterations run by this call, in seconds.
+    pub seconds: f64,
+    /// Where the bundle was written (when training completed with an output folder).
+    pub bundle: Option<PathBuf>,
+    /// Running averages of the total, align, content and style losses at the end.
+    pub running_losses: Option<[f64; 4]>,
+}
+
+/// A feature training run.
+pub struct FeatureTrainer {
+    pub config: FeatureTrainConfig,
+    /// Extra provenance entries for the bundle.
+    pub provenance: Vec<(String, String)>,
+    scene: FeatureGaussians<f32>,
+    lifter: Lifter<f32>,
+    encoder: Encoder<f32>,
+    decoder: Decoder<f32>,
+    views: Vec<CachedView>,
+    styles: Vec<StyleFeatureStats<f32>>,
+    adam: Adam<f32>,
+    step: u64,
+    ema: Option<[f64; 4]>,
+    scene_mean: Vec<f32>,
+    scene_std: Vec<f32>,
+    cameras: Vec<CameraRecord>,
+    background: [f32; 3],
+    geometry_fingerprint: String,
+}
+
+/// FNV-1a (64-bit) over the geometry's parameter bits (not its colours or features): which
+/// frozen Gaussians a checkpoint belongs to.
+pub fn geometry_fingerprint(scene: &FeatureGaussians<f32>) -> String {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut eat = |v: f32| {
+        for b in v.to_bits().to_le_bytes() {
+            h ^= b as u64;
+            h = h.wrapping_mul(0x0100_0000_01b3);
+        }
+    };
+    eat(scene.len() as f32);
+    for i in 0..scene.len() {
+        scene.means[i].iter().for_each(|&v| eat(v));
+        scene.log_scales[i].iter().for_each(|&v| eat(v));
+        scene.quats[i].iter().for_each(|&v| eat(v));
+        eat(scene.opacity_logits[i]);
+    }
+    format!("{h:016x}")
+}
+
+impl FeatureTrainer {
+    /// A run at step 0: initialises the features and the lifter from the seed, encodes every
+    /// training view (alignment targets, scene statistics) and every style image.
+    pub fn new(config: FeatureTrainConfig, inputs: FeatureInputs) -> Result<Self, TrainError> {
+        config.validate()?;
+        let FeatureInputs {
+            geometry,
+            views,
+            cameras,
+            styles,
+            encoder,
+            decoder,
+            background,
+            provenance,
+        } = inputs;
+        let deepest = *encoder.widths().last().unwrap_or(&0);
+        if encoder.in_channels() != 3 || decoder.in_channels() != deepest {
+            return Err(TrainError::Config(format!(
+                "the encoder takes {} channels and ends with {deepest}, the decoder takes {} \
+                 (expected 3 and a decoder of the encoder's deepest width)",
+                encoder.in_channels(),
+                decoder.in_channels()
+            )));
+        }
+        if geometry.is_empty() {
+            return Err(TrainError::Dataset("the geometry has no Gaussians".into()));
+        }
+        if views.is_empty() {
+            return Err(TrainError::Dataset("no training views".into()));
+        }
+        let res = config.variant.resolution();
+        let encoder = encoder.with_resolution(res);
+        let decoder = decoder.with_resolution(res);
+
+        let n = geometry.len();
+        let f = config.feature_dim;
+        let mut rng = StdRng::seed_from_u64(mix(config.seed, INIT_STREAM, 0));
+        let normal = Normal::new(0.0, config.feature_init_std)
+            .map_err(|e| TrainError::Config(format!("feature_init_std: {e}")))?;
+        let mut scene = geometry.with_features(f, 0.0);
+        for v in scene.features.iter_mut() {
+            *v = normal.sample(&mut rng) as f32;
+        }
+        scene
+            .validate()
+            .map_err(|e| TrainError::Dataset(format!("geometry: {e}")))?;
+        let (w, b) = conv_default_init(deepest, f, 1, &mut rng);
+        let lifter = Lifter::new(w, b).map_err(net_err)?;
+        let geometry_fingerprint = geometry_fingerprint(&scene);
+
+        let cameras = if cameras.is_empty() {
+            views
+                .iter()
+                .map(|v| CameraRecord::new(v.name.clone(), &v.camera, false))
+                .collect()
+        } else {
+            cameras
+        };
+        let mut mean_sum = vec![0.0f64; deepest];
+        let mut std_sum = vec![0.0f64; deepest];
+        let mut cached = Vec::with_capacity(views.len());
+        for v in &views {
+            let k = v.camera.intrinsics;
+            let (w, h) = (k.width as usize, k.height as usize);
+            if w == 0 || h == 0 || v.image.len() != w * h * 3 {
+                return Err(TrainError::Dataset(format!(
+                    "view `{}`: image has {} values, its {w}x{h} camera needs {}",
+                    v.name,
+                    v.image.len(),
+                    w * h * 3
+                )));
+            }
+            let x =
+                Array4::from_shape_fn((1, 3, h, w), |(_, c, y, x)| v.image[(y * w + x) * 3 + c]);
+            let feats = encoder.forward(x.view()).map_err(net_err)?;
+            let deep = feats.last().expect("encoder depth >= 1");
+            let (fw, fh) = feature_size(&encoder, config.variant, k.width, k.height);
+            if deep.dim() != (1, deepest, fh as usize, fw as usize) {
+                return Err(TrainError::Shape(format!(
+                    "view `{}`: the encoder gives {:?}, the feature map is {fw}x{fh}",
+                    v.name,
+                    deep.shape()
+                )));
+            }
+            let stats = channel_stats(deep).map_err(style_err)?;
+            for ch in 0..deepest {
+                mean_sum[ch] += stats.mean[[0, ch]] as f64;
+                std_sum[ch] += stats.std[[0, ch]] as f64;
+            }
+            cached.push(CachedView {
+                camera: v.camera,
+                target: instance_normalize(deep).map_err(style_err)?,
+            });
+        }
+        drop(views);
+        let nv = cached.len() as f64;
+        let scene_mean = mean_sum.iter().map(|&s| (s / nv) as f32).collect();
+        let scene_std = std_sum.iter().map(|&s| (s / nv) as f32).collect();
+
+        let mut style_stats = Vec::with_capacity(styles.len());
+        for i in 0..styles.len() {
+            let img = styles.load_resized(i, config.style_size)?;
+            style_stats.push(encode_style(&encoder, &to_tensor(&img)).map_err(style_err)?);
+        }
+
+        let mut adam = Adam::new(config.adam);
+        adam.add_param("features", config.lr_features, n, f);
+        adam.add_param("lifter.weight", config.lr_lifter, deepest, f);
+        adam.add_param("lifter.bias", config.lr_lifter, 1, deepest);
+        Ok(FeatureTrainer {
+            config,
+            provenance,
+            scene,
+            lifter,
+            encoder,
+            decoder,
+            views: cached,
+            styles: style_stats,
+            adam,
+            step: 0,
+            ema: None,
+            scene_mean,
+            scene_std,
+            cameras,
+            background,
+            geometry_fingerprint,
+        })
+    }
+
+    /// Continues a run from a checkpoint written by [`FeatureTrainer::save_checkpoint`], with
+    /// the same inputs (geometry and encoder are checked by fingerprint; the configuration may
+    /// differ, e.g. more iterations).
+    pub fn resume(
+        checkpoint: &Path,
+        config: FeatureTrainConfig,
+        inputs: FeatureInputs,
+    ) -> Result<Self, TrainError> {
+        let bytes = std::fs::read(checkpoint).map_err(|source| TrainError::Io {
+            path: checkpoint.to_path_buf(),
+            source,
+        })?;
+        let r = StateReader::new(&bytes, checkpoint, FEATURE_CHECKPOINT_FORMAT)?;
+        let mut t = FeatureTrainer::new(config, inputs)?;
+        let check = |key: &str, want: &str, what: &str| -> Result<(), TrainError> {
+            let found = r.meta_str(key)?;
+            if found != want {
+                return Err(r.err(format!(
+                    "it belongs to another {what} (fingerprint {found}, this one's is {want})"
+                )));
+            }
+            Ok(())
+        };
+        check("geometry_fingerprint", &t.geometry_fingerprint, "geometry")?;
+        check(
+            "encoder_fingerprint",
+            &weights_fingerprint(&t.encoder),
+            "encoder",
+        )?;
+        let (n, f) = (t.scene.len(), t.config.feature_dim);
+        let c = t.lifter.out_channels();
+        t.scene.features = r.f32s("features", &[n, f])?;
+        let w = r.f32s("lifter.weight", &[c, f, 1, 1])?;
+        let b = r.f32s("lifter.bias", &[c])?;
+        t.lifter = Lifter::new(
+            Array4::from_shape_vec((c, f, 1, 1), w).expect("checked shape"),
+            ndarray::Array1::from_vec(b),
+        )
+        .map_err(net_err)?;
+        let adam = r.adam(t.config.adam)?;
+        let names: Vec<&str> = adam.params().iter().map(|p| p.name.as_str()).collect();
+        let rows: Vec<usize> = adam.params().iter().map(|p| p.rows()).collect();
+        if names != ["features", "lifter.weight", "lifter.bias"] || rows != [n, c, 1] {
+            return Err(r.err(format!(
+                "optimiser tensors {names:?} with rows {rows:?} do not fit this run"
+            )));
+        }
+        t.adam = adam;
+        // The learning rates follow the (possibly new) configuration.
+        t.adam.set_lr(0, t.config.lr_features);
+        t.adam.set_lr(1, t.config.lr_lifter);
+        t.adam.set_lr(2, t.config.lr_lifter);
+        t.step = r.meta_parse("step")?;
+        t.ema = r.ema()?;
+        Ok(t)
+    }
+
+    /// Completed iterations.
+    pub fn step(&self) -> u64 {
+        self.step
+    }
+
+    /// The Gaussians with their current features.
+    pub fn scene(&self) -> &FeatureGaussians<f32> {
+        &self.scene
+    }
+
+    pub fn lifter(&self) -> &Lifter<f32> {
+        &self.lifter
+    }
+
+    pub fn encoder(&self) -> &Encoder<f32> {
+        &self.encoder
+    }
+
+    pub fn decoder(&self) -> &Decoder<f32> {
+        &self.decoder
+    }
+
+    /// The optimiser state.
+    pub fn adam(&self) -> &Adam<f32> {
+        &self.adam
+    }
+
+    /// Number of training views and of style images.
+    pub fn counts(&self) -> (usize, usize) {
+        (self.views.len(), self.styles.len())
+    }
+
+    /// The scene statistics: mean over the training views of the deepest unnormalised encoder
+    /// features' per-channel mean and std.
+    pub fn scene_stats(&self) -> (&[f32], &[f32]) {
+        (&self.scene_mean, &self.scene_std)
+    }
+
+    /// Running averages (factor 0.4 on the newest value) of the total, align, content and style
+    /// losses.
+    pub fn running_averages(&self) -> Option<[f64; 4]> {
+        self.ema
+    }
+
+    /// The loss and gradients of one (view, style, window) sample at the current parameters.
+    pub fn sample_gradients(
+        &self,
+        view: usize,
+        style: usize,
+        window: Option<CropWindow>,
+    ) -> Result<Stage3Gradients<f32>, TrainError> {
+        let v = self.views.get(view).ok_or_else(|| {
+            TrainError::Config(format!(
+                "view {view} out of range ({} views)",
+                self.views.len()
+            ))
+        })?;
+        let st = self.styles.get(style).ok_or_else(|| {
+            TrainError::Config(format!(
+                "style {style} out of range ({} styles)",
+                self.styles.len()
+            ))
+        })?;
+        let (_, _, h, w) = v.target.dim();
+        let bg = vec![0.0f32; self.config.feature_dim];
+        let setup = Stage3Setup {
+            lifter: &self.lifter,
+            decoder: &self.decoder,
+            encoder: &self.encoder,
+            feature_background: &bg,
+            weights: self.config.weights(),
+        };
+        let sample = Stage3Sample {
+            camera: &v.camera,
+            feature_size: (w as u32, h as u32),
+            align_target: &v.target,
+            style: st,
+            window: window.unwrap_or(CropWindow::full(w, h)),
+        };
+        stage3_gradients(&self.scene, &setup, &sample)
+    }
+
+    /// Runs one iteration.
+    pub fn train_step(&mut self) -> Result<FeatureStepReport, TrainError> {
+        let it = self.step + 1;
+        let mut rng = StdRng::seed_from_u64(mix(self.config.seed, STEP_STREAM, it));
+        let view = rng.random_range(0..self.views.len());
+        let style = rng.random_range(0..self.styles.len());
+        let (_, _, h, w) = self.views[view].target.dim();
+        let crop = self.config.crop_side() as usize;
+        let side = |n: usize| n.min(crop);
+        let (cw, ch) = (side(w), side(h));
+        let y = rng.random_range(0..=h - ch);
+        let x = rng.random_range(0..=w - cw);
+        let window = CropWindow {
+            x,
+            y,
+            width: cw,
+            height: ch,
+        };
+        let g = self.sample_gradients(view, style, Some(window))?;
+        self.adam.step(0, &mut self.scene.features, &g.features)?;
+        let layer = self.lifter.layer_mut();
+        let gw = g.lifter.weight.as_standard_layout();
+        let wslice = layer
+            .weight
+            .as_slice_mut()
+            .ok_or_else(|| TrainError::Shape("lifter weight is not contiguous".into()))?;
+        self.adam.step(
+            1,
+            wslice,
+            gw.as_slice().expect("standard layout is contiguous"),
+        )?;
+        let bslice = layer
+            .bias
+            .as_slice_mut()
+            .ok_or_else(|| TrainError::Shape("lifter bias is not contiguous".into()))?;
+        self.adam.step(2, bslice, &g.lifter.bias.to_vec())?;
+        self.step = it;
+        let now = [g.loss, g.loss_align, g.loss_content, g.loss_style];
+        self.ema = Some(match self.ema {
+            None => now,
+            Some(e) => std::array::from_fn(|i| 0.4 * now[i] + 0.6 * e[i]),
+        });
+        Ok(FeatureStepReport {
+            step: it,
+            view,
+            style,
+            window,
+            loss_align: g.loss_align,
+            loss_content: g.loss_content,
+            loss_style: g.loss_style,
+            loss: g.loss,
+        })
+    }
+
+    /// Mean loss terms over `(view, style)` pairs, each on the whole feature map.
+    pub fn evaluate(&self, pairs: &[(usize, usize)]) -> Result<FeatureEvaluation, TrainError> {
+        let mut sum = [0.0f64; 4];
+        for &(v, s) in pairs {
+            let g = self.sample_gradients(v, s, None)?;
+            for (acc, x) in sum
+                .iter_mut()
+                .zip([g.loss_align, g.loss_content, g.loss_style, g.loss])
+            {
+                *acc += x;
+            }
+        }
+        let n = pairs.len().max(1) as f64;
+        Ok(FeatureEvaluation {
+            step: self.step,
+            pairs: pairs.len(),
+            loss_align: sum[0] / n,
+            loss_content: sum[1] / n,
+            loss_style: sum[2] / n,
+            loss: sum[3] / n,
+        })
+    }
+
+    /// The scene bundle of the current state.
+    pub fn bundle(&self) -> SceneBundle {
+        let mut provenance = vec![
+            ("stage".to_string(), "feature training".to_string()),
+            ("iterations".to_string(), self.step.to_string()),
+            ("seed".to_string(), self.config.seed.to_string()),
+            (
+                "loss weights".to_string(),
+                format!(
+                    "content {} style {}",
+                    self.config.lambda_content, self.config.lambda_style
+                ),
+            ),
+        ];
+        provenance.extend(self.provenance.iter().cloned());
+        SceneBundle {
+            scene: self.scene.clone(),
+            encoder: self.encoder.clone(),
+            decoder: self.decoder.clone(),
+            lifter: self.lifter.clone(),
+            info: BundleInfo {
+                format: BUNDLE_FORMAT.to_string(),
+                variant: self.config.variant,
+                feature_dim: self.config.feature_dim,
+                encoder_widths: self.encoder.widths(),
+                encoder_fingerprint: weights_fingerprint(&self.encoder),
+                feature_background: vec![0.0; self.config.feature_dim],
+                background: self.background,
+                scene_mean: self.scene_mean.clone(),
+                scene_std: self.scene_std.clone(),
+                cameras: self.cameras.clone(),
+                provenance,
+            },
+        }
+    }
+
+    /// Writes the bundle of the current state into `dir`.
+    pub fn save_bundle(&self, dir: &Path) -> Result<(), TrainError> {
+        self.bundle().save(dir)
+    }
+
+    /// The checkpoint as safetensors bytes.
+    pub fn checkpoint_bytes(&self) -> Result<Vec<u8>, TrainError> {
+        let mut w = StateWriter::new(FEATURE_CHECKPOINT_FORMAT);
+        w.meta("step", self.step);
+        w.meta("seed", self.config.seed);
+        w.meta("geometry_fingerprint", &self.geometry_fingerprint);
+        w.meta("encoder_fingerprint", weights_fingerprint(&self.encoder));
+        w.meta(
+            "config",
+            serde_json::to_string(&self.config).map_err(|e| TrainError::Config(e.to_string()))?,
+        );
+        w.ema(self.ema.as_ref().map(|e| e.as_slice()));
+        let (n, f) = (self.scene.len(), self.config.feature_dim);
+        w.f32s("features", vec![n, f], &self.scene.features);
+        let l = self.lifter.layer();
+        let lw = l.weight.as_standard_layout();
+        w.f32s(
+            "lifter.weight",
+            l.weight.shape().to_vec(),
+            lw.as_slice().expect("standard layout"),
+        );
+        w.f32s("lifter.bias", vec![l.bias.len()], &l.bias.to_vec());
+        w.adam(&self.adam);
+        w.finish()
+    }
+
+    /// Writes a checkpoint atomically.
+    pub fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
+        write_atomic(path, &self.checkpoint_bytes()?)
+    }
+
+    /// Trains up to `config.iterations`. With `out_dir`, a checkpoint
+    /// (`out_dir/checkpoint.safetensors`, replaced each time) is written every
+    /// `checkpoint_interval` iterations and when the stop flag ends the run, and the bundle
+    /// (`out_dir/bundle/`) when it completes.
+    pub fn train(
+        &mut self,
+        out_dir: Option<&Path>,
+        stop: Option<&AtomicBool>,
+    ) -> Result<FeatureTrainSummary, TrainError> {
+        let start = Instant::now();
+        let first = self.step;
+        let total = self.config.iterations;
+        let bar = progress_bar(self.config.progress, total, self.step);
+        let mut interrupted = false;
+        while self.step < total {
+            if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+                interrupted = true;
+                break;
+            }
+            let r = self.train_step()?;
+            let it = r.step;
+            let e = self.ema.unwrap_or_default();
+            bar.set_message(format!(
+                "align {:.4}  content {:.4}  style {:.4}",
+                e[1], e[2], e[3]
+            ));
+            bar.set_position(it);
+            if self.config.log_interval > 0 && it % self.config.log_interval == 0 {
+                let secs = start.elapsed().as_secs_f64();
+                say(&bar, format!(
+                    "[ITER {it}] loss {:.5} align {:.5} content {:.5} style {:.5} | {:.3} it/s, {:.0} s",
+                    e[0],
+                    e[1],
+                    e[2],
+                    e[3],
+                    (it - first) as f64 / secs,
+                    secs
+                ));
+            }
+            if let Some(dir) = out_dir {
+                let k = self.config.checkpoint_interval;
+                if k > 0 && it % k == 0 && it < total {
+                    self.save_checkpoint(&dir.join(FEATURE_CHECKPOINT_FILE))?;
+                }
+            }
+        }
+        bar.finish();
+        let mut bundle = None;
+        if let Some(dir) = out_dir {
+            if interrupted {
+                let p = dir.join(FEATURE_CHECKPOINT_FILE);
+                self.save_checkpoint(&p)?;
+                say(
+                    &bar,
+                    format!(
+                        "stopped at iteration {}; checkpoint {}",
+                        self.step,
+                        p.display()
+                    ),
+                );
+            } else {
+                let p = dir.join(BUNDLE_DIR);
+                self.save_bundle(&p)?;
+                say(&bar, format!("saved the scene bundle to {}", p.display()));
+                bundle = Some(p);
+            }
+        }
+        Ok(FeatureTrainSummary {
+            step: self.step,
+            interrupted,
+            seconds: start.elapsed().as_secs_f64(),
+            bundle,
+            running_losses: self.ema,
+        })
+    }
+}

@@ -105,7 +105,7 @@ pub fn load_image(path: &Path) -> Result<RgbImage> {
 /// Reads a style image, reduced (aspect kept, averaging filter) so its longer side is at most
 /// `max_side` pixels; `0` keeps its size.
 pub fn load_style_image(path: &Path, max_side: u32) -> Result<RgbImage> {
-    let img = load_image(path).with_context(|| format!("style {}", path.display()))?;
+    let img = load_image(path).context("style image")?;
     let side = img.width.max(img.height);
     if max_side == 0 || side <= max_side {
         return Ok(img);

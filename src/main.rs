@@ -245,8 +245,9 @@ struct EvalArgs {
     style: EvalStyleArgs,
     #[command(flatten)]
     cameras: CameraArgs,
-    /// Evaluate the existing frames (*.png in name order) of this directory instead.
-    #[arg(long, requires = "scene")]
+    /// Evaluate the existing frames (*.png in name order) of this directory instead, against
+    /// the geometry of --scene (or of BUNDLE).
+    #[arg(long)]
     frames_dir: Option<PathBuf>,
     /// The geometry for --frames-dir: a .ply file or a bundle directory.
     #[arg(long)]
@@ -462,7 +463,7 @@ fn eval(a: EvalArgs) -> Result<()> {
             .scene
             .as_ref()
             .or(a.bundle.as_ref())
-            .context("--frames-dir needs --scene")?;
+            .context("--frames-dir needs the geometry: --scene PLY_OR_BUNDLE")?;
         let scene = SceneInput::open(scene_path)?;
         let known = a.cameras.known(scene.known_cameras())?;
         let cams = dsgs::cameras::select(&a.cameras.request(), &known, scene.gaussians())?;

@@ -169,3 +169,47 @@ fn bad_fit_geometry_input_is_refused_with_a_message() {
     assert!(err.contains("chkpnt_7.safetensors"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_stopped_run_writes_a_checkpoint_that_resumes() {
+    use dsgs::fit_geometry::{run, FitSettings, GeometryOverrides};
+    use std::sync::atomic::AtomicBool;
+
+    let dir = scratch("fit-geometry-stop");
+    let data = dir.join("data");
+    write_dataset(&data, 4);
+    let cfg = dir.join("small.toml");
+    std::fs::write(&cfg, "random_init_points = 300\nprogress = false\n").unwrap();
+    let out_dir = dir.join("out");
+    let settings = FitSettings {
+        dataset: data.clone(),
+        out_dir: out_dir.clone(),
+        config: Some(cfg),
+        resume: None,
+        overrides: GeometryOverrides {
+            iterations: Some(12),
+            ..Default::default()
+        },
+    };
+    // The stop flag is already raised: the run ends before its first iteration.
+    let r = run(&settings, Some(&AtomicBool::new(true))).unwrap();
+    assert!(r.interrupted);
+    assert_eq!(r.step, 0);
+    let ck = out_dir.join("chkpnt_0.safetensors");
+    assert_eq!(r.stop_checkpoint.as_deref(), Some(ck.as_path()));
+    assert!(ck.is_file() && out_dir.join("point_cloud.ply").is_file());
+    // Resuming without --config takes the run's saved config.toml (12 iterations).
+    let out = ok(dsgs()
+        .arg("fit-geometry")
+        .arg(&data)
+        .arg("--resume")
+        .arg(&ck)
+        .arg("-o")
+        .arg(&out_dir));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("12 iterations in"), "{text}");
+    assert!(out_dir
+        .join("point_cloud/iteration_12/point_cloud.ply")
+        .is_file());
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -13,6 +13,14 @@
 //! * [`render`]: colour rendering (projection, SH, rasterization) and its backward pass.
 //! * [`geometry`]: the training loop ([`GeometryTrainer`], [`GeometryConfig`]);
 //!   [`checkpoint`]: exact, atomic checkpoints.
+//!
+//! The style stages:
+//!
+//! * [`image_folder`]: content and style images from folders and files, training and evaluation
+//!   crops, batches.
+//! * [`decoder_training`]: AdaIN decoder training ([`DecoderTrainer`], [`DecoderTrainConfig`]).
+//! * [`features`]: feature training on frozen geometry, the third stage ([`FeatureTrainer`],
+//!   [`FeatureTrainConfig`]), producing a [`SceneBundle`].
 
 pub mod adam;
 pub mod bake;
@@ -35,9 +43,12 @@ pub use adam::{Adam, AdamConfig, ParamState};
 pub use bake::{bake, BakeCameras, BakeConfig, BakeReport};
 pub use bundle::{BundleInfo, CameraRecord, SceneBundle, Variant};
 pub use checkpoint::GeometryCheckpoint;
+pub use decoder_training::{DecoderTrainConfig, DecoderTrainer};
 pub use density::{DensifyConfig, DensifyReport};
 pub use error::TrainError;
+pub use features::{FeatureInputs, FeatureTrainConfig, FeatureTrainer};
 pub use geometry::{Evaluation, GeometryConfig, GeometryTrainer, StepReport, TrainSummary, View};
+pub use image_folder::ImageSet;
 pub use init::{gaussians_from_points, random_points_in_box, PointCloud};
 pub use model::{GaussianGrads, GaussianModel, LearningRates};
 pub use schedule::ExponentialLr;

@@ -6,6 +6,11 @@
 //! * [`weights`]: importing and describing network weights (`dsgs weights`).
 //! * [`config`]: TOML configurations of the training commands, saved beside their outputs.
 //! * [`fit_geometry`]: the geometry stage on a dataset (`dsgs fit-geometry`).
+//! * [`pretrain_decoder`]: AdaIN decoder training on content and style images
+//!   (`dsgs pretrain-decoder`).
+//! * [`fit_features`]: feature training on frozen geometry into a scene bundle
+//!   (`dsgs fit-features`).
+//! * [`bake`]: baking a style into a plain 3DGS `.ply` (`dsgs bake`).
 //! * [`cameras`]: camera sequences (dataset, held-out, interpolated path, orbit).
 //! * [`render`]: colour, depth, alpha and feature renders of a scene (`dsgs render`).
 //! * [`stylize`]: zero-shot stylization of a scene bundle (`dsgs stylize`).
@@ -13,12 +18,15 @@
 //!   report (`dsgs eval`).
 //! * [`image_io`]: PNG, GIF, contact sheets, MP4 through `ffmpeg`.
 
+pub mod bake;
 pub mod cameras;
 pub mod config;
 pub mod consistency;
 pub mod eval;
+pub mod fit_features;
 pub mod fit_geometry;
 pub mod image_io;
+pub mod pretrain_decoder;
 pub mod render;
 pub mod stylize;
 pub mod weights;

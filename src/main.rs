@@ -5,9 +5,12 @@ use std::process::ExitCode;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
+use dsgs::bake::{BakeOverrides, BakeSettings};
 use dsgs::cameras::{CameraRequest, CameraSource, KnownCameras};
 use dsgs::consistency::WarpOptions;
+use dsgs::fit_features::{FeatureOverrides, FitFeaturesSettings};
 use dsgs::fit_geometry::{FitSettings, GeometryOverrides};
+use dsgs::pretrain_decoder::{DecoderOverrides, NetworkFiles, PretrainSettings};
 use dsgs::render::{DepthStyle, RenderKind, SceneInput};
 use glam::DVec3;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -28,6 +31,12 @@ enum Command {
     Weights(WeightsCommand),
     /// Fit 3D Gaussians to a dataset of posed images (the geometry stage).
     FitGeometry(FitGeometryArgs),
+    /// Train an AdaIN decoder for a frozen encoder on content and style images.
+    PretrainDecoder(PretrainDecoderArgs),
+    /// Train per-Gaussian features and the lifter on frozen geometry into a scene bundle.
+    FitFeatures(FitFeaturesArgs),
+    /// Bake a style into a plain 3DGS .ply (SH colours fitted to stylized views).
+    Bake(BakeArgs),
     /// Render a scene (.ply or bundle) as colour, depth, alpha or feature PCA images.
     Render(RenderArgs),
     /// Stylize a scene bundle with one or more style images.
@@ -121,6 +130,193 @@ struct FitGeometryArgs {
     /// No progress bar.
     #[arg(long)]
     no_progress: bool,
+}
+
+#[derive(Args)]
+struct PretrainDecoderArgs {
+    /// Content image folders or files.
+    #[arg(long, required = true, num_args = 1..)]
+    content: Vec<PathBuf>,
+    /// Style image folders or files.
+    #[arg(long = "style", required = true, num_args = 1..)]
+    styles: Vec<PathBuf>,
+    /// Search the image folders recursively.
+    #[arg(long)]
+    recursive: bool,
+    /// Canonical weights (.safetensors) holding the encoder and, unless --from-scratch or
+    /// --decoder, the starting decoder.
+    #[arg(long)]
+    weights: Option<PathBuf>,
+    /// Encoder file (PyTorch checkpoint or .safetensors), instead of the one in --weights.
+    #[arg(long)]
+    encoder: Option<PathBuf>,
+    /// Starting decoder (PyTorch checkpoint or .safetensors), instead of the one in --weights.
+    #[arg(long, conflicts_with = "from_scratch")]
+    decoder: Option<PathBuf>,
+    /// Start from a seeded initialisation of the encoder's mirror image.
+    #[arg(long)]
+    from_scratch: bool,
+    /// Network variant.
+    #[arg(long)]
+    variant: Option<Variant>,
+    /// TOML configuration (train::DecoderTrainConfig keys); flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Total iterations.
+    #[arg(long)]
+    iterations: Option<u64>,
+    /// Content (and style) images per iteration.
+    #[arg(long)]
+    batch_size: Option<usize>,
+    /// Side of the square random crop.
+    #[arg(long)]
+    crop: Option<u32>,
+    /// Short side the images are resized to before cropping.
+    #[arg(long)]
+    resize: Option<u32>,
+    /// Weight of the style loss.
+    #[arg(long)]
+    style_weight: Option<f64>,
+    /// Initial learning rate.
+    #[arg(long)]
+    lr: Option<f64>,
+    /// Seed of every random choice.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Continue from a checkpoint (OUT/checkpoint.safetensors).
+    #[arg(long)]
+    resume: Option<PathBuf>,
+    /// Print a progress line every N iterations (for logs).
+    #[arg(long)]
+    log_every: Option<u64>,
+    /// No progress bar.
+    #[arg(long)]
+    no_progress: bool,
+    /// Output directory.
+    #[arg(short, long)]
+    output: PathBuf,
+}
+
+#[derive(Args)]
+struct FitFeaturesArgs {
+    /// The trained geometry (.ply).
+    #[arg(long)]
+    geometry: PathBuf,
+    /// The dataset the geometry was trained on (COLMAP, NeRF-synthetic or LLFF layout).
+    #[arg(long)]
+    dataset: PathBuf,
+    /// Style image folders or files.
+    #[arg(long = "style", required = true, num_args = 1..)]
+    styles: Vec<PathBuf>,
+    /// Canonical weights (.safetensors) holding the encoder and decoder.
+    #[arg(long)]
+    weights: PathBuf,
+    /// Use this decoder (PyTorch checkpoint or .safetensors) instead of the one in --weights.
+    #[arg(long)]
+    decoder: Option<PathBuf>,
+    /// Network variant.
+    #[arg(long)]
+    variant: Option<Variant>,
+    /// TOML configuration (train::FeatureTrainConfig keys, `background` and a [dataset] table);
+    /// flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Total iterations.
+    #[arg(long)]
+    iterations: Option<u64>,
+    /// Channels of each Gaussian's feature.
+    #[arg(long)]
+    feature_dim: Option<usize>,
+    /// Resize the images by 1/F on load.
+    #[arg(long)]
+    downscale: Option<f64>,
+    /// Train with the alignment loss only (no content and style terms).
+    #[arg(long)]
+    align_only: bool,
+    /// Seed of every random choice.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Side of the feature-map window run through the networks, in feature pixels.
+    #[arg(long)]
+    crop: Option<u32>,
+    /// White background (NeRF-synthetic scenes).
+    #[arg(long)]
+    white: bool,
+    /// Train on every image (no held-out split).
+    #[arg(long)]
+    no_eval: bool,
+    /// Continue from a checkpoint (OUT/checkpoint.safetensors).
+    #[arg(long)]
+    resume: Option<PathBuf>,
+    /// Print a progress line every N iterations (for logs).
+    #[arg(long)]
+    log_every: Option<u64>,
+    /// No progress bar.
+    #[arg(long)]
+    no_progress: bool,
+    /// Output directory (the bundle goes to OUT/bundle).
+    #[arg(short, long)]
+    output: PathBuf,
+}
+
+#[derive(Args)]
+struct BakeArgs {
+    /// Scene bundle directory.
+    bundle: PathBuf,
+    /// Style image (repeat and give --weights to bake a mixture).
+    #[arg(long = "style", required = true)]
+    styles: Vec<PathBuf>,
+    /// Mix the styles with these weights (comma-separated, one per style).
+    #[arg(long, value_delimiter = ',')]
+    weights: Option<Vec<f64>>,
+    /// Style strength: 0 reconstructs the scene, 1 is the full style.
+    #[arg(long, default_value_t = 1.0)]
+    alpha: f64,
+    /// Longest side of the style images after loading.
+    #[arg(long, default_value_t = dsgs::stylize::DEFAULT_STYLE_SIDE)]
+    style_size: u32,
+    /// Network variant (default: the bundle's).
+    #[arg(long)]
+    variant: Option<Variant>,
+    /// Replace the bundle's decoder (.safetensors or a PyTorch checkpoint).
+    #[arg(long)]
+    decoder: Option<PathBuf>,
+    /// TOML configuration (train::BakeConfig keys); flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Optimisation iterations.
+    #[arg(long)]
+    iterations: Option<u64>,
+    /// SH degree that is optimised (0..=3; the .ply always stores degree 3).
+    #[arg(long)]
+    sh_degree: Option<usize>,
+    /// Also adapt opacities and scales, within small budgets.
+    #[arg(long)]
+    adapt_geometry: bool,
+    /// Adam rate of the SH DC coefficients.
+    #[arg(long)]
+    lr: Option<f64>,
+    /// Number of training target views (0: all candidates).
+    #[arg(long)]
+    target_views: Option<usize>,
+    /// Interpolated views held out for evaluation.
+    #[arg(long)]
+    held_out: Option<usize>,
+    /// Image size of the targets relative to the bundle's cameras.
+    #[arg(long)]
+    resolution_scale: Option<f64>,
+    /// Seed of the view order.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Print a progress line every N iterations (for logs).
+    #[arg(long)]
+    log_every: Option<u64>,
+    /// No progress bars.
+    #[arg(long)]
+    no_progress: bool,
+    /// Output .ply (a JSON report is written beside it).
+    #[arg(short, long)]
+    output: PathBuf,
 }
 
 #[derive(Args, Clone)]
@@ -326,6 +522,9 @@ fn run(cli: Cli) -> Result<()> {
             print!("{}", dsgs::weights::describe(&path)?);
         }
         Command::FitGeometry(a) => fit_geometry(a)?,
+        Command::PretrainDecoder(a) => pretrain_decoder(a)?,
+        Command::FitFeatures(a) => fit_features(a)?,
+        Command::Bake(a) => bake(a)?,
         Command::Render(a) => render(a)?,
         Command::Stylize(a) => stylize(a)?,
         Command::Eval(a) => eval(a)?,
@@ -380,6 +579,165 @@ fn fit_geometry(a: FitGeometryArgs) -> Result<()> {
             p.display()
         );
     }
+    Ok(())
+}
+
+fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
+    let settings = PretrainSettings {
+        content: a.content,
+        styles: a.styles,
+        recursive: a.recursive,
+        networks: NetworkFiles {
+            weights: a.weights,
+            encoder: a.encoder,
+            decoder: a.decoder,
+        },
+        from_scratch: a.from_scratch,
+        out_dir: a.output,
+        config: a.config,
+        resume: a.resume,
+        overrides: DecoderOverrides {
+            iterations: a.iterations,
+            batch_size: a.batch_size,
+            crop: a.crop,
+            resize: a.resize,
+            style_weight: a.style_weight,
+            lr: a.lr,
+            seed: a.seed,
+            variant: a.variant,
+            log_every: a.log_every,
+            no_progress: a.no_progress,
+        },
+    };
+    let r = dsgs::pretrain_decoder::run(&settings, None)?;
+    println!(
+        "{} content and {} style images, {} networks, crops of {} px",
+        r.content_images,
+        r.style_images,
+        r.config.variant.as_str(),
+        r.config.crop
+    );
+    for e in &r.evaluations {
+        println!(
+            "iteration {}: evaluation loss {:.5} (content {:.5}, style {:.5}, {} pairs)",
+            e.step, e.loss, e.loss_content, e.loss_style, e.pairs
+        );
+    }
+    let done = r.step - r.first_step;
+    println!(
+        "{done} iterations in {:.1} s ({:.2} it/s); checkpoint {}",
+        r.seconds,
+        done as f64 / r.seconds.max(1e-9),
+        r.checkpoint.display()
+    );
+    if let Some(p) = &r.weights {
+        println!("decoder written to {}", p.display());
+    }
+    Ok(())
+}
+
+fn fit_features(a: FitFeaturesArgs) -> Result<()> {
+    let settings = FitFeaturesSettings {
+        geometry: a.geometry,
+        dataset: a.dataset,
+        styles: a.styles,
+        networks: NetworkFiles {
+            weights: Some(a.weights),
+            encoder: None,
+            decoder: a.decoder,
+        },
+        out_dir: a.output,
+        config: a.config,
+        resume: a.resume,
+        overrides: FeatureOverrides {
+            iterations: a.iterations,
+            feature_dim: a.feature_dim,
+            downscale: a.downscale,
+            align_only: a.align_only,
+            seed: a.seed,
+            crop: a.crop,
+            variant: a.variant,
+            white: a.white,
+            no_eval: a.no_eval,
+            log_every: a.log_every,
+            no_progress: a.no_progress,
+        },
+    };
+    let r = dsgs::fit_features::run(&settings, None)?;
+    println!(
+        "{} Gaussians, {} training views, {} style images, {}-d features, {} networks",
+        r.gaussians,
+        r.train_views,
+        r.style_images,
+        r.config.features.feature_dim,
+        r.config.features.variant.as_str()
+    );
+    if let Some([total, align, content, style]) = r.running_losses {
+        println!(
+            "running loss {total:.5} (align {align:.5}, content {content:.5}, style {style:.5})"
+        );
+    }
+    let done = r.step - r.first_step;
+    println!(
+        "{done} iterations in {:.1} s ({:.2} it/s); checkpoint {}",
+        r.seconds,
+        done as f64 / r.seconds.max(1e-9),
+        r.checkpoint.display()
+    );
+    if let Some(p) = &r.bundle {
+        println!("scene bundle written to {}", p.display());
+    }
+    Ok(())
+}
+
+fn bake(a: BakeArgs) -> Result<()> {
+    let settings = BakeSettings {
+        bundle: a.bundle,
+        styles: a.styles,
+        weights: a.weights,
+        alpha: a.alpha,
+        style_side: a.style_size,
+        variant: a.variant,
+        decoder: a.decoder,
+        config: a.config,
+        overrides: BakeOverrides {
+            iterations: a.iterations,
+            sh_degree: a.sh_degree,
+            adapt_geometry: a.adapt_geometry,
+            lr: a.lr,
+            target_views: a.target_views,
+            held_out: a.held_out,
+            resolution_scale: a.resolution_scale,
+            seed: a.seed,
+            log_every: a.log_every,
+            no_progress: a.no_progress,
+        },
+        output: a.output,
+    };
+    let out = dsgs::bake::run(&settings)?;
+    let s = &out.summary;
+    let db = |p: Option<f64>| p.map_or_else(|| "-".to_string(), |v| format!("{v:.3} dB"));
+    println!(
+        "{} training and {} held-out target views, {} iterations",
+        s.train_views, s.held_out_views, s.iterations
+    );
+    println!(
+        "training PSNR: baked {:.3} dB, unbaked {:.3} dB",
+        s.train_psnr, s.unbaked_train_psnr
+    );
+    println!(
+        "held-out PSNR: baked {}, unbaked {}",
+        db(s.held_out_psnr),
+        db(s.unbaked_held_out_psnr)
+    );
+    println!(
+        "targets {:.1} s, optimisation {:.1} s; {} Gaussians written to {}, report {}",
+        s.target_seconds,
+        s.optimise_seconds,
+        s.gaussians,
+        out.ply.display(),
+        out.report.display()
+    );
     Ok(())
 }
 

@@ -342,7 +342,7 @@ pub enum RenderKind {
 /// How depth is shown.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum)]
 pub enum DepthStyle {
-    /// Through [`colour_map`].
+    /// A colour map from dark blue (near) through cyan and yellow to dark red (far).
     #[default]
     Colour,
     /// Grey levels, near bright.

@@ -1,0 +1,229 @@
+//! `dsgs bake`: bakes one style into a plain 3DGS `.ply` (SH colours of the bundle's frozen
+//! geometry fitted to stylized views, `train::bake`), for any 3DGS viewer.
+//!
+//! The style target is built as `dsgs stylize` builds it ([`crate::stylize::style_targets`]):
+//! each `--style` image is read (longer side at most `style_side`) and encoded with the bundle's
+//! encoder; several styles must be mixed with `--weights` into one target, since a `.ply` holds
+//! one set of colours. The deepest level's statistics at strength `alpha`
+//! (`SceneBundle::target_stats`) drive the stylized targets.
+//!
+//! Configuration: the keys of `train::BakeConfig` (TOML, `--config`), overridden by flags
+//! ([`BakeOverrides`]). Outputs: the `.ply` (written atomically) and, beside it, a JSON report
+//! with the same stem ([`report_path`]): the inputs, the effective configuration, the PSNR of the
+//! baked and of the unbaked scene against the training and held-out targets, and the times.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use gaussian::ply::{save_ply, write_atomic};
+use serde::Serialize;
+use train::{BakeConfig, BakeReport, Variant};
+
+use crate::config;
+use crate::stylize::{load_bundle, load_styles, style_targets};
+
+/// Command-line values that override the configuration.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct BakeOverrides {
+    pub iterations: Option<u64>,
+    pub sh_degree: Option<usize>,
+    pub adapt_geometry: bool,
+    /// Adam rate of the SH DC coefficients.
+    pub lr: Option<f64>,
+    pub target_views: Option<usize>,
+    pub held_out: Option<usize>,
+    pub resolution_scale: Option<f64>,
+    pub seed: Option<u64>,
+    pub log_every: Option<u64>,
+    pub no_progress: bool,
+}
+
+impl BakeOverrides {
+    /// Applies the overrides.
+    pub fn apply(&self, c: &mut BakeConfig) {
+        if let Some(v) = self.iterations {
+            c.iterations = v;
+        }
+        if let Some(v) = self.sh_degree {
+            c.sh_degree = v;
+        }
+        if self.adapt_geometry {
+            c.adapt_geometry = true;
+        }
+        if let Some(v) = self.lr {
+            c.feature_lr = v;
+        }
+        if let Some(v) = self.target_views {
+            c.target_views = v;
+        }
+        if let Some(v) = self.held_out {
+            c.held_out = v;
+        }
+        if let Some(v) = self.resolution_scale {
+            c.resolution_scale = v;
+        }
+        if let Some(v) = self.seed {
+            c.seed = v;
+        }
+        if let Some(v) = self.log_every {
+            c.log_interval = v;
+        }
+        if self.no_progress {
+            c.progress = false;
+        }
+    }
+}
+
+/// What to run.
+#[derive(Clone, Debug)]
+pub struct BakeSettings {
+    pub bundle: PathBuf,
+    pub styles: Vec<PathBuf>,
+    /// Mixture weights, one per style (required with several styles).
+    pub weights: Option<Vec<f64>>,
+    pub alpha: f64,
+    /// Longest side of the style images after loading.
+    pub style_side: u32,
+    pub variant: Option<Variant>,
+    /// Replace the bundle's decoder.
+    pub decoder: Option<PathBuf>,
+    pub config: Option<PathBuf>,
+    pub overrides: BakeOverrides,
+    /// The output `.ply`.
+    pub output: PathBuf,
+}
+
+/// The JSON report written beside the baked scene.
+#[derive(Clone, Debug, Serialize)]
+pub struct BakeSummary {
+    pub bundle: String,
+    pub styles: Vec<String>,
+    pub weights: Option<Vec<f64>>,
+    pub alpha: f64,
+    pub gaussians: usize,
+    pub iterations: u64,
+    pub interrupted: bool,
+    pub train_views: usize,
+    pub held_out_views: usize,
+    pub train_psnr: f64,
+    pub held_out_psnr: Option<f64>,
+    pub unbaked_train_psnr: f64,
+    pub unbaked_held_out_psnr: Option<f64>,
+    pub target_seconds: f64,
+    pub optimise_seconds: f64,
+    pub config: BakeConfig,
+}
+
+/// What a bake wrote.
+#[derive(Clone, Debug)]
+pub struct BakeOutput {
+    pub summary: BakeSummary,
+    pub ply: PathBuf,
+    pub report: PathBuf,
+}
+
+/// The report beside `ply`: the same path with the extension `json`.
+pub fn report_path(ply: &Path) -> PathBuf {
+    ply.with_extension("json")
+}
+
+/// Runs the bake and writes the `.ply` and its report.
+pub fn run(settings: &BakeSettings) -> Result<BakeOutput> {
+    let mut cfg: BakeConfig = config::load(settings.config.as_deref())?;
+    settings.overrides.apply(&mut cfg);
+    cfg.validate().context("checking the bake configuration")?;
+    if !settings.alpha.is_finite() {
+        bail!("--alpha {} is not finite", settings.alpha);
+    }
+    if settings.output.extension().is_none_or(|e| e == "json") {
+        bail!(
+            "the output {} should be a .ply file",
+            settings.output.display()
+        );
+    }
+    let styles = load_styles(&settings.styles, settings.style_side)?;
+    if styles.len() > 1 && settings.weights.is_none() {
+        bail!(
+            "a baked scene holds one style: mix the {} style images with --weights",
+            styles.len()
+        );
+    }
+    let bundle = load_bundle(
+        &settings.bundle,
+        settings.variant,
+        settings.decoder.as_deref(),
+    )?;
+    let targets = style_targets(&bundle, &styles, settings.weights.as_deref(), None)?;
+    let target = &targets[0];
+    let stats = bundle
+        .target_stats(target.stats.deepest(), settings.alpha)
+        .context("the style's target statistics")?;
+    let r: BakeReport = train::bake(&bundle, &stats, &cfg, None)
+        .with_context(|| format!("baking into the bundle {}", settings.bundle.display()))?;
+    if let Some(dir) = settings
+        .output
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+    {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    save_ply(&settings.output, &r.scene)
+        .with_context(|| format!("writing {}", settings.output.display()))?;
+    let summary = BakeSummary {
+        bundle: settings.bundle.display().to_string(),
+        styles: settings
+            .styles
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect(),
+        weights: settings.weights.clone(),
+        alpha: settings.alpha,
+        gaussians: r.scene.len(),
+        iterations: r.iterations,
+        interrupted: r.interrupted,
+        train_views: r.train_views,
+        held_out_views: r.held_out_views,
+        train_psnr: r.train_psnr,
+        held_out_psnr: r.held_out_psnr,
+        unbaked_train_psnr: r.unbaked_train_psnr,
+        unbaked_held_out_psnr: r.unbaked_held_out_psnr,
+        target_seconds: r.target_seconds,
+        optimise_seconds: r.optimise_seconds,
+        config: cfg,
+    };
+    let report = report_path(&settings.output);
+    let json = serde_json::to_string_pretty(&summary).context("serialising the bake report")?;
+    write_atomic(&report, json.as_bytes())
+        .with_context(|| format!("writing {}", report.display()))?;
+    Ok(BakeOutput {
+        summary,
+        ply: settings.output.clone(),
+        report,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn overrides_and_report_path() {
+        let mut c = BakeConfig::default();
+        BakeOverrides {
+            iterations: Some(7),
+            sh_degree: Some(1),
+            adapt_geometry: true,
+            lr: Some(0.01),
+            ..Default::default()
+        }
+        .apply(&mut c);
+        assert_eq!(c.iterations, 7);
+        assert_eq!(c.sh_degree, 1);
+        assert!(c.adapt_geometry);
+        assert_eq!(c.feature_lr, 0.01);
+        assert_eq!(
+            report_path(Path::new("out/lego.ply")),
+            Path::new("out/lego.json")
+        );
+    }
+}

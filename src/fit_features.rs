@@ -1,0 +1,280 @@
+//! `dsgs fit-features`: feature training on frozen geometry (the third stage), from a trained
+//! 3DGS `.ply`, its dataset, style images and the frozen encoder and decoder to a scene bundle
+//! (`train::features`).
+//!
+//! Configuration ([`FitFeaturesConfig`], TOML): the keys of `train::FeatureTrainConfig` at the
+//! top level, the RGB `background` the geometry was trained on (recorded in the bundle and used
+//! to composite RGBA images) and the `[dataset]` table of `dsgs fit-geometry` (resolution and
+//! held-out split; held-out views are recorded in the bundle but never trained on). The base is
+//! `--config FILE` when given, otherwise, when resuming, the `config.toml` of the output
+//! directory if there is one, otherwise the defaults; flags override it ([`FeatureOverrides`])
+//! and the effective configuration is written to `OUT/config.toml` before training starts.
+//!
+//! Outputs: the scene bundle `OUT/bundle/` (loadable by `dsgs stylize`) and
+//! `OUT/checkpoint.safetensors`, written at the checkpoint interval and again at the end.
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+
+use anyhow::{Context, Result};
+use gaussian::dataset::{Dataset, LoadOptions};
+use gaussian::ply::load_ply;
+use serde::{Deserialize, Serialize};
+use train::features::{dataset_views, FEATURE_CHECKPOINT_FILE};
+use train::{FeatureInputs, FeatureTrainConfig, FeatureTrainer, GeometryConfig, Variant};
+
+use crate::config;
+use crate::fit_geometry::{DatasetConfig, FitGeometryConfig};
+use crate::pretrain_decoder::{open_images, NetworkFiles};
+
+/// The configuration of `dsgs fit-features`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct FitFeaturesConfig {
+    /// The RGB background of the geometry (RGBA images are composited onto it).
+    pub background: [f32; 3],
+    pub dataset: DatasetConfig,
+    #[serde(flatten)]
+    pub features: FeatureTrainConfig,
+}
+
+impl FitFeaturesConfig {
+    /// The dataset load options (the same rules as `dsgs fit-geometry`).
+    pub fn load_options(&self) -> Result<LoadOptions> {
+        FitGeometryConfig {
+            dataset: self.dataset.clone(),
+            geometry: GeometryConfig {
+                background: self.background,
+                ..GeometryConfig::default()
+            },
+        }
+        .load_options()
+    }
+}
+
+/// Command-line values that override the configuration.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FeatureOverrides {
+    pub iterations: Option<u64>,
+    pub feature_dim: Option<usize>,
+    pub downscale: Option<f64>,
+    /// Alignment loss only (both the content and the style weight 0).
+    pub align_only: bool,
+    pub seed: Option<u64>,
+    pub crop: Option<u32>,
+    pub variant: Option<Variant>,
+    pub white: bool,
+    pub no_eval: bool,
+    pub log_every: Option<u64>,
+    pub no_progress: bool,
+}
+
+impl FeatureOverrides {
+    /// Applies the overrides.
+    pub fn apply(&self, c: &mut FitFeaturesConfig) {
+        let f = &mut c.features;
+        if let Some(v) = self.iterations {
+            f.iterations = v;
+        }
+        if let Some(v) = self.feature_dim {
+            f.feature_dim = v;
+        }
+        if self.align_only {
+            f.lambda_content = 0.0;
+            f.lambda_style = 0.0;
+        }
+        if let Some(v) = self.seed {
+            f.seed = v;
+        }
+        if let Some(v) = self.crop {
+            f.crop = Some(v);
+        }
+        if let Some(v) = self.variant {
+            f.variant = v;
+        }
+        if let Some(v) = self.log_every {
+            f.log_interval = v;
+        }
+        if self.no_progress {
+            f.progress = false;
+        }
+        if let Some(v) = self.downscale {
+            c.dataset.downscale = v;
+            c.dataset.images_folder = None;
+        }
+        if self.white {
+            c.background = [1.0; 3];
+        }
+        if self.no_eval {
+            c.dataset.eval = false;
+        }
+    }
+}
+
+/// What to run.
+#[derive(Clone, Debug)]
+pub struct FitFeaturesSettings {
+    /// The trained geometry (`.ply`).
+    pub geometry: PathBuf,
+    /// Its dataset directory.
+    pub dataset: PathBuf,
+    /// Style image folders and/or files.
+    pub styles: Vec<PathBuf>,
+    pub networks: NetworkFiles,
+    pub out_dir: PathBuf,
+    pub config: Option<PathBuf>,
+    pub resume: Option<PathBuf>,
+    pub overrides: FeatureOverrides,
+}
+
+/// What a run did.
+#[derive(Clone, Debug)]
+pub struct FitFeaturesReport {
+    pub config: FitFeaturesConfig,
+    pub gaussians: usize,
+    pub train_views: usize,
+    pub style_images: usize,
+    pub first_step: u64,
+    pub step: u64,
+    pub interrupted: bool,
+    pub seconds: f64,
+    /// Running averages of the total, align, content and style losses at the end.
+    pub running_losses: Option<[f64; 4]>,
+    /// `OUT/bundle` (when the run completed).
+    pub bundle: Option<PathBuf>,
+    /// `OUT/checkpoint.safetensors`.
+    pub checkpoint: PathBuf,
+}
+
+/// The effective configuration of a run (base configuration plus overrides).
+pub fn effective_config(settings: &FitFeaturesSettings) -> Result<FitFeaturesConfig> {
+    let saved = settings.out_dir.join(config::CONFIG_FILE);
+    let base = match (&settings.config, &settings.resume) {
+        (Some(p), _) => Some(p.clone()),
+        (None, Some(_)) if saved.is_file() => Some(saved),
+        _ => None,
+    };
+    let mut c: FitFeaturesConfig = config::load(base.as_deref())?;
+    settings.overrides.apply(&mut c);
+    Ok(c)
+}
+
+/// Reads every input of a run.
+fn inputs(settings: &FitFeaturesSettings, cfg: &FitFeaturesConfig) -> Result<FeatureInputs> {
+    let geometry = load_ply(&settings.geometry)
+        .with_context(|| format!("reading the geometry {}", settings.geometry.display()))?;
+    let styles = open_images(&settings.styles, false, "style")?;
+    let encoder = settings.networks.load_encoder()?;
+    let decoder = settings.networks.load_decoder()?;
+    let options = cfg.load_options()?;
+    let dataset = Dataset::load(&settings.dataset, &options)
+        .with_context(|| format!("loading the dataset {}", settings.dataset.display()))?;
+    for w in &dataset.warnings {
+        eprintln!("warning: {w}");
+    }
+    let (views, cameras) = dataset_views(&dataset, cfg.dataset.eval)
+        .with_context(|| format!("reading the views of {}", settings.dataset.display()))?;
+    let n = &settings.networks;
+    let mut provenance = vec![
+        (
+            "geometry".to_string(),
+            settings.geometry.display().to_string(),
+        ),
+        (
+            "dataset".to_string(),
+            settings.dataset.display().to_string(),
+        ),
+    ];
+    for (key, path) in [
+        ("weights", &n.weights),
+        ("encoder", &n.encoder),
+        ("decoder", &n.decoder),
+    ] {
+        if let Some(p) = path {
+            provenance.push((key.to_string(), p.display().to_string()));
+        }
+    }
+    Ok(FeatureInputs {
+        geometry,
+        views,
+        cameras,
+        styles,
+        encoder,
+        decoder,
+        background: cfg.background,
+        provenance,
+    })
+}
+
+/// Trains the features. When `stop` becomes true the run ends after the current iteration and
+/// a checkpoint of it is written.
+pub fn run(settings: &FitFeaturesSettings, stop: Option<&AtomicBool>) -> Result<FitFeaturesReport> {
+    let cfg = effective_config(settings)?;
+    let inputs = inputs(settings, &cfg)?;
+    let (gaussians, train_views) = (inputs.geometry.len(), inputs.views.len());
+    config::save(&cfg, &settings.out_dir)?;
+    let mut trainer = match &settings.resume {
+        Some(ck) => FeatureTrainer::resume(ck, cfg.features.clone(), inputs)
+            .with_context(|| format!("resuming from {}", ck.display()))?,
+        None => FeatureTrainer::new(cfg.features.clone(), inputs)
+            .context("setting up feature training")?,
+    };
+    let first_step = trainer.step();
+    let summary = trainer.train(Some(&settings.out_dir), stop)?;
+    let checkpoint = settings.out_dir.join(FEATURE_CHECKPOINT_FILE);
+    if !summary.interrupted {
+        trainer
+            .save_checkpoint(&checkpoint)
+            .with_context(|| format!("writing {}", checkpoint.display()))?;
+    }
+    Ok(FitFeaturesReport {
+        config: cfg,
+        gaussians,
+        train_views,
+        style_images: trainer.counts().1,
+        first_step,
+        step: summary.step,
+        interrupted: summary.interrupted,
+        seconds: summary.seconds,
+        running_losses: summary.running_losses,
+        bundle: summary.bundle,
+        checkpoint,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    #[test]
+    fn feature_configs_round_trip_and_overrides_apply() {
+        let c: FitFeaturesConfig = config::parse(
+            "iterations = 50\nbackground = [1.0, 1.0, 1.0]\n[dataset]\neval = false\n",
+            Path::new("f.toml"),
+        )
+        .unwrap();
+        assert_eq!(c.features.iterations, 50);
+        assert_eq!(c.background, [1.0; 3]);
+        assert!(!c.dataset.eval);
+        let back: FitFeaturesConfig =
+            config::parse(&config::to_toml(&c).unwrap(), Path::new("b.toml")).unwrap();
+        assert_eq!(back, c);
+        let mut c = c;
+        FeatureOverrides {
+            align_only: true,
+            crop: Some(16),
+            ..Default::default()
+        }
+        .apply(&mut c);
+        assert_eq!(
+            (c.features.lambda_content, c.features.lambda_style),
+            (0.0, 0.0)
+        );
+        assert_eq!(c.features.crop_side(), 16);
+        let e = config::parse::<FitFeaturesConfig>("lambda_styel = 1.0", Path::new("f.toml"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("lambda_styel"), "{e}");
+    }
+}

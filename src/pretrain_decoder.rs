@@ -1,0 +1,255 @@
+//! `dsgs pretrain-decoder`: AdaIN decoder training on folders of content photographs and style
+//! images, against a frozen encoder (`train::decoder_training`).
+//!
+//! Networks: the encoder comes from `--encoder` (a PyTorch checkpoint or canonical file) or from
+//! the canonical `--weights` file; the starting decoder from `--decoder`, from `--weights`, or,
+//! with `--from-scratch`, from the seeded initialisation of the encoder's mirror image
+//! (`train::decoder_training::init_decoder`). When resuming, the decoder comes from the
+//! checkpoint.
+//!
+//! Configuration: the keys of `train::DecoderTrainConfig` (TOML). The base is `--config FILE`
+//! when given, otherwise, when resuming, the `config.toml` of the output directory if there is
+//! one, otherwise the defaults; flags override it ([`DecoderOverrides`]) and the effective
+//! configuration is written to `OUT/config.toml` before training starts.
+//!
+//! Outputs: `OUT/decoder.safetensors` (encoder and trained decoder, canonical weights) and
+//! `OUT/checkpoint.safetensors`, written at the checkpoint interval and again at the end, so a
+//! finished run can be continued with more iterations.
+
+use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
+
+use anyhow::{bail, Context, Result};
+use nets::{Decoder, Encoder};
+use train::decoder_training::{init_decoder, DecoderEvaluation, DECODER_CHECKPOINT_FILE};
+use train::{DecoderTrainConfig, DecoderTrainer, ImageSet, Variant};
+
+use crate::config;
+
+/// Where the networks come from: a canonical file holding both, and/or separate files (either
+/// canonical or PyTorch checkpoints) that take precedence over it.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct NetworkFiles {
+    pub weights: Option<PathBuf>,
+    pub encoder: Option<PathBuf>,
+    pub decoder: Option<PathBuf>,
+}
+
+impl NetworkFiles {
+    /// The encoder: from `encoder` if given, else from `weights`.
+    pub fn load_encoder(&self) -> Result<Encoder<f32>> {
+        let path = self
+            .encoder
+            .as_ref()
+            .or(self.weights.as_ref())
+            .context("no encoder given: use --weights NETS.safetensors or --encoder FILE")?;
+        crate::weights::load_any(path)
+            .with_context(|| format!("reading the encoder {}", path.display()))?
+            .encoder
+            .with_context(|| format!("{} holds no encoder", path.display()))
+    }
+
+    /// The decoder: from `decoder` if given, else from `weights`.
+    pub fn load_decoder(&self) -> Result<Decoder<f32>> {
+        let path = self
+            .decoder
+            .as_ref()
+            .or(self.weights.as_ref())
+            .context("no decoder given: use --weights NETS.safetensors or --decoder FILE")?;
+        crate::weights::load_any(path)
+            .with_context(|| format!("reading the decoder {}", path.display()))?
+            .decoder
+            .with_context(|| format!("{} holds no decoder", path.display()))
+    }
+}
+
+/// Command-line values that override the configuration.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct DecoderOverrides {
+    pub iterations: Option<u64>,
+    pub batch_size: Option<usize>,
+    pub crop: Option<u32>,
+    pub resize: Option<u32>,
+    pub style_weight: Option<f64>,
+    pub lr: Option<f64>,
+    pub seed: Option<u64>,
+    pub variant: Option<Variant>,
+    pub log_every: Option<u64>,
+    pub no_progress: bool,
+}
+
+impl DecoderOverrides {
+    /// Applies the overrides.
+    pub fn apply(&self, c: &mut DecoderTrainConfig) {
+        if let Some(v) = self.iterations {
+            c.iterations = v;
+        }
+        if let Some(v) = self.batch_size {
+            c.batch_size = v;
+        }
+        if let Some(v) = self.crop {
+            c.crop = v;
+        }
+        if let Some(v) = self.resize {
+            c.resize = v;
+        }
+        if let Some(v) = self.style_weight {
+            c.style_weight = v;
+        }
+        if let Some(v) = self.lr {
+            c.lr = v;
+        }
+        if let Some(v) = self.seed {
+            c.seed = v;
+        }
+        if let Some(v) = self.variant {
+            c.variant = v;
+        }
+        if let Some(v) = self.log_every {
+            c.log_interval = v;
+        }
+        if self.no_progress {
+            c.progress = false;
+        }
+    }
+}
+
+/// What to run.
+#[derive(Clone, Debug)]
+pub struct PretrainSettings {
+    /// Content image folders and/or files.
+    pub content: Vec<PathBuf>,
+    /// Style image folders and/or files.
+    pub styles: Vec<PathBuf>,
+    /// Search the folders recursively.
+    pub recursive: bool,
+    pub networks: NetworkFiles,
+    /// Start from a seeded initialisation instead of a decoder file.
+    pub from_scratch: bool,
+    pub out_dir: PathBuf,
+    pub config: Option<PathBuf>,
+    pub resume: Option<PathBuf>,
+    pub overrides: DecoderOverrides,
+}
+
+/// What a run did.
+#[derive(Clone, Debug)]
+pub struct PretrainReport {
+    pub config: DecoderTrainConfig,
+    pub content_images: usize,
+    pub style_images: usize,
+    pub first_step: u64,
+    pub step: u64,
+    pub interrupted: bool,
+    pub seconds: f64,
+    pub evaluations: Vec<DecoderEvaluation>,
+    /// `OUT/decoder.safetensors` (when the run completed).
+    pub weights: Option<PathBuf>,
+    /// `OUT/checkpoint.safetensors`.
+    pub checkpoint: PathBuf,
+}
+
+/// The effective configuration of a run (base configuration plus overrides).
+pub fn effective_config(settings: &PretrainSettings) -> Result<DecoderTrainConfig> {
+    let saved = settings.out_dir.join(config::CONFIG_FILE);
+    let base = match (&settings.config, &settings.resume) {
+        (Some(p), _) => Some(p.clone()),
+        (None, Some(_)) if saved.is_file() => Some(saved),
+        _ => None,
+    };
+    let mut c: DecoderTrainConfig = config::load(base.as_deref())?;
+    settings.overrides.apply(&mut c);
+    Ok(c)
+}
+
+/// Opens an image set, naming the role (`content` or `style`) in errors.
+pub fn open_images(sources: &[PathBuf], recursive: bool, role: &str) -> Result<ImageSet> {
+    let list = sources
+        .iter()
+        .map(|p| p.display().to_string())
+        .collect::<Vec<_>>()
+        .join(", ");
+    ImageSet::open(sources, recursive)
+        .with_context(|| format!("opening the {role} images ({list})"))
+}
+
+/// Trains the decoder. When `stop` becomes true the run ends after the current iteration and a
+/// checkpoint of it is written.
+pub fn run(settings: &PretrainSettings, stop: Option<&AtomicBool>) -> Result<PretrainReport> {
+    let cfg = effective_config(settings)?;
+    let content = open_images(&settings.content, settings.recursive, "content")?;
+    let styles = open_images(&settings.styles, settings.recursive, "style")?;
+    let (n_content, n_style) = (content.len(), styles.len());
+    let encoder = settings.networks.load_encoder()?;
+    // Every input is read before anything is written.
+    let decoder = match (&settings.resume, settings.from_scratch) {
+        (Some(_), _) => None,
+        (None, true) => Some(
+            init_decoder(&encoder, cfg.seed).context("initialising a decoder for the encoder")?,
+        ),
+        (None, false) => {
+            let n = &settings.networks;
+            if n.decoder.is_none() && n.weights.is_none() {
+                bail!(
+                    "no starting decoder: give --decoder FILE, --weights NETS.safetensors or \
+                     --from-scratch"
+                );
+            }
+            Some(n.load_decoder()?)
+        }
+    };
+    config::save(&cfg, &settings.out_dir)?;
+    let mut trainer = match (decoder, &settings.resume) {
+        (Some(decoder), _) => DecoderTrainer::new(encoder, decoder, content, styles, cfg.clone())
+            .context("setting up decoder training")?,
+        (None, resume) => {
+            let ck = resume.as_ref().context("no starting decoder")?;
+            DecoderTrainer::resume(ck, encoder, content, styles, cfg.clone())
+                .with_context(|| format!("resuming from {}", ck.display()))?
+        }
+    };
+    let first_step = trainer.step();
+    let summary = trainer.train(Some(&settings.out_dir), stop)?;
+    let checkpoint = settings.out_dir.join(DECODER_CHECKPOINT_FILE);
+    if !summary.interrupted {
+        trainer
+            .save_checkpoint(&checkpoint)
+            .with_context(|| format!("writing {}", checkpoint.display()))?;
+    }
+    Ok(PretrainReport {
+        config: cfg,
+        content_images: n_content,
+        style_images: n_style,
+        first_step,
+        step: summary.step,
+        interrupted: summary.interrupted,
+        seconds: summary.seconds,
+        evaluations: summary.evaluations,
+        weights: summary.weights,
+        checkpoint,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    #[test]
+    fn overrides_replace_configured_values() {
+        let mut c: DecoderTrainConfig =
+            config::parse("iterations = 10\ncrop = 64\n", Path::new("d.toml")).unwrap();
+        DecoderOverrides {
+            crop: Some(32),
+            variant: Some(Variant::Fullres),
+            no_progress: true,
+            ..Default::default()
+        }
+        .apply(&mut c);
+        assert_eq!(c.iterations, 10);
+        assert_eq!(c.crop, 32);
+        assert_eq!(c.variant, Variant::Fullres);
+        assert!(!c.progress);
+        assert_eq!(c.resize, DecoderTrainConfig::default().resize);
+    }
+}

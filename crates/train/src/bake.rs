@@ -53,7 +53,9 @@ use std::time::Instant;
 use gaussian::camera_path::{interpolate_pair, orbit_from};
 use gaussian::{Camera, FeatureGaussians};
 use glam::{DMat3, DVec3};
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::ProgressBar;
+
+use crate::progress::progress_bar;
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
@@ -554,15 +556,6 @@ pub struct BakeReport {
     pub optimise_seconds: f64,
 }
 
-fn progress_bar(len: u64, show: bool, template: &str) -> ProgressBar {
-    if !show {
-        return ProgressBar::hidden();
-    }
-    let b = ProgressBar::new(len);
-    b.set_style(ProgressStyle::with_template(template).expect("valid template"));
-    b
-}
-
 /// Projects every value of `values` into `[initial - budget, initial + budget]`.
 fn project_into_budget(values: &mut [f32], initial: &[f32], budget: f32) {
     values
@@ -597,8 +590,9 @@ pub fn bake(
     let start = Instant::now();
     let total = (cameras.train.len() + cameras.held_out.len()) as u64;
     let bar = progress_bar(
-        total,
         config.progress,
+        total,
+        0,
         "targets {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}]",
     );
     let interrupted = || TrainError::Interrupted("rendering the stylized targets".into());
@@ -712,8 +706,9 @@ pub fn optimise(
     let log_scales0: Vec<f32> = scene.log_scales.as_flattened().to_vec();
 
     let bar = progress_bar(
-        config.iterations,
         config.progress,
+        config.iterations,
+        0,
         "bake {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {per_sec} {msg}",
     );
     let mut rng = StdRng::seed_from_u64(config.seed);

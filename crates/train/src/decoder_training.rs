@@ -41,7 +41,6 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use indicatif::{ProgressBar, ProgressStyle};
 use ndarray::{Array1, Array4};
 use nets::{Decoder, Encoder, NetWeights, StateDict, TensorF32};
 use rand::rngs::StdRng;
@@ -54,8 +53,8 @@ use crate::adam::{Adam, AdamConfig, ParamState};
 use crate::bundle::{weights_fingerprint, Variant};
 use crate::checkpoint::write_atomic;
 use crate::error::TrainError;
-use crate::geometry::say;
 use crate::image_folder::{stack, ImageSet};
+use crate::progress::{progress_bar, say, TEMPLATE};
 
 /// The `format` metadata of a decoder-training checkpoint.
 pub const DECODER_CHECKPOINT_FORMAT: &str = "dsgs-decoder-checkpoint-v1";
@@ -526,7 +525,7 @@ impl DecoderTrainer {
         let start = Instant::now();
         let first = self.step;
         let total = self.config.iterations;
-        let bar = progress_bar(self.config.progress, total, self.step);
+        let bar = progress_bar(self.config.progress, total, self.step, TEMPLATE);
         let mut evaluations = Vec::new();
         let mut interrupted = false;
         while self.step < total {
@@ -654,22 +653,6 @@ fn check_same_params(restored: &Adam<f32>, fresh: &Adam<f32>) -> Result<(), Stri
         }
     }
     Ok(())
-}
-
-/// A progress bar in the style of the geometry stage (hidden when `show` is false).
-pub(crate) fn progress_bar(show: bool, total: u64, position: u64) -> ProgressBar {
-    if !show {
-        return ProgressBar::hidden();
-    }
-    let b = ProgressBar::new(total);
-    b.set_style(
-        ProgressStyle::with_template(
-            "{bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {per_sec} {msg}",
-        )
-        .expect("valid template"),
-    );
-    b.set_position(position);
-    b
 }
 
 /// Random streams derived from the seed.

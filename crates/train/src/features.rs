@@ -65,11 +65,12 @@ use crate::bundle::{
 };
 use crate::checkpoint::write_atomic;
 use crate::decoder_training::{
-    conv_default_init, mix, progress_bar, StateReader, StateWriter, INIT_STREAM, STEP_STREAM,
+    conv_default_init, mix, StateReader, StateWriter, INIT_STREAM, STEP_STREAM,
 };
 use crate::error::TrainError;
-use crate::geometry::{load_views, say, View};
+use crate::geometry::{load_views, View};
 use crate::image_folder::{to_tensor, ImageSet};
+use crate::progress::{progress_bar, say, TEMPLATE};
 
 /// The `format` metadata of a feature-training checkpoint.
 pub const FEATURE_CHECKPOINT_FORMAT: &str = "dsgs-feature-checkpoint-v1";
@@ -912,7 +913,7 @@ impl FeatureTrainer {
         let start = Instant::now();
         let first = self.step;
         let total = self.config.iterations;
-        let bar = progress_bar(self.config.progress, total, self.step);
+        let bar = progress_bar(self.config.progress, total, self.step, TEMPLATE);
         let mut interrupted = false;
         while self.step < total {
             if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {

@@ -23,9 +23,9 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
+use crate::progress::{progress_bar, say, TEMPLATE};
 use gaussian::dataset::Dataset;
 use gaussian::{Camera, FeatureGaussians};
-use indicatif::{ProgressBar, ProgressStyle};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
@@ -506,19 +506,12 @@ impl GeometryTrainer {
     ) -> Result<TrainSummary, TrainError> {
         let start = Instant::now();
         let first = self.step;
-        let bar = if self.config.progress {
-            let b = ProgressBar::new(self.config.iterations);
-            b.set_style(
-                ProgressStyle::with_template(
-                    "{bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {per_sec} {msg}",
-                )
-                .expect("valid template"),
-            );
-            b.set_position(self.step);
-            b
-        } else {
-            ProgressBar::hidden()
-        };
+        let bar = progress_bar(
+            self.config.progress,
+            self.config.iterations,
+            self.step,
+            TEMPLATE,
+        );
         let mut evaluations = Vec::new();
         let mut interrupted = false;
         while self.step < self.config.iterations {
@@ -584,16 +577,6 @@ impl GeometryTrainer {
     /// The running averages of loss and training PSNR shown by the progress bar.
     pub fn running_averages(&self) -> (f64, f64) {
         (self.ema_loss, self.ema_psnr)
-    }
-}
-
-/// Prints a line above the progress bar, or to stderr when the bar is hidden (not a terminal,
-/// or progress switched off), so that logs of unattended runs keep every message.
-pub fn say(bar: &ProgressBar, message: String) {
-    if bar.is_hidden() {
-        eprintln!("{message}");
-    } else {
-        bar.println(message);
     }
 }
 

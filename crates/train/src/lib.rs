@@ -35,6 +35,7 @@ pub mod image_folder;
 pub mod init;
 pub mod loss;
 pub mod model;
+pub mod progress;
 pub mod render;
 pub mod schedule;
 pub mod ssim;

@@ -60,6 +60,8 @@ pub struct FeatureOverrides {
     pub downscale: Option<f64>,
     /// Alignment loss only (both the content and the style weight 0).
     pub align_only: bool,
+    /// Iterations of alignment-only warm-up.
+    pub align_warmup: Option<u64>,
     pub seed: Option<u64>,
     pub crop: Option<u32>,
     pub variant: Option<Variant>,
@@ -82,6 +84,9 @@ impl FeatureOverrides {
         if self.align_only {
             f.lambda_content = 0.0;
             f.lambda_style = 0.0;
+        }
+        if let Some(v) = self.align_warmup {
+            f.align_warmup = v;
         }
         if let Some(v) = self.seed {
             f.seed = v;

@@ -188,6 +188,24 @@ pub fn contact_sheet(rows: &[Vec<RgbImage>]) -> Result<RgbImage> {
     Ok(sheet)
 }
 
+/// `img` scaled to cover `width x height` (aspect ratio kept) and centre-cropped to it: the
+/// style thumbnails of contact sheets.
+pub fn thumbnail(img: &RgbImage, width: u32, height: u32) -> RgbImage {
+    let scale = (width as f64 / img.width as f64).max(height as f64 / img.height as f64);
+    let w = ((img.width as f64 * scale).round() as u32).max(width);
+    let h = ((img.height as f64 * scale).round() as u32).max(height);
+    let big = gaussian::dataset::images::resize(img, w, h);
+    let (x0, y0) = ((w - width) / 2, (h - height) / 2);
+    let mut out = blank(width, height);
+    for y in 0..height {
+        let src = (((y0 + y) * w + x0) * 3) as usize;
+        let dst = (y * width * 3) as usize;
+        out.data[dst..dst + (width * 3) as usize]
+            .copy_from_slice(&big.data[src..src + (width * 3) as usize]);
+    }
+    out
+}
+
 /// A colour map from `t` in `[0, 1]` (clamped) to RGB: piecewise linear through dark blue,
 /// blue, cyan, yellow and dark red at `t = 0, 0.25, 0.5, 0.75, 1`.
 pub fn colour_map(t: f32) -> [f32; 3] {
@@ -267,6 +285,35 @@ mod tests {
             height: h,
             data: (0..w * h * 3).map(|i| (i as f32 * k) % 1.0).collect(),
         }
+    }
+
+    #[test]
+    fn thumbnails_cover_the_cell_and_keep_the_centre() {
+        // A 4x2 image whose left half is 0 and right half 1: a 2x2 thumbnail needs no scaling
+        // and keeps the middle two columns.
+        let img = RgbImage {
+            width: 4,
+            height: 2,
+            data: (0..8)
+                .flat_map(|i| [if i % 4 < 2 { 0.0 } else { 1.0 }; 3])
+                .collect(),
+        };
+        let t = thumbnail(&img, 2, 2);
+        assert_eq!((t.width, t.height), (2, 2));
+        let row: Vec<f32> = t.data[..6].to_vec();
+        assert_eq!(row, [0.0, 0.0, 0.0, 1.0, 1.0, 1.0]);
+        // Scaling up: a 2x1 image to a 3x3 cell covers it (scaled to 6x3, centre 3 columns).
+        let t = thumbnail(
+            &RgbImage {
+                width: 2,
+                height: 1,
+                data: vec![0.5; 6],
+            },
+            3,
+            3,
+        );
+        assert_eq!((t.width, t.height), (3, 3));
+        assert!(t.data.iter().all(|&v| (v - 0.5).abs() < 1e-6));
     }
 
     #[test]

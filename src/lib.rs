@@ -16,12 +16,14 @@
 //! * [`stylize`]: zero-shot stylization of a scene bundle (`dsgs stylize`).
 //! * [`consistency`]: multi-view consistency by depth warping; [`eval`]: the evaluation
 //!   report (`dsgs eval`).
+//! * [`demo`]: the whole pipeline on the lego scene at low resolution (`dsgs demo`).
 //! * [`image_io`]: PNG, GIF, contact sheets, MP4 through `ffmpeg`.
 
 pub mod bake;
 pub mod cameras;
 pub mod config;
 pub mod consistency;
+pub mod demo;
 pub mod eval;
 pub mod fit_features;
 pub mod fit_geometry;

@@ -2,6 +2,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -43,6 +44,52 @@ enum Command {
     Stylize(StylizeArgs),
     /// Measure multi-view consistency, style and content losses and stage timings.
     Eval(EvalArgs),
+    /// Run the whole pipeline on the lego scene at low resolution: geometry, features, a
+    /// stylized orbit with four unseen styles, its evaluation, a contact sheet and GIFs.
+    Demo(DemoArgs),
+}
+
+#[derive(Args)]
+struct DemoArgs {
+    /// The shared data folder (scenes, styles, weights)
+    #[arg(long, env = "DSGS_SHARED", default_value = "../shared")]
+    shared: PathBuf,
+    /// Output directory; a rerun skips the stages whose results are there and resumes an
+    /// interrupted one
+    #[arg(short, long, default_value = "dsgs-demo")]
+    output: PathBuf,
+    /// Canonical weights (.safetensors, encoder and decoder) instead of importing
+    /// SHARED/weights/wct-relu1_1-3_1
+    #[arg(long)]
+    weights: Option<PathBuf>,
+    /// A decoder (PyTorch checkpoint or .safetensors) instead of the one in the weights, e.g.
+    /// one fine-tuned by `dsgs pretrain-decoder` for the fullres variant
+    #[arg(long)]
+    decoder: Option<PathBuf>,
+    /// Network variant (fullres needs a decoder fine-tuned for it to stylize strongly)
+    #[arg(long, default_value = "standard")]
+    variant: Variant,
+    /// Downscale factor of the 800x800 lego images
+    #[arg(long, default_value_t = 8.0)]
+    downscale: f64,
+    /// Geometry iterations
+    #[arg(long, default_value_t = 1000)]
+    geometry_iterations: u64,
+    /// Alignment-only feature iterations (cheap) before the full loss
+    #[arg(long, default_value_t = 1500)]
+    align_warmup: u64,
+    /// Feature iterations with the full loss (alignment, content, style)
+    #[arg(long, default_value_t = 300)]
+    feature_iterations: u64,
+    /// Style images (default: four paintings of SHARED/data/styles never used in training)
+    #[arg(long = "style", num_args = 1..)]
+    styles: Vec<PathBuf>,
+    /// Frames of the orbit
+    #[arg(long, default_value_t = 24)]
+    frames: usize,
+    /// No progress bars
+    #[arg(long)]
+    no_progress: bool,
 }
 
 #[derive(Subcommand)]
@@ -233,6 +280,10 @@ struct FitFeaturesArgs {
     /// Train with the alignment loss only (no content and style terms).
     #[arg(long)]
     align_only: bool,
+    /// Iterations at the start with the alignment loss only (cheap; gives the features the
+    /// scene's content before the content and style terms join).
+    #[arg(long)]
+    align_warmup: Option<u64>,
     /// Seed of every random choice.
     #[arg(long)]
     seed: Option<u64>,
@@ -494,6 +545,26 @@ fn main() -> ExitCode {
     }
 }
 
+/// The stop flag of the training commands, set by the first Ctrl-C: the run ends after the
+/// current iteration and writes a checkpoint to resume from. A second Ctrl-C exits at once.
+fn stop_flag() -> Option<&'static AtomicBool> {
+    static STOP: AtomicBool = AtomicBool::new(false);
+    let installed = ctrlc::set_handler(|| {
+        if STOP.swap(true, Ordering::SeqCst) {
+            eprintln!("\ninterrupted again: exiting without a checkpoint");
+            std::process::exit(130);
+        }
+        eprintln!("\ninterrupt: stopping after this iteration and writing a checkpoint (Ctrl-C again to exit at once)");
+    });
+    match installed {
+        Ok(()) => Some(&STOP),
+        Err(e) => {
+            eprintln!("warning: no Ctrl-C handler ({e}); an interrupted run resumes from its last periodic checkpoint");
+            None
+        }
+    }
+}
+
 fn progress(len: usize, what: &str) -> ProgressBar {
     let b = ProgressBar::new(len as u64);
     b.set_style(
@@ -528,6 +599,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Render(a) => render(a)?,
         Command::Stylize(a) => stylize(a)?,
         Command::Eval(a) => eval(a)?,
+        Command::Demo(a) => demo(a)?,
     }
     Ok(())
 }
@@ -553,7 +625,7 @@ fn fit_geometry(a: FitGeometryArgs) -> Result<()> {
             no_progress: a.no_progress,
         },
     };
-    let r = dsgs::fit_geometry::run(&settings, None)?;
+    let r = dsgs::fit_geometry::run(&settings, stop_flag())?;
     println!(
         "{} training and {} test views at {}x{}, {} initial Gaussians",
         r.train_views, r.test_views, r.width, r.height, r.initial_gaussians
@@ -609,7 +681,7 @@ fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
             no_progress: a.no_progress,
         },
     };
-    let r = dsgs::pretrain_decoder::run(&settings, None)?;
+    let r = dsgs::pretrain_decoder::run(&settings, stop_flag())?;
     println!(
         "{} content and {} style images, {} networks, crops of {} px",
         r.content_images,
@@ -633,6 +705,13 @@ fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
     if let Some(p) = &r.weights {
         println!("decoder written to {}", p.display());
     }
+    if r.interrupted {
+        println!(
+            "stopped early at iteration {}; resume with --resume {}",
+            r.step,
+            r.checkpoint.display()
+        );
+    }
     Ok(())
 }
 
@@ -654,6 +733,7 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
             feature_dim: a.feature_dim,
             downscale: a.downscale,
             align_only: a.align_only,
+            align_warmup: a.align_warmup,
             seed: a.seed,
             crop: a.crop,
             variant: a.variant,
@@ -663,7 +743,7 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
             no_progress: a.no_progress,
         },
     };
-    let r = dsgs::fit_features::run(&settings, None)?;
+    let r = dsgs::fit_features::run(&settings, stop_flag())?;
     println!(
         "{} Gaussians, {} training views, {} style images, {}-d features, {} networks",
         r.gaussians,
@@ -686,6 +766,13 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
     );
     if let Some(p) = &r.bundle {
         println!("scene bundle written to {}", p.display());
+    }
+    if r.interrupted {
+        println!(
+            "stopped early at iteration {}; resume with --resume {}",
+            r.step,
+            r.checkpoint.display()
+        );
     }
     Ok(())
 }
@@ -761,6 +848,50 @@ fn bundle_with(
     decoder: Option<&Path>,
 ) -> Result<train::SceneBundle> {
     dsgs::stylize::load_bundle(dir, variant, decoder)
+}
+
+fn demo(a: DemoArgs) -> Result<()> {
+    let settings = dsgs::demo::DemoSettings {
+        styles: dsgs::demo::styles_or_default(&a.shared, &a.styles),
+        shared: a.shared,
+        out_dir: a.output.clone(),
+        weights: a.weights,
+        decoder: a.decoder,
+        variant: a.variant,
+        downscale: a.downscale,
+        geometry_iterations: a.geometry_iterations,
+        align_warmup: a.align_warmup,
+        feature_iterations: a.feature_iterations,
+        frames: a.frames,
+        progress: !a.no_progress,
+    };
+    let views = a.frames * (1 + settings.styles.len());
+    let bar = if a.no_progress {
+        ProgressBar::hidden()
+    } else {
+        progress(2 * views, "stylize")
+    };
+    let r = dsgs::demo::run(&settings, stop_flag(), |stage| {
+        bar.set_message(stage.to_string());
+        bar.inc(1)
+    })?;
+    bar.finish_and_clear();
+    print!("{}", dsgs::eval::table(&r.eval));
+    if let Some(p) = r.geometry_psnr {
+        println!("geometry: held-out PSNR {p:.2} dB");
+    }
+    println!("{} Gaussians", r.gaussians);
+    for (stage, t) in &r.seconds {
+        match t {
+            Some(t) => println!("{stage:>9}: {t:.1} s"),
+            None => println!("{stage:>9}: done before, skipped"),
+        }
+    }
+    for p in r.stylized.gifs.iter().chain(&r.stylized.contact_sheet) {
+        println!("wrote {}", p.display());
+    }
+    println!("wrote {}", r.eval_json.display());
+    Ok(())
 }
 
 fn stylize(a: StylizeArgs) -> Result<()> {

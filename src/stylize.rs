@@ -354,9 +354,16 @@ pub fn run(
         tick("rasterize");
     }
     let mut out = StylizeOutput::default();
-    let mut sheet_rows = vec![sheet_colour
-        .iter()
-        .map(|r| image_io::clamped(&r.image))
+    // The sheet's first column shows each row's style (white for the colour row, black for a
+    // mixture of several styles).
+    let (cw, ch) = (cameras[0].intrinsics.width, cameras[0].intrinsics.height);
+    let corner = RgbImage {
+        width: cw,
+        height: ch,
+        data: vec![1.0; cw as usize * ch as usize * 3],
+    };
+    let mut sheet_rows = vec![std::iter::once(corner)
+        .chain(sheet_colour.iter().map(|r| image_io::clamped(&r.image)))
         .collect::<Vec<_>>()];
     let mut total = StageSeconds::default();
     let mut decoded = 0usize;
@@ -365,7 +372,12 @@ pub fn run(
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
         let mut frames = Vec::new();
         let mut gif_frames = Vec::new();
-        let mut row = Vec::new();
+        let mut row = vec![
+            match (settings.weights.is_some(), styles.get(out.outputs.len())) {
+                (false, Some(st)) => image_io::thumbnail(&st.image, cw, ch),
+                _ => image_io::blank(cw, ch),
+            },
+        ];
         for (i, v) in views.iter().enumerate() {
             let (img, s) = stylize_view(bundle, v, target, settings.alpha)?;
             total.raster += s.raster;

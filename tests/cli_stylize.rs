@@ -55,8 +55,8 @@ fn two_styles_give_frames_gifs_and_a_contact_sheet() {
         assert_eq!(frames.len(), 5);
         assert_eq!(frames[0].buffer().dimensions(), (64, 64));
     }
-    // Rows: the colour render and the two styles; columns: 4 of the 5 views.
-    assert_eq!(size_of(&out.join("contact_sheet.png")), (4 * 64, 3 * 64));
+    // Rows: the colour render and the two styles; columns: the style and 4 of the 5 views.
+    assert_eq!(size_of(&out.join("contact_sheet.png")), (5 * 64, 3 * 64));
     // The two styles differ.
     let fa = image::open(out.join("mondrian/frame_0002.png"))
         .unwrap()
@@ -92,7 +92,7 @@ fn weighted_styles_mix_into_one_output() {
     assert_eq!(size_of(&out.join("mix/frame_0001.png")), (64, 64));
     assert!(!out.join("mix/frame_0002.png").exists());
     assert!(!out.join("mondrian").exists());
-    assert_eq!(size_of(&out.join("contact_sheet.png")), (2 * 64, 2 * 64));
+    assert_eq!(size_of(&out.join("contact_sheet.png")), (3 * 64, 2 * 64));
     std::fs::remove_dir_all(&dir).ok();
 }
 

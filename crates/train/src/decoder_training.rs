@@ -516,7 +516,8 @@ impl DecoderTrainer {
     /// (`out_dir/checkpoint.safetensors`, replaced each time) is written every
     /// `checkpoint_interval` iterations and when the stop flag ends the run, and the final
     /// weights (`out_dir/decoder.safetensors`, encoder and decoder) when it completes.
-    /// Evaluations run every `eval_interval` iterations and at the end.
+    /// Evaluations run before the first iteration of a fresh run (the starting point of the
+    /// held-out curve), every `eval_interval` iterations and at the end.
     pub fn train(
         &mut self,
         out_dir: Option<&Path>,
@@ -528,6 +529,18 @@ impl DecoderTrainer {
         let bar = progress_bar(self.config.progress, total, self.step, TEMPLATE);
         let mut evaluations = Vec::new();
         let mut interrupted = false;
+        if self.step == 0 && total > 0 {
+            if let Some(ev) = self.evaluate()? {
+                say(
+                    &bar,
+                    format!(
+                        "[ITER 0] held-out: loss {:.5} content {:.5} style {:.5} ({} pairs)",
+                        ev.loss, ev.loss_content, ev.loss_style, ev.pairs
+                    ),
+                );
+                evaluations.push(ev);
+            }
+        }
         while self.step < total {
             if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
                 interrupted = true;

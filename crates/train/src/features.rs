@@ -102,6 +102,11 @@ pub struct FeatureTrainConfig {
     pub lambda_content: f64,
     /// Weight of the style term.
     pub lambda_style: f64,
+    /// Iterations at the start that train with the alignment loss only (0: none). They cost a
+    /// tenth of a full iteration (no decoder and encoder passes) and give the lifted features
+    /// the scene's content before the content and style terms join, which matters for short
+    /// runs.
+    pub align_warmup: u64,
     /// Standard or fullres networks (decides the feature resolution).
     pub variant: Variant,
     /// Side of the random window of the feature map that runs through the networks, in feature
@@ -134,6 +139,7 @@ impl Default for FeatureTrainConfig {
             lr_lifter: 1e-3,
             lambda_content: 1.0,
             lambda_style: 1.0,
+            align_warmup: 0,
             variant: Variant::Standard,
             crop: None,
             style_size: 256,
@@ -180,12 +186,25 @@ impl FeatureTrainConfig {
         })
     }
 
-    /// The loss weights.
+    /// The loss weights after the warm-up.
     pub fn weights(&self) -> Stage3Weights {
         Stage3Weights {
             lambda_content: self.lambda_content,
             lambda_style: self.lambda_style,
             ..Stage3Weights::default()
+        }
+    }
+
+    /// The loss weights of iteration `it` (1-based): alignment only during the warm-up.
+    pub fn weights_at(&self, it: u64) -> Stage3Weights {
+        if it <= self.align_warmup {
+            Stage3Weights {
+                lambda_content: 0.0,
+                lambda_style: 0.0,
+                ..Stage3Weights::default()
+            }
+        } else {
+            self.weights()
         }
     }
 }
@@ -714,7 +733,8 @@ impl FeatureTrainer {
         self.ema
     }
 
-    /// The loss and gradients of one (view, style, window) sample at the current parameters.
+    /// The loss and gradients of one (view, style, window) sample at the current parameters,
+    /// with the loss weights of the next iteration.
     pub fn sample_gradients(
         &self,
         view: usize,
@@ -740,7 +760,7 @@ impl FeatureTrainer {
             decoder: &self.decoder,
             encoder: &self.encoder,
             feature_background: &bg,
-            weights: self.config.weights(),
+            weights: self.config.weights_at(self.step + 1),
         };
         let sample = Stage3Sample {
             camera: &v.camera,

@@ -206,9 +206,9 @@ fn train_writes_checkpoints_and_the_final_weights_and_stops_on_request() {
     let summary = t.train(Some(&dir), None).unwrap();
     assert_eq!(summary.step, 3);
     assert!(!summary.interrupted);
-    // evaluations at 2 (interval) and 3 (the end)
+    // evaluations before the first iteration, at 2 (interval) and at 3 (the end)
     let steps: Vec<u64> = summary.evaluations.iter().map(|e| e.step).collect();
-    assert_eq!(steps, [2, 3]);
+    assert_eq!(steps, [0, 2, 3]);
     let weights = summary.weights.unwrap();
     assert_eq!(weights, dir.join(DECODER_WEIGHTS_FILE));
     let saved = NetWeights::load(&weights).unwrap();

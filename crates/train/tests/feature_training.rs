@@ -245,6 +245,24 @@ fn alignment_only_training_runs_without_the_content_and_style_terms() {
 }
 
 #[test]
+fn the_warm_up_trains_the_alignment_only_then_the_full_loss() {
+    let mut cfg = config(Variant::Fullres);
+    cfg.iterations = 4;
+    cfg.align_warmup = 2;
+    let mut t = FeatureTrainer::new(cfg.clone(), inputs()).unwrap();
+    for it in 1..=4 {
+        let r = t.train_step().unwrap();
+        if it <= 2 {
+            assert_eq!((r.loss_content, r.loss_style), (0.0, 0.0), "iteration {it}");
+            assert_eq!(r.loss, r.loss_align);
+        } else {
+            assert!(r.loss_content > 0.0 && r.loss_style > 0.0, "iteration {it}");
+            assert!(r.loss > r.loss_align);
+        }
+    }
+}
+
+#[test]
 fn scene_statistics_are_the_mean_of_the_views_unnormalised_statistics() {
     let (enc, _) = fixture_networks();
     let t = FeatureTrainer::new(config(Variant::Standard), inputs()).unwrap();

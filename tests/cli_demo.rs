@@ -1,0 +1,114 @@
+//! `dsgs demo` at a toy size (32 x 32 lego views, a few dozen iterations): every stage runs
+//! and writes its outputs, the evaluation is finite and in range, a rerun skips the finished
+//! stages, and missing inputs are named with where to get them.
+
+mod common;
+
+use common::{dsgs, fails, ok, scratch};
+use dsgs_testkit::shared_dir;
+
+fn size_of(p: &std::path::Path) -> (u32, u32) {
+    image::image_dimensions(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+}
+
+#[test]
+fn a_toy_demo_runs_every_stage_and_a_rerun_skips_them() {
+    let dir = scratch("demo");
+    let out = dir.join("out");
+    let run = || {
+        let mut c = dsgs();
+        c.arg("demo")
+            .arg("--shared")
+            .arg(shared_dir())
+            .arg("-o")
+            .arg(&out)
+            .args(["--downscale", "25", "--geometry-iterations", "30"])
+            .args(["--align-warmup", "10", "--feature-iterations", "3"])
+            .args(["--frames", "4", "--no-progress"]);
+        c
+    };
+    let first = ok(&mut run());
+    let text = String::from_utf8_lossy(&first.stdout).into_owned();
+    assert!(text.contains("geometry: held-out PSNR"), "{text}");
+    assert!(!text.contains("skipped"), "{text}");
+
+    // Four unseen styles, each with frames and a GIF; the sheet has the colour row and one
+    // row per style, the style thumbnail column and the four views.
+    for name in [
+        "woman_with_hat_matisse",
+        "the_resevoir_at_poitiers",
+        "en_campo_gris",
+        "mondrian",
+    ] {
+        assert_eq!(
+            size_of(&out.join(format!("stylized/{name}/frame_0003.png"))),
+            (32, 32)
+        );
+        assert!(out.join(format!("stylized/{name}.gif")).is_file());
+    }
+    assert_eq!(
+        size_of(&out.join("stylized/contact_sheet.png")),
+        (5 * 32, 5 * 32)
+    );
+    for f in [
+        "geometry/config.toml",
+        "features/config.toml",
+        "features/bundle/bundle.json",
+    ] {
+        assert!(out.join(f).is_file(), "{f}");
+    }
+
+    // The report: five outputs (colour and four styles) with finite metrics in range.
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("eval.json")).unwrap()).unwrap();
+    let outputs = report["outputs"].as_array().unwrap();
+    assert_eq!(outputs.len(), 5);
+    let mut numbers = 0;
+    fn walk(v: &serde_json::Value, n: &mut usize) {
+        match v {
+            serde_json::Value::Number(x) => {
+                let x = x.as_f64().unwrap();
+                assert!(x.is_finite() && x >= 0.0, "{x}");
+                *n += 1;
+            }
+            serde_json::Value::Array(a) => a.iter().for_each(|v| walk(v, n)),
+            serde_json::Value::Object(o) => o.values().for_each(|v| walk(v, n)),
+            _ => {}
+        }
+    }
+    walk(&report["outputs"], &mut numbers);
+    assert!(numbers >= 5 * 4, "{report}");
+
+    // A rerun finds the weights, the geometry and the features and only renders.
+    let second = ok(&mut run());
+    let text = String::from_utf8_lossy(&second.stdout).into_owned();
+    for stage in ["weights", "geometry", "features"] {
+        assert!(
+            text.contains(&format!("{stage}: done before, skipped")),
+            "{stage}: {text}"
+        );
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn missing_shared_files_are_named_with_their_sources() {
+    let dir = scratch("demo-missing");
+    let err = fails(
+        dsgs()
+            .arg("demo")
+            .arg("--shared")
+            .arg(dir.join("nowhere"))
+            .arg("-o")
+            .arg(dir.join("out")),
+    );
+    assert!(err.contains("missing input files"), "{err}");
+    assert!(err.contains("transforms_train.json"), "{err}");
+    assert!(err.contains("feature_invertor_conv3_1.pth"), "{err}");
+    assert!(err.contains("nerf_synthetic"), "{err}");
+    assert!(
+        !dir.join("out").exists(),
+        "nothing is written before the inputs are checked"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

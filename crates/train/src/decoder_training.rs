@@ -529,17 +529,22 @@ impl DecoderTrainer {
         let bar = progress_bar(self.config.progress, total, self.step, TEMPLATE);
         let mut evaluations = Vec::new();
         let mut interrupted = false;
-        if self.step == 0 && total > 0 {
-            if let Some(ev) = self.evaluate()? {
+        // Evaluates, logs and records the held-out loss at the current step.
+        let evaluate = |t: &Self, evaluations: &mut Vec<DecoderEvaluation>| {
+            if let Some(ev) = t.evaluate()? {
                 say(
                     &bar,
                     format!(
-                        "[ITER 0] held-out: loss {:.5} content {:.5} style {:.5} ({} pairs)",
-                        ev.loss, ev.loss_content, ev.loss_style, ev.pairs
+                        "[ITER {}] held-out: loss {:.5} content {:.5} style {:.5} ({} pairs)",
+                        t.step, ev.loss, ev.loss_content, ev.loss_style, ev.pairs
                     ),
                 );
                 evaluations.push(ev);
             }
+            Ok::<(), TrainError>(())
+        };
+        if self.step == 0 && total > 0 {
+            evaluate(self, &mut evaluations)?;
         }
         while self.step < total {
             if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
@@ -569,16 +574,7 @@ impl DecoderTrainer {
             let eval_now = (self.config.eval_interval > 0 && it % self.config.eval_interval == 0)
                 || it == total;
             if eval_now {
-                if let Some(ev) = self.evaluate()? {
-                    say(
-                        &bar,
-                        format!(
-                            "[ITER {it}] held-out: loss {:.5} content {:.5} style {:.5} ({} pairs)",
-                            ev.loss, ev.loss_content, ev.loss_style, ev.pairs
-                        ),
-                    );
-                    evaluations.push(ev);
-                }
+                evaluate(self, &mut evaluations)?;
             }
             if let Some(dir) = out_dir {
                 let k = self.config.checkpoint_interval;

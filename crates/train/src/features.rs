@@ -12,7 +12,10 @@
 //! Iteration `i` (counted from 1; the random choices come from a generator that is a function
 //! of the seed and `i` only, so a resumed run continues exactly):
 //! 1. draw a training view, then a style image, then a crop window of `crop x crop` feature
-//!    pixels (row offset, then column; the whole map when it is smaller);
+//!    pixels (row offset, then column; the whole map when it is smaller). Iterations without
+//!    the content and style terms (the alignment warm-up, or the alignment-only ablation) use
+//!    the whole map instead: the window only bounds the cost of the decoder and encoder
+//!    passes, and a window drawn at random over-weights the object against the background;
 //! 2. rasterize the view's feature map `r` and cut the window out of it and out of the view's
 //!    cached alignment target;
 //! 3. evaluate the 3D stylization loss on the window ([`style::stage3_loss`]):
@@ -102,8 +105,9 @@ pub struct FeatureTrainConfig {
     pub lambda_content: f64,
     /// Weight of the style term.
     pub lambda_style: f64,
-    /// Iterations at the start that train with the alignment loss only (0: none). They cost a
-    /// tenth of a full iteration (no decoder and encoder passes) and give the lifted features
+    /// Iterations at the start that train with the alignment loss only, on the whole feature
+    /// map (0: none). They cost a tenth of a full iteration (no decoder and encoder passes) and
+    /// give the lifted features
     /// the scene's content before the content and style terms join, which matters for short
     /// runs.
     pub align_warmup: u64,
@@ -784,11 +788,16 @@ impl FeatureTrainer {
         let (cw, ch) = (side(w), side(h));
         let y = rng.random_range(0..=h - ch);
         let x = rng.random_range(0..=w - cw);
-        let window = CropWindow {
-            x,
-            y,
-            width: cw,
-            height: ch,
+        let weights = self.config.weights_at(it);
+        let window = if weights.lambda_content == 0.0 && weights.lambda_style == 0.0 {
+            CropWindow::full(w, h)
+        } else {
+            CropWindow {
+                x,
+                y,
+                width: cw,
+                height: ch,
+            }
         };
         let g = self.sample_gradients(view, style, Some(window))?;
         self.adam.step(0, &mut self.scene.features, &g.features)?;

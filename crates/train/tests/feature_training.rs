@@ -245,19 +245,23 @@ fn alignment_only_training_runs_without_the_content_and_style_terms() {
 }
 
 #[test]
-fn the_warm_up_trains_the_alignment_only_then_the_full_loss() {
+fn the_warm_up_aligns_the_whole_map_then_trains_the_full_loss_on_windows() {
     let mut cfg = config(Variant::Fullres);
     cfg.iterations = 4;
     cfg.align_warmup = 2;
+    cfg.crop = Some(16);
     let mut t = FeatureTrainer::new(cfg.clone(), inputs()).unwrap();
     for it in 1..=4 {
         let r = t.train_step().unwrap();
         if it <= 2 {
             assert_eq!((r.loss_content, r.loss_style), (0.0, 0.0), "iteration {it}");
             assert_eq!(r.loss, r.loss_align);
+            // the warm-up aligns the whole 32 x 32 map
+            assert_eq!(r.window, CropWindow::full(32, 32));
         } else {
             assert!(r.loss_content > 0.0 && r.loss_style > 0.0, "iteration {it}");
             assert!(r.loss > r.loss_align);
+            assert_eq!((r.window.width, r.window.height), (16, 16));
         }
     }
 }

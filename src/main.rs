@@ -695,24 +695,48 @@ fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
             e.step, e.loss, e.loss_content, e.loss_style, e.pairs
         );
     }
-    let done = r.step - r.first_step;
-    println!(
-        "{done} iterations in {:.1} s ({:.2} it/s); checkpoint {}",
-        r.seconds,
-        done as f64 / r.seconds.max(1e-9),
-        r.checkpoint.display()
-    );
-    if let Some(p) = &r.weights {
-        println!("decoder written to {}", p.display());
-    }
-    if r.interrupted {
-        println!(
-            "stopped early at iteration {}; resume with --resume {}",
-            r.step,
-            r.checkpoint.display()
-        );
-    }
+    let end = RunEnd {
+        first_step: r.first_step,
+        step: r.step,
+        seconds: r.seconds,
+        interrupted: r.interrupted,
+        checkpoint: &r.checkpoint,
+    };
+    end.print(r.weights.as_deref().map(|p| ("decoder", p)));
     Ok(())
+}
+
+/// How a resumable training run ended, for its closing lines.
+struct RunEnd<'a> {
+    first_step: u64,
+    step: u64,
+    seconds: f64,
+    interrupted: bool,
+    checkpoint: &'a Path,
+}
+
+impl RunEnd<'_> {
+    /// Prints the iteration rate and checkpoint, the `written` output (what, where) and, after
+    /// Ctrl-C, how to resume.
+    fn print(&self, written: Option<(&str, &Path)>) {
+        let done = self.step - self.first_step;
+        println!(
+            "{done} iterations in {:.1} s ({:.2} it/s); checkpoint {}",
+            self.seconds,
+            done as f64 / self.seconds.max(1e-9),
+            self.checkpoint.display()
+        );
+        if let Some((what, p)) = written {
+            println!("{what} written to {}", p.display());
+        }
+        if self.interrupted {
+            println!(
+                "stopped early at iteration {}; resume with --resume {}",
+                self.step,
+                self.checkpoint.display()
+            );
+        }
+    }
 }
 
 fn fit_features(a: FitFeaturesArgs) -> Result<()> {
@@ -757,23 +781,14 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
             "running loss {total:.5} (align {align:.5}, content {content:.5}, style {style:.5})"
         );
     }
-    let done = r.step - r.first_step;
-    println!(
-        "{done} iterations in {:.1} s ({:.2} it/s); checkpoint {}",
-        r.seconds,
-        done as f64 / r.seconds.max(1e-9),
-        r.checkpoint.display()
-    );
-    if let Some(p) = &r.bundle {
-        println!("scene bundle written to {}", p.display());
-    }
-    if r.interrupted {
-        println!(
-            "stopped early at iteration {}; resume with --resume {}",
-            r.step,
-            r.checkpoint.display()
-        );
-    }
+    let end = RunEnd {
+        first_step: r.first_step,
+        step: r.step,
+        seconds: r.seconds,
+        interrupted: r.interrupted,
+        checkpoint: &r.checkpoint,
+    };
+    end.print(r.bundle.as_deref().map(|p| ("scene bundle", p)));
     Ok(())
 }
 

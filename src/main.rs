@@ -388,7 +388,8 @@ struct CameraArgs {
     /// Scale every camera's image by this factor.
     #[arg(long)]
     scale: Option<f64>,
-    /// Take the cameras from this dataset directory instead of the scene.
+    /// Take the cameras from this directory instead of the scene: a dataset, or a scene bundle
+    /// (its cameras at its training size, e.g. to render a baked `.ply` from them).
     #[arg(long)]
     dataset: Option<PathBuf>,
     /// World up axis of orbits, as x,y,z (default: from the cameras, else -y).
@@ -410,7 +411,7 @@ impl CameraArgs {
 
     fn known(&self, scene: KnownCameras) -> Result<KnownCameras> {
         match &self.dataset {
-            Some(d) => KnownCameras::from_dataset(d),
+            Some(d) => KnownCameras::from_dir(d),
             None => Ok(scene),
         }
     }

@@ -434,6 +434,29 @@ fn bake_writes_a_plain_ply_and_a_report() {
         let v = report[key].as_f64().unwrap_or(f64::NAN);
         assert!(v.is_finite() && v > 0.0, "{key} = {}", report[key]);
     }
+    // The baked scene renders from the bundle's own held-out cameras (`--dataset BUNDLE`):
+    // cameras 0 and 8 of the 16 64x64 orbit cameras.
+    let frames = dir.join("baked_test");
+    ok(dsgs()
+        .args(["render", "--scene"])
+        .arg(&out)
+        .arg("--dataset")
+        .arg(&bundle)
+        .args(["--cameras", "test", "-o"])
+        .arg(&frames));
+    let mut names: Vec<_> = std::fs::read_dir(&frames)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "png"))
+        .collect();
+    names.sort();
+    assert_eq!(names.len(), 2, "{names:?}");
+    for f in &names {
+        assert_eq!(common::size_of(f), (64, 64), "{}", f.display());
+        let px = image::open(f).unwrap().to_rgb8();
+        let first = *px.get_pixel(0, 0);
+        assert!(px.pixels().any(|p| *p != first), "{} is blank", f.display());
+    }
     // Two styles without mixture weights cannot be baked into one scene.
     let err = fails(
         dsgs()

@@ -165,6 +165,32 @@ pub struct BundleInfo {
     pub provenance: Vec<(String, String)>,
 }
 
+impl BundleInfo {
+    /// Reads and checks the description (`bundle.json`) of the bundle directory `dir`, without
+    /// its scene or networks (enough for its cameras).
+    pub fn load(dir: &Path) -> Result<BundleInfo, TrainError> {
+        let info_path = dir.join(INFO_FILE);
+        let bytes = std::fs::read(&info_path).map_err(|source| TrainError::Io {
+            path: info_path.clone(),
+            source,
+        })?;
+        let info: BundleInfo = serde_json::from_slice(&bytes)
+            .map_err(|e| bundle_err(&info_path, format!("not a bundle description: {e}")))?;
+        if info.format != BUNDLE_FORMAT {
+            return Err(bundle_err(
+                &info_path,
+                format!("format `{}`, expected `{BUNDLE_FORMAT}`", info.format),
+            ));
+        }
+        Ok(info)
+    }
+
+    /// The cameras recorded in the description.
+    pub fn cameras(&self) -> Vec<Camera> {
+        self.cameras.iter().map(CameraRecord::camera).collect()
+    }
+}
+
 /// A loaded bundle.
 #[derive(Clone, Debug)]
 pub struct SceneBundle {
@@ -290,19 +316,7 @@ impl SceneBundle {
                 "not a scene bundle directory (expected scene.ply, nets.safetensors, bundle.json)",
             ));
         }
-        let info_path = dir.join(INFO_FILE);
-        let bytes = std::fs::read(&info_path).map_err(|source| TrainError::Io {
-            path: info_path.clone(),
-            source,
-        })?;
-        let info: BundleInfo = serde_json::from_slice(&bytes)
-            .map_err(|e| bundle_err(&info_path, format!("not a bundle description: {e}")))?;
-        if info.format != BUNDLE_FORMAT {
-            return Err(bundle_err(
-                &info_path,
-                format!("format `{}`, expected `{BUNDLE_FORMAT}`", info.format),
-            ));
-        }
+        let info = BundleInfo::load(dir)?;
         let scene = load_ply(dir.join(SCENE_FILE))?;
         let nets_path = dir.join(NETS_FILE);
         let nets =
@@ -364,7 +378,7 @@ impl SceneBundle {
 
     /// The cameras stored in the bundle.
     pub fn cameras(&self) -> Vec<Camera> {
-        self.info.cameras.iter().map(CameraRecord::camera).collect()
+        self.info.cameras()
     }
 
     /// The feature-map size `(width, height)` for an image of `width x height`.

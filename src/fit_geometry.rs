@@ -232,6 +232,16 @@ pub fn run(settings: &FitSettings, stop: Option<&AtomicBool>) -> Result<FitRepor
     let k = trainer.train_views[0].camera.intrinsics;
     let first_step = trainer.step;
     let initial_gaussians = trainer.model.len();
+    eprintln!(
+        "{} training and {} held-out views at {}x{}; {} Gaussians at iteration {} of {}",
+        trainer.train_views.len(),
+        trainer.test_views.len(),
+        k.width,
+        k.height,
+        initial_gaussians,
+        first_step,
+        cfg.geometry.iterations
+    );
     let summary = trainer.train(Some(&settings.out_dir), stop)?;
     let mut stop_checkpoint = None;
     if summary.interrupted {

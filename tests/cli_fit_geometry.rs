@@ -93,6 +93,14 @@ fn config_flags_outputs_and_exact_resume() {
         "{text}"
     );
     assert!(text.contains("iteration 20: held-out PSNR"), "{text}");
+    // The start line (on stderr) says what the run trains on before the first iteration.
+    let started = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        started.contains(
+            "7 training and 1 held-out views at 32x32; 800 Gaussians at iteration 0 of 20"
+        ),
+        "{started}"
+    );
     let saved = std::fs::read_to_string(full.join("config.toml")).unwrap();
     for key in [
         "iterations = 20",
@@ -111,7 +119,7 @@ fn config_flags_outputs_and_exact_resume() {
     // Resumed from iteration 10 into another directory with the saved configuration: the
     // same scene, byte for byte.
     let resumed = dir.join("resumed");
-    ok(dsgs()
+    let out = ok(dsgs()
         .arg("fit-geometry")
         .arg(&data)
         .arg("--config")
@@ -120,6 +128,8 @@ fn config_flags_outputs_and_exact_resume() {
         .arg(full.join("chkpnt_10.safetensors"))
         .arg("-o")
         .arg(&resumed));
+    let started = String::from_utf8_lossy(&out.stderr);
+    assert!(started.contains("at iteration 10 of 20"), "{started}");
     assert_eq!(
         std::fs::read(resumed.join("point_cloud.ply")).unwrap(),
         final_ply

@@ -211,7 +211,8 @@ pub fn sh_colors<T: Real>(
 
 /// The backward of [`sh_colors`]: given the cotangent of the colours, the gradients with
 /// respect to the SH coefficients (zero beyond the active degree) and to the means (through
-/// the view direction).
+/// the view direction). A Gaussian whose colour cotangent is zero gets zero gradients without
+/// evaluating its bases (the image does not depend on it).
 ///
 /// # Panics
 /// As [`sh_colors`], and if `v_colors.len() != means.len()`.
@@ -243,6 +244,11 @@ pub fn sh_colors_backward<T: Real>(
         .enumerate()
         .with_min_len(MIN_CHUNK)
         .for_each(|(i, (d_coeffs, d_mean))| {
+            // A Gaussian the image does not depend on (culled, or blended nowhere) has a zero
+            // cotangent and so zero gradients: skip its bases.
+            if v_colors[i].iter().all(|&v| v == zero) {
+                return;
+            }
             let coeffs = &sh[i * coeffs_per_gaussian..(i + 1) * coeffs_per_gaussian];
             let m = &means[i];
             let dir = v3(|a| m[a] - camera_center[a]);

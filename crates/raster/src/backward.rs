@@ -30,7 +30,8 @@
 //! the outputs, `N (7 + D)` reals of per-Gaussian accumulators, `min(budget, I (7 + D))` reals of
 //! records (`I` intersections; a single tile larger than the budget gets a batch of its own),
 //! `D` reals per tile for the background gradient, and per thread one tile's packed Gaussians
-//! (7 reals each) and one pixel's blend list (4 reals and 2 words per blended Gaussian).
+//! (7 reals each), its row lists (8 bytes per Gaussian and row it reaches, see [`crate::rows`])
+//! and one pixel's blend list (4 reals and 2 words per blended Gaussian).
 
 use gaussian::Real;
 use rayon::prelude::*;
@@ -38,6 +39,7 @@ use rayon::prelude::*;
 use crate::blend::{evaluate, pixel_centre, Hit, Splat, TRANSMITTANCE_MIN};
 use crate::error::{check_len, RasterError};
 use crate::forward::Splats;
+use crate::rows::RowLists;
 use crate::tiles::TileBins;
 
 /// Default budget for the per-intersection gradient records: 2^24 reals (128 MiB in `f64`).
@@ -244,6 +246,7 @@ struct Blended<T> {
 #[derive(Default)]
 struct Scratch<T> {
     packed: Vec<Splat<T>>,
+    rows: RowLists,
     blended: Vec<Blended<T>>,
 }
 
@@ -263,24 +266,36 @@ fn backward_tile<T: Real>(
     let d = splats.channel_count;
     let stride = GEOMETRY + d;
     let ids = bins.tile(t);
-    let Scratch { packed, blended } = scratch;
+    let Scratch {
+        packed,
+        rows,
+        blended,
+    } = scratch;
     packed.clear();
     packed.extend(ids.iter().map(|&g| splats.splat(g as usize)));
     let (x0, y0, x1, y1) = bins.pixel_rect(t);
+    rows.build(packed, (x0, y0, x1, y1));
     let width = bins.width() as usize;
     let t_min = T::lit(TRANSMITTANCE_MIN);
     let half = T::lit(0.5);
     for py in y0..y1 {
         let cy = pixel_centre::<T>(py);
+        let row = rows.row(py - y0);
         for px in x0..x1 {
             let cx = pixel_centre::<T>(px);
+            let lx = (px - x0) as u8;
             let p = py as usize * width + px as usize;
 
-            // Front to back: the forward pass's decisions, alphas and transmittances.
+            // Front to back: the forward pass's decisions, alphas and transmittances, over the
+            // same row list.
             blended.clear();
             let mut trans = T::one();
-            for (k, s) in packed.iter().enumerate() {
-                let Some(hit) = evaluate(s, cx, cy) else {
+            for e in row {
+                if lx < e.x_lo || lx > e.x_hi {
+                    continue;
+                }
+                let k = e.k as usize;
+                let Some(hit) = evaluate(&packed[k], cx, cy) else {
                     continue;
                 };
                 let next = trans * (T::one() - hit.alpha);

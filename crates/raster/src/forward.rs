@@ -7,15 +7,19 @@
 //! Determinism: every pixel is computed by one thread in a fixed order, so the result does not
 //! depend on the number of threads.
 //!
+//! Each pixel walks only its row's list of [`crate::rows`] (the Gaussians that can reach the
+//! row, with the columns they can reach); the others are ones the blending rule skips there.
+//!
 //! Memory: the outputs (`D + 3` reals and one `u32` per pixel), a tile-major staging copy of
 //! them of the same size, the [`TileBins`], and per thread one tile's packed Gaussians
-//! (7 reals per Gaussian in the tile).
+//! (7 reals per Gaussian in the tile) and row lists (8 bytes per Gaussian and row it reaches).
 
 use gaussian::Real;
 use rayon::prelude::*;
 
 use crate::blend::{evaluate, pixel_centre, Splat, TILE_PIXELS, TILE_SIZE, TRANSMITTANCE_MIN};
 use crate::error::{check_len, RasterError};
+use crate::rows::RowLists;
 use crate::tiles::TileBins;
 
 /// Projected Gaussians with their per-Gaussian channel values: what the rasterizer blends.
@@ -146,11 +150,14 @@ pub fn rasterize_binned<T: Real>(
         .zip(t_depth.par_chunks_mut(TILE_PIXELS))
         .zip(t_count.par_chunks_mut(TILE_PIXELS))
         .enumerate()
-        .for_each_init(Vec::new, |packed, (t, (((img, alpha), depth), count))| {
-            forward_tile(
-                splats, &bins, background, t, packed, img, alpha, depth, count,
-            );
-        });
+        .for_each_init(
+            <(Vec<Splat<T>>, RowLists)>::default,
+            |(packed, rows), (t, (((img, alpha), depth), count))| {
+                forward_tile(
+                    splats, &bins, background, t, packed, rows, img, alpha, depth, count,
+                );
+            },
+        );
 
     // Tile-major staging to row-major images.
     let w = width as usize;
@@ -213,6 +220,7 @@ fn forward_tile<T: Real>(
     background: &[T],
     t: usize,
     packed: &mut Vec<Splat<T>>,
+    rows: &mut RowLists,
     img: &mut [T],
     alpha_out: &mut [T],
     depth_out: &mut [T],
@@ -223,18 +231,25 @@ fn forward_tile<T: Real>(
     packed.clear();
     packed.extend(ids.iter().map(|&g| splats.splat(g as usize)));
     let (x0, y0, x1, y1) = bins.pixel_rect(t);
+    rows.build(packed, (x0, y0, x1, y1));
     let t_min = T::lit(TRANSMITTANCE_MIN);
     for py in y0..y1 {
         let cy = pixel_centre::<T>(py);
+        let row = rows.row(py - y0);
         for px in x0..x1 {
             let cx = pixel_centre::<T>(px);
+            let lx = (px - x0) as u8;
             let lp = ((py - y0) * TILE_SIZE + (px - x0)) as usize;
             let out = &mut img[lp * d..(lp + 1) * d];
             let mut trans = T::one();
             let mut z = T::zero();
             let mut n = 0u32;
-            for (k, s) in packed.iter().enumerate() {
-                let Some(hit) = evaluate(s, cx, cy) else {
+            for e in row {
+                if lx < e.x_lo || lx > e.x_hi {
+                    continue;
+                }
+                let k = e.k as usize;
+                let Some(hit) = evaluate(&packed[k], cx, cy) else {
                     continue;
                 };
                 let next = trans * (T::one() - hit.alpha);

@@ -20,6 +20,7 @@ pub mod blend;
 pub mod error;
 pub mod forward;
 pub mod render;
+pub mod rows;
 pub mod stats;
 pub mod tiles;
 

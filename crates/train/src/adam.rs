@@ -259,28 +259,41 @@ impl<T: Real> Adam<T> {
         let eps = T::lit(cfg.eps);
 
         let rows_per_chunk = (PAR_CHUNK / stride).max(1);
+        // One element's update; the same operations in the same order for every layout, so a
+        // contiguous tensor updated as one flat run (which vectorises) gives the same bits as
+        // row by row.
+        let update = |p: &mut [T], g: &[T], m: &mut [T], v: &mut [T]| {
+            for (((pi, &gi), mi), vi) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
+                let m_new = *mi + one_minus_beta1 * (gi - *mi);
+                let v_new = beta2 * *vi + one_minus_beta2 * gi * gi;
+                *mi = m_new;
+                *vi = v_new;
+                let denom = v_new.sqrt() / bc2_sqrt + eps;
+                // torch addcdiv_: p + (value * m) / denom, value = -step_size
+                *pi += (neg_step_size * m_new) / denom;
+            }
+        };
         params
             .par_chunks_mut(rows_per_chunk * stride)
             .zip(grads.par_chunks(rows_per_chunk * stride))
             .zip(state.exp_avg.par_chunks_mut(rows_per_chunk * width))
             .zip(state.exp_avg_sq.par_chunks_mut(rows_per_chunk * width))
             .for_each(|(((p, g), m), v)| {
-                for (r, (m_row, v_row)) in m
-                    .chunks_exact_mut(width)
-                    .zip(v.chunks_exact_mut(width))
-                    .enumerate()
+                if stride == width {
+                    update(p, g, m, v);
+                    return;
+                }
+                for ((p_row, g_row), (m_row, v_row)) in p
+                    .chunks_exact_mut(stride)
+                    .zip(g.chunks_exact(stride))
+                    .zip(m.chunks_exact_mut(width).zip(v.chunks_exact_mut(width)))
                 {
-                    let base = r * stride + offset;
-                    for c in 0..width {
-                        let gi = g[base + c];
-                        let mi = m_row[c] + one_minus_beta1 * (gi - m_row[c]);
-                        let vi = beta2 * v_row[c] + one_minus_beta2 * gi * gi;
-                        m_row[c] = mi;
-                        v_row[c] = vi;
-                        let denom = vi.sqrt() / bc2_sqrt + eps;
-                        // torch addcdiv_: p + (value * m) / denom, value = -step_size
-                        p[base + c] += (neg_step_size * mi) / denom;
-                    }
+                    update(
+                        &mut p_row[offset..offset + width],
+                        &g_row[offset..offset + width],
+                        m_row,
+                        v_row,
+                    );
                 }
             });
         Ok(())

@@ -39,7 +39,7 @@ use rayon::prelude::*;
 use crate::blend::{evaluate, pixel_centre, Hit, Splat, TRANSMITTANCE_MIN};
 use crate::error::{check_len, RasterError};
 use crate::forward::Splats;
-use crate::rows::RowLists;
+use crate::rows::{at_column, RowLists};
 use crate::tiles::TileBins;
 
 /// Default budget for the per-intersection gradient records: 2^24 reals (128 MiB in `f64`).
@@ -290,11 +290,7 @@ fn backward_tile<T: Real>(
             // same row list.
             blended.clear();
             let mut trans = T::one();
-            for e in row {
-                if lx < e.x_lo || lx > e.x_hi {
-                    continue;
-                }
-                let k = e.k as usize;
+            for k in at_column(row, lx) {
                 let Some(hit) = evaluate(&packed[k], cx, cy) else {
                     continue;
                 };

@@ -19,7 +19,7 @@ use rayon::prelude::*;
 
 use crate::blend::{evaluate, pixel_centre, Splat, TILE_PIXELS, TILE_SIZE, TRANSMITTANCE_MIN};
 use crate::error::{check_len, RasterError};
-use crate::rows::RowLists;
+use crate::rows::{at_column, RowLists};
 use crate::tiles::TileBins;
 
 /// Projected Gaussians with their per-Gaussian channel values: what the rasterizer blends.
@@ -244,11 +244,7 @@ fn forward_tile<T: Real>(
             let mut trans = T::one();
             let mut z = T::zero();
             let mut n = 0u32;
-            for e in row {
-                if lx < e.x_lo || lx > e.x_hi {
-                    continue;
-                }
-                let k = e.k as usize;
+            for k in at_column(row, lx) {
                 let Some(hit) = evaluate(&packed[k], cx, cy) else {
                     continue;
                 };

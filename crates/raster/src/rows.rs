@@ -50,6 +50,8 @@ pub(crate) struct RowLists {
     /// `offsets[r]..offsets[r + 1]` is row `r`'s slice of `entries`.
     offsets: Vec<usize>,
     entries: Vec<RowEntry>,
+    /// Per row: the next free slot of `entries` while filling.
+    cursor: Vec<usize>,
     /// Per Gaussian of the tile: its local reach `[x_lo, x_hi, y_lo, y_hi]`, or `None`.
     reach: Vec<Option<[u8; 4]>>,
 }
@@ -83,13 +85,14 @@ impl RowLists {
                 x_hi: 0,
             },
         );
-        let mut next = self.offsets[..rows].to_vec();
+        self.cursor.clear();
+        self.cursor.extend_from_slice(&self.offsets[..rows]);
         for (k, r) in self.reach.iter().enumerate() {
             let Some([x_lo, x_hi, y_lo, y_hi]) = *r else {
                 continue;
             };
             for row in y_lo..=y_hi {
-                let slot = &mut next[row as usize];
+                let slot = &mut self.cursor[row as usize];
                 self.entries[*slot] = RowEntry {
                     k: k as u32,
                     x_lo,
@@ -106,6 +109,15 @@ impl RowLists {
         let r = r as usize;
         &self.entries[self.offsets[r]..self.offsets[r + 1]]
     }
+}
+
+/// The tile indices of a row list's Gaussians that can be blended at tile-local column `lx`,
+/// in tile order: the walk of one pixel.
+#[inline]
+pub(crate) fn at_column(row: &[RowEntry], lx: u8) -> impl Iterator<Item = usize> + '_ {
+    row.iter()
+        .filter(move |e| e.x_lo <= lx && lx <= e.x_hi)
+        .map(|e| e.k as usize)
 }
 
 /// The tile-local pixel rectangle `[x_lo, x_hi, y_lo, y_hi]` (inclusive) outside which

@@ -236,7 +236,7 @@ pub struct Pca {
 impl Pca {
     /// Fits the components to the pixels of a feature image (`F` values per pixel).
     pub fn fit(features: &[f32], f: usize) -> Result<Pca> {
-        if f == 0 || features.len() < 2 * f || features.len() % f != 0 {
+        if f == 0 || features.len() < 2 * f || !features.len().is_multiple_of(f) {
             bail!("principal components need at least two pixels of features");
         }
         let m = features.len() / f;

@@ -18,6 +18,6 @@ pub use camera::{Camera, Intrinsics};
 pub use dataset::{Dataset, DatasetError, LoadOptions, Resolution};
 pub use ply::{load_ply, save_ply, PlyError};
 pub use project::{project, project_backward, ProjectSettings, Projected, ProjectionGrads};
-pub use real::Real;
+pub use real::{exp_f32, Real};
 pub use scene::{scene_extent_from_cameras, FeatureGaussians, SceneError};
 pub use sh::{sh_colors, sh_colors_backward};

@@ -1,9 +1,11 @@
 //! Forward and backward rasterization throughput in `f32`, for 3, 35 and 64 channels, 100k and
-//! 1M Gaussians, 256x256 and 800x800 images, on 1 and 2 threads.
+//! 1M Gaussians, 256x256 and 800x800 images, on 1 and 2 threads, with the scalar reference tile
+//! loops and with the vector lane kernels at the best instruction set of the machine.
 //!
 //! Throughput is reported in blended Gaussian-pixel pairs per second (criterion's "elements").
-//! Benchmark ids are `{forward|backward}/{D}ch/{N}/{size}/t{threads}`; pass a filter to run a
-//! subset, e.g. `cargo bench -p raster --bench raster -- forward/35ch`.
+//! Benchmark ids are `{forward|backward}/{scalar|simd}/{D}ch/{N}/{size}/t{threads}`; pass a
+//! filter to run a subset, e.g. `cargo bench -p raster --bench raster -- forward/simd/35ch`.
+//! `benches/side_by_side.sh raster` runs the two kernels in one run and prints their ratios.
 //!
 //! Scenes are synthetic projected Gaussians: means uniform over the image, random orientations
 //! and anisotropy, standard deviations chosen so that the summed 2-sigma footprints cover every
@@ -13,7 +15,10 @@
 use criterion::{
     criterion_group, criterion_main, BenchmarkId, Criterion, SamplingMode, Throughput,
 };
-use raster::{rasterize, rasterize_backward, Cotangents, Splats};
+use raster::{
+    rasterize, rasterize_backward_with, rasterize_binned_with, Cotangents, Kernel, Splats,
+    TileBins, DEFAULT_GRADIENT_BUFFER_VALUES,
+};
 
 struct Scene {
     width: u32,
@@ -111,6 +116,13 @@ fn bench(c: &mut Criterion) {
             (t, pool)
         })
         .collect();
+    // The scalar reference loops and the lane kernels at the best instruction set (or the one
+    // `DSGS_KERNEL` names).
+    let kernels = [
+        ("scalar", Kernel::Scalar),
+        ("simd", Kernel::auto().expect("DSGS_KERNEL")),
+    ];
+    eprintln!("simd kernel: {}", kernels[1].1.name());
     for n in [100_000usize, 1_000_000] {
         for size in [256u32, 800] {
             for d in [3usize, 35, 64] {
@@ -120,10 +132,19 @@ fn bench(c: &mut Criterion) {
                     let args: Vec<String> = std::env::args().skip(1).collect();
                     let filters: Vec<&String> =
                         args.iter().filter(|a| !a.starts_with('-')).collect();
-                    filters.is_empty()
-                        || filters.iter().any(|f| {
-                            format!("{pass}/{tag}/t1 {pass}/{tag}/t2").contains(f.as_str())
+                    let ids: Vec<String> = kernels
+                        .iter()
+                        .flat_map(|(k, _)| {
+                            pools
+                                .iter()
+                                .map(|(t, _)| format!("{pass}/{k}/{tag}/t{t}"))
+                                .collect::<Vec<_>>()
                         })
+                        .collect();
+                    filters.is_empty()
+                        || filters
+                            .iter()
+                            .any(|f| ids.iter().any(|id| id.contains(f.as_str())))
                 };
                 if !wanted("forward") && !wanted("backward") {
                     continue;
@@ -147,36 +168,54 @@ fn bench(c: &mut Criterion) {
                         .warm_up_time(std::time::Duration::from_millis(200))
                         .measurement_time(std::time::Duration::from_secs(2))
                         .throughput(Throughput::Elements(pairs));
-                    for (t, pool) in &pools {
-                        let id = BenchmarkId::new(tag.clone(), format!("t{t}"));
-                        if pass == "forward" {
-                            g.bench_function(id, |b| {
-                                pool.install(|| {
-                                    b.iter(|| {
-                                        rasterize(&s.splats(), s.width, s.height, &s.background)
+                    for &(name, kernel) in &kernels {
+                        for (t, pool) in &pools {
+                            let id = BenchmarkId::new(format!("{name}/{tag}"), format!("t{t}"));
+                            if pass == "forward" {
+                                g.bench_function(id, |b| {
+                                    pool.install(|| {
+                                        b.iter(|| {
+                                            let splats = s.splats();
+                                            let bins = TileBins::new(
+                                                s.width,
+                                                s.height,
+                                                splats.means2d,
+                                                splats.depths,
+                                                splats.radii,
+                                            )
+                                            .unwrap();
+                                            rasterize_binned_with(
+                                                &splats,
+                                                bins,
+                                                &s.background,
+                                                kernel,
+                                            )
                                             .unwrap()
+                                        })
                                     })
-                                })
-                            });
-                        } else {
-                            let cot = Cotangents {
-                                image: &v_image,
-                                alpha: Some(&v_alpha),
-                                depth: Some(&v_depth),
-                            };
-                            g.bench_function(id, |b| {
-                                pool.install(|| {
-                                    b.iter(|| {
-                                        rasterize_backward(
-                                            &s.splats(),
-                                            &out.bins,
-                                            &s.background,
-                                            &cot,
-                                        )
-                                        .unwrap()
+                                });
+                            } else {
+                                let cot = Cotangents {
+                                    image: &v_image,
+                                    alpha: Some(&v_alpha),
+                                    depth: Some(&v_depth),
+                                };
+                                g.bench_function(id, |b| {
+                                    pool.install(|| {
+                                        b.iter(|| {
+                                            rasterize_backward_with(
+                                                &s.splats(),
+                                                &out.bins,
+                                                &s.background,
+                                                &cot,
+                                                DEFAULT_GRADIENT_BUFFER_VALUES,
+                                                kernel,
+                                            )
+                                            .unwrap()
+                                        })
                                     })
-                                })
-                            });
+                                });
+                            }
                         }
                     }
                     g.finish();

@@ -36,24 +36,14 @@
 use gaussian::Real;
 use rayon::prelude::*;
 
-use crate::blend::{evaluate, pixel_centre, Hit, Splat, TRANSMITTANCE_MIN};
 use crate::error::{check_len, RasterError};
 use crate::forward::Splats;
-use crate::rows::{at_column, RowLists};
+use crate::kernels::record::{CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY};
+use crate::kernels::{lanes, scalar, Kernel, Token};
 use crate::tiles::TileBins;
 
 /// Default budget for the per-intersection gradient records: 2^24 reals (128 MiB in `f64`).
 pub const DEFAULT_GRADIENT_BUFFER_VALUES: usize = 1 << 24;
-
-/// Record layout: the first `GEOMETRY` reals of a record.
-const MEAN_X: usize = 0;
-const MEAN_Y: usize = 1;
-const CONIC_A: usize = 2;
-const CONIC_B: usize = 3;
-const CONIC_C: usize = 4;
-const OPACITY: usize = 5;
-const DEPTH: usize = 6;
-const GEOMETRY: usize = 7;
 
 /// Cotangents of the rasterizer outputs (row-major, like [`crate::Rasterized`]). `None` is a zero
 /// cotangent.
@@ -133,6 +123,26 @@ pub fn rasterize_backward_with_budget<T: Real>(
     cot: &Cotangents<T>,
     gradient_buffer_values: usize,
 ) -> Result<SplatGrads<T>, RasterError> {
+    rasterize_backward_with(
+        splats,
+        bins,
+        background,
+        cot,
+        gradient_buffer_values,
+        Kernel::auto()?,
+    )
+}
+
+/// [`rasterize_backward_with_budget`] with the given tile kernel (the result is the same bits
+/// with every kernel; see [`crate::kernels`]).
+pub fn rasterize_backward_with<T: Real>(
+    splats: &Splats<T>,
+    bins: &TileBins,
+    background: &[T],
+    cot: &Cotangents<T>,
+    gradient_buffer_values: usize,
+    kernel: Kernel,
+) -> Result<SplatGrads<T>, RasterError> {
     splats.validate()?;
     let n = splats.len();
     let d = splats.channel_count;
@@ -153,10 +163,24 @@ pub fn rasterize_backward_with_budget<T: Real>(
     let tiles = bins.tile_count();
     let mut tile_bg = vec![T::zero(); tiles * d];
     let mut records: Vec<T> = Vec::new();
-    // Group per-Gaussian accumulation into as many contiguous index ranges as there are threads;
-    // each Gaussian's sum runs in intersection order whatever the grouping.
-    let groups = rayon::current_num_threads().max(1);
-    let per_group = n.div_ceil(groups).max(1);
+    // The lane kernels run in f32 only.
+    let token = Token::for_kernel(kernel);
+    let splats32 = splats.as_f32();
+    let background32 = T::as_f32_slice(background);
+    // When T is f32 every slice converts.
+    let cot32 = T::as_f32_slice(cot.image).map(|image| Cotangents {
+        image,
+        alpha: cot.alpha.and_then(T::as_f32_slice),
+        depth: cot.depth.and_then(T::as_f32_slice),
+    });
+    let lanes_in = match (token, &splats32, background32, &cot32) {
+        (Some(token), Some(s), Some(b), Some(c)) => Some((token, s, b, c)),
+        _ => None,
+    };
+    // Each Gaussian's intersections in ascending order, so that the sum of its records runs in
+    // intersection order in time linear in the intersections (see `GaussianLists`).
+    let lists = GaussianLists::new(bins.gaussian_ids(), n)?;
+    let mut next = lists.start[..n].to_vec();
 
     let mut first = 0;
     while first < tiles {
@@ -181,28 +205,61 @@ pub fn rasterize_backward_with_budget<T: Real>(
             rest = tail;
             bg_rest = bg_tail;
         }
-        slices
-            .into_par_iter()
-            .for_each_init(Scratch::default, |scratch, (t, rec, bg)| {
-                backward_tile(splats, bins, background, cot, t, scratch, rec, bg);
-            });
-
-        // Sum the records per Gaussian, in intersection order.
-        let ids = &bins.gaussian_ids()[begin..end];
-        let records = &records;
-        acc.par_chunks_mut(per_group * stride)
-            .enumerate()
-            .for_each(|(group, acc_group)| {
-                let lo = group * per_group;
-                let hi = lo + acc_group.len() / stride;
-                for (j, &g) in ids.iter().enumerate() {
-                    let g = g as usize;
-                    if g < lo || g >= hi {
-                        continue;
+        slices.into_par_iter().for_each_init(
+            <(scalar::Scratch<T>, lanes::Scratch)>::default,
+            |(scalar_scratch, lane_scratch), (t, rec, bg)| {
+                let lanes_out = T::as_f32_slice_mut(rec).zip(T::as_f32_slice_mut(bg));
+                match (&lanes_in, lanes_out) {
+                    (Some((token, splats, background, cot)), Some((rec, bg_grad))) => {
+                        token.run(lanes::BackwardTile {
+                            splats,
+                            bins,
+                            background,
+                            cot,
+                            t,
+                            scratch: lane_scratch,
+                            rec,
+                            bg_grad,
+                        })
                     }
-                    let dst = &mut acc_group[(g - lo) * stride..(g - lo + 1) * stride];
-                    for (a, &r) in dst.iter_mut().zip(&records[j * stride..(j + 1) * stride]) {
-                        *a += r;
+                    _ => scalar::backward_tile(
+                        splats,
+                        bins,
+                        background,
+                        cot,
+                        t,
+                        scalar_scratch,
+                        rec,
+                        bg,
+                    ),
+                }
+            },
+        );
+
+        // Sum the records per Gaussian, in intersection order: each Gaussian takes its
+        // intersections of this batch, which follow its cursor in its ascending list.
+        let records = &records;
+        acc.par_chunks_mut(GATHER_CHUNK * stride)
+            .zip(next.par_chunks_mut(GATHER_CHUNK))
+            .enumerate()
+            .for_each(|(chunk, (acc_chunk, next_chunk))| {
+                let g0 = chunk * GATHER_CHUNK;
+                for (i, (dst, cursor)) in acc_chunk
+                    .chunks_exact_mut(stride)
+                    .zip(next_chunk.iter_mut())
+                    .enumerate()
+                {
+                    let stop = lists.start[g0 + i + 1];
+                    while *cursor < stop {
+                        let j = lists.intersections[*cursor] as usize;
+                        if j >= end {
+                            break;
+                        }
+                        let r = &records[(j - begin) * stride..(j - begin + 1) * stride];
+                        for (a, &v) in dst.iter_mut().zip(r) {
+                            *a += v;
+                        }
+                        *cursor += 1;
                     }
                 }
             });
@@ -233,128 +290,38 @@ pub fn rasterize_backward_with_budget<T: Real>(
     Ok(grads)
 }
 
-/// One blended Gaussian of the current pixel: its position in the tile list, its hit, and the
-/// transmittance in front of it.
-#[derive(Clone, Copy, Debug)]
-struct Blended<T> {
-    k: u32,
-    hit: Hit<T>,
-    trans: T,
+/// Gaussians per task of the gradient gather (any value gives the same result).
+const GATHER_CHUNK: usize = 2048;
+
+/// The intersections of each Gaussian, ascending: Gaussian `g`'s are
+/// `intersections[start[g]..start[g + 1]]` (a counting sort of the tile lists by Gaussian).
+struct GaussianLists {
+    start: Vec<usize>,
+    intersections: Vec<u32>,
 }
 
-/// Per-thread working memory.
-#[derive(Default)]
-struct Scratch<T> {
-    packed: Vec<Splat<T>>,
-    rows: RowLists,
-    blended: Vec<Blended<T>>,
-}
-
-/// Accumulates one tile's gradient records (`7 + D` reals per tile intersection, in tile order)
-/// and its background gradient.
-#[allow(clippy::too_many_arguments)]
-fn backward_tile<T: Real>(
-    splats: &Splats<T>,
-    bins: &TileBins,
-    background: &[T],
-    cot: &Cotangents<T>,
-    t: usize,
-    scratch: &mut Scratch<T>,
-    rec: &mut [T],
-    bg_grad: &mut [T],
-) {
-    let d = splats.channel_count;
-    let stride = GEOMETRY + d;
-    let ids = bins.tile(t);
-    let Scratch {
-        packed,
-        rows,
-        blended,
-    } = scratch;
-    packed.clear();
-    packed.extend(ids.iter().map(|&g| splats.splat(g as usize)));
-    let (x0, y0, x1, y1) = bins.pixel_rect(t);
-    rows.build(packed, (x0, y0, x1, y1));
-    let width = bins.width() as usize;
-    let t_min = T::lit(TRANSMITTANCE_MIN);
-    let half = T::lit(0.5);
-    for py in y0..y1 {
-        let cy = pixel_centre::<T>(py);
-        let row = rows.row(py - y0);
-        for px in x0..x1 {
-            let cx = pixel_centre::<T>(px);
-            let lx = (px - x0) as u8;
-            let p = py as usize * width + px as usize;
-
-            // Front to back: the forward pass's decisions, alphas and transmittances, over the
-            // same row list.
-            blended.clear();
-            let mut trans = T::one();
-            for k in at_column(row, lx) {
-                let Some(hit) = evaluate(&packed[k], cx, cy) else {
-                    continue;
-                };
-                let next = trans * (T::one() - hit.alpha);
-                if next <= t_min {
-                    break;
-                }
-                blended.push(Blended {
-                    k: k as u32,
-                    hit,
-                    trans,
-                });
-                trans = next;
-            }
-
-            let v_img = &cot.image[p * d..(p + 1) * d];
-            let v_alpha = cot.alpha.map_or(T::zero(), |v| v[p]);
-            let v_depth = cot.depth.map_or(T::zero(), |v| v[p]);
-            for (b, &v) in bg_grad.iter_mut().zip(v_img) {
-                *b += trans * v;
-            }
-
-            // Back to front: S, the pixel's value behind the current Gaussian.
-            let mut behind = dot(v_img, background);
-            for bl in blended.iter().rev() {
-                let k = bl.k as usize;
-                let g = ids[k] as usize;
-                let s = &packed[k];
-                let Hit {
-                    dx,
-                    dy,
-                    falloff,
-                    alpha,
-                    clamped,
-                } = bl.hit;
-                let z = splats.depths[g];
-                let own = dot(v_img, splats.channels_of(g)) + v_depth * z + v_alpha;
-                let w = alpha * bl.trans;
-                let r = &mut rec[k * stride..(k + 1) * stride];
-                for (rc, &v) in r[GEOMETRY..].iter_mut().zip(v_img) {
-                    *rc += w * v;
-                }
-                r[DEPTH] += w * v_depth;
-                let v_a = bl.trans * (own - behind);
-                behind = alpha * own + (T::one() - alpha) * behind;
-                if !clamped {
-                    r[OPACITY] += v_a * falloff;
-                    let v_sigma = -(v_a * alpha);
-                    r[CONIC_A] += v_sigma * half * dx * dx;
-                    r[CONIC_B] += v_sigma * dx * dy;
-                    r[CONIC_C] += v_sigma * half * dy * dy;
-                    r[MEAN_X] += v_sigma * (s.a * dx + s.b * dy);
-                    r[MEAN_Y] += v_sigma * (s.b * dx + s.c * dy);
-                }
-            }
+impl GaussianLists {
+    fn new(ids: &[u32], n: usize) -> Result<GaussianLists, RasterError> {
+        if ids.len() > u32::MAX as usize {
+            return Err(RasterError::TooManyIntersections(ids.len()));
         }
+        let mut start = vec![0usize; n + 1];
+        for &g in ids {
+            start[g as usize + 1] += 1;
+        }
+        for g in 0..n {
+            start[g + 1] += start[g];
+        }
+        let mut cursor = start[..n].to_vec();
+        let mut intersections = vec![0u32; ids.len()];
+        for (j, &g) in ids.iter().enumerate() {
+            let c = &mut cursor[g as usize];
+            intersections[*c] = j as u32;
+            *c += 1;
+        }
+        Ok(GaussianLists {
+            start,
+            intersections,
+        })
     }
-}
-
-#[inline(always)]
-fn dot<T: Real>(a: &[T], b: &[T]) -> T {
-    let mut s = T::zero();
-    for (&x, &y) in a.iter().zip(b) {
-        s += x * y;
-    }
-    s
 }

@@ -80,7 +80,7 @@ pub(crate) fn evaluate<T: Real>(s: &Splat<T>, px: T, py: T) -> Option<Hit<T>> {
     if sigma.is_nan() || sigma < T::zero() || sigma > s.sigma_cut {
         return None;
     }
-    let falloff = (-sigma).exp();
+    let falloff = (-sigma).exp_fixed();
     let raw = s.opacity * falloff;
     let alpha_max = T::lit(ALPHA_MAX);
     let clamped = raw > alpha_max;

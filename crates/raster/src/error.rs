@@ -16,9 +16,15 @@ pub enum RasterError {
     /// More Gaussians than the `u32` indices of the tile lists can address.
     #[error("{0} Gaussians exceed the rasterizer's limit of 2^32 - 1")]
     TooManyGaussians(usize),
+    /// More tile-Gaussian intersections than the backward pass's `u32` lists can address.
+    #[error("{0} tile intersections exceed the backward pass's limit of 2^32 - 1")]
+    TooManyIntersections(usize),
     /// The tile binning given to a pass was built for another set of Gaussians.
     #[error("tile bins were built for {bins_count} Gaussians, not {count}")]
     BinsMismatch { bins_count: usize, count: usize },
+    /// The requested tile kernel cannot run (see [`crate::Kernel::auto`]).
+    #[error("{0}")]
+    Kernel(String),
     /// A problem in the scene or projection given to the camera-level renderer.
     #[error("{0}")]
     Scene(String),

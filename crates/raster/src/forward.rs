@@ -17,9 +17,9 @@
 use gaussian::Real;
 use rayon::prelude::*;
 
-use crate::blend::{evaluate, pixel_centre, Splat, TILE_PIXELS, TILE_SIZE, TRANSMITTANCE_MIN};
+use crate::blend::{Splat, TILE_PIXELS, TILE_SIZE};
 use crate::error::{check_len, RasterError};
-use crate::rows::{at_column, RowLists};
+use crate::kernels::{lanes, scalar, Kernel, TileOut, Token};
 use crate::tiles::TileBins;
 
 /// Projected Gaussians with their per-Gaussian channel values: what the rasterizer blends.
@@ -44,7 +44,7 @@ pub struct Splats<'a, T> {
     pub channel_count: usize,
 }
 
-impl<T: Real> Splats<'_, T> {
+impl<'a, T: Real> Splats<'a, T> {
     /// Number of Gaussians.
     pub fn len(&self) -> usize {
         self.means2d.len()
@@ -70,6 +70,25 @@ impl<T: Real> Splats<'_, T> {
     #[inline]
     pub(crate) fn splat(&self, g: usize) -> Splat<T> {
         Splat::new(self.means2d[g], self.conics[g], self.opacities[g])
+    }
+
+    /// The same Gaussians as `f32` slices, when `T` is `f32`.
+    pub(crate) fn as_f32(&self) -> Option<Splats<'a, f32>> {
+        let rows2 = |v: &'a [[T; 2]]| -> Option<&'a [[f32; 2]]> {
+            Some(T::as_f32_slice(v.as_flattened())?.as_chunks::<2>().0)
+        };
+        let rows3 = |v: &'a [[T; 3]]| -> Option<&'a [[f32; 3]]> {
+            Some(T::as_f32_slice(v.as_flattened())?.as_chunks::<3>().0)
+        };
+        Some(Splats {
+            means2d: rows2(self.means2d)?,
+            conics: rows3(self.conics)?,
+            depths: T::as_f32_slice(self.depths)?,
+            radii: self.radii,
+            opacities: T::as_f32_slice(self.opacities)?,
+            channels: T::as_f32_slice(self.channels)?,
+            channel_count: self.channel_count,
+        })
     }
 
     /// Channel values of Gaussian `g`.
@@ -131,6 +150,17 @@ pub fn rasterize_binned<T: Real>(
     bins: TileBins,
     background: &[T],
 ) -> Result<Rasterized<T>, RasterError> {
+    rasterize_binned_with(splats, bins, background, Kernel::auto()?)
+}
+
+/// [`rasterize_binned`] with the given tile kernel (the result is the same bits with every
+/// kernel; see [`crate::kernels`]).
+pub fn rasterize_binned_with<T: Real>(
+    splats: &Splats<T>,
+    bins: TileBins,
+    background: &[T],
+    kernel: Kernel,
+) -> Result<Rasterized<T>, RasterError> {
     splats.validate()?;
     let (width, height) = (bins.width(), bins.height());
     bins.check(splats.len())?;
@@ -138,6 +168,9 @@ pub fn rasterize_binned<T: Real>(
     check_len("background", background.len(), d)?;
 
     let tiles = bins.tile_count();
+    // The lane kernels run in f32 only.
+    let token = Token::for_kernel(kernel);
+    let lanes_in = splats.as_f32().zip(T::as_f32_slice(background));
     // Staging rows hold at least one channel so that chunking works when `d == 0`.
     let d_stage = d.max(1);
     let mut t_image = vec![T::zero(); tiles * TILE_PIXELS * d_stage];
@@ -151,11 +184,27 @@ pub fn rasterize_binned<T: Real>(
         .zip(t_count.par_chunks_mut(TILE_PIXELS))
         .enumerate()
         .for_each_init(
-            <(Vec<Splat<T>>, RowLists)>::default,
-            |(packed, rows), (t, (((img, alpha), depth), count))| {
-                forward_tile(
-                    splats, &bins, background, t, packed, rows, img, alpha, depth, count,
-                );
+            <(scalar::Scratch<T>, lanes::Scratch)>::default,
+            |(scalar_scratch, lane_scratch), (t, (((image, alpha), depth), count))| {
+                let mut out = TileOut {
+                    image,
+                    alpha,
+                    depth,
+                    count,
+                };
+                match (token, &lanes_in, out.as_f32()) {
+                    (Some(token), Some((splats, background)), Some(out)) => {
+                        token.run(lanes::ForwardTile {
+                            splats,
+                            bins: &bins,
+                            background,
+                            t,
+                            scratch: lane_scratch,
+                            out,
+                        })
+                    }
+                    _ => scalar::forward_tile(splats, &bins, background, t, scalar_scratch, out),
+                }
             },
         );
 
@@ -210,63 +259,4 @@ pub fn rasterize_binned<T: Real>(
         blended,
         bins,
     })
-}
-
-/// Blends one tile into its tile-major output slots (pixel `(lx, ly)` at `ly * 16 + lx`).
-#[allow(clippy::too_many_arguments)]
-fn forward_tile<T: Real>(
-    splats: &Splats<T>,
-    bins: &TileBins,
-    background: &[T],
-    t: usize,
-    packed: &mut Vec<Splat<T>>,
-    rows: &mut RowLists,
-    img: &mut [T],
-    alpha_out: &mut [T],
-    depth_out: &mut [T],
-    count_out: &mut [u32],
-) {
-    let d = splats.channel_count;
-    let ids = bins.tile(t);
-    packed.clear();
-    packed.extend(ids.iter().map(|&g| splats.splat(g as usize)));
-    let (x0, y0, x1, y1) = bins.pixel_rect(t);
-    rows.build(packed, (x0, y0, x1, y1));
-    let t_min = T::lit(TRANSMITTANCE_MIN);
-    for py in y0..y1 {
-        let cy = pixel_centre::<T>(py);
-        let row = rows.row(py - y0);
-        for px in x0..x1 {
-            let cx = pixel_centre::<T>(px);
-            let lx = (px - x0) as u8;
-            let lp = ((py - y0) * TILE_SIZE + (px - x0)) as usize;
-            let out = &mut img[lp * d..(lp + 1) * d];
-            let mut trans = T::one();
-            let mut z = T::zero();
-            let mut n = 0u32;
-            for k in at_column(row, lx) {
-                let Some(hit) = evaluate(&packed[k], cx, cy) else {
-                    continue;
-                };
-                let next = trans * (T::one() - hit.alpha);
-                if next <= t_min {
-                    break;
-                }
-                let w = hit.alpha * trans;
-                let g = ids[k] as usize;
-                for (o, &c) in out.iter_mut().zip(splats.channels_of(g)) {
-                    *o += w * c;
-                }
-                z += w * splats.depths[g];
-                n += 1;
-                trans = next;
-            }
-            for (o, &b) in out.iter_mut().zip(background) {
-                *o += trans * b;
-            }
-            alpha_out[lp] = T::one() - trans;
-            depth_out[lp] = z;
-            count_out[lp] = n;
-        }
-    }
 }

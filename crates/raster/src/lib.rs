@@ -19,17 +19,19 @@ pub mod backward;
 pub mod blend;
 pub mod error;
 pub mod forward;
+pub mod kernels;
 pub mod render;
 pub mod rows;
 pub mod stats;
 pub mod tiles;
 
 pub use backward::{
-    fold_normalized_depth_cotangent, rasterize_backward, rasterize_backward_with_budget,
-    Cotangents, SplatGrads, DEFAULT_GRADIENT_BUFFER_VALUES,
+    fold_normalized_depth_cotangent, rasterize_backward, rasterize_backward_with,
+    rasterize_backward_with_budget, Cotangents, SplatGrads, DEFAULT_GRADIENT_BUFFER_VALUES,
 };
 pub use error::RasterError;
-pub use forward::{rasterize, rasterize_binned, Rasterized, Splats};
+pub use forward::{rasterize, rasterize_binned, rasterize_binned_with, Rasterized, Splats};
+pub use kernels::{Isa, Kernel};
 pub use render::{render, render_backward, Channels, Render, RenderOptions, SceneGrads};
 pub use stats::{ndc_grad_norms, screen_radii, DensificationStats};
 pub use tiles::{tile_grid, tile_rect, TileBins, TileRect};

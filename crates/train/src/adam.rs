@@ -83,7 +83,7 @@ impl<T: Real> ParamState<T> {
         exp_avg: Vec<T>,
         exp_avg_sq: Vec<T>,
     ) -> Result<Self, TrainError> {
-        if width == 0 || exp_avg.len() != exp_avg_sq.len() || exp_avg.len() % width != 0 {
+        if width == 0 || exp_avg.len() != exp_avg_sq.len() || !exp_avg.len().is_multiple_of(width) {
             return Err(TrainError::Shape(format!(
                 "Adam state `{name}`: exp_avg has {} and exp_avg_sq {} elements, not a multiple of \
                  width {width} and equal",

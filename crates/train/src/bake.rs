@@ -778,11 +778,11 @@ pub fn optimise(
             ema_loss = 0.4 * loss.total + 0.6 * ema_loss;
             ema_psnr = 0.4 * step_psnr + 0.6 * ema_psnr;
         }
-        if step % 10 == 0 || step == config.iterations {
+        if step.is_multiple_of(10) || step == config.iterations {
             bar.set_message(format!("loss {ema_loss:.5}  psnr {ema_psnr:.2}"));
             bar.set_position(step);
         }
-        if config.log_interval > 0 && step % config.log_interval == 0 {
+        if config.log_interval > 0 && step.is_multiple_of(config.log_interval) {
             let secs = start.elapsed().as_secs_f64();
             eprintln!(
                 "[BAKE {step}] loss {ema_loss:.5} psnr {ema_psnr:.2} | {:.2} it/s, {secs:.0} s",

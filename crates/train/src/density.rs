@@ -101,7 +101,7 @@ impl DensifyConfig {
         step < self.densify_until_iter
             && step > self.densify_from_iter
             && self.densification_interval > 0
-            && step % self.densification_interval == 0
+            && step.is_multiple_of(self.densification_interval)
     }
 
     /// Whether the large-Gaussian pruning is active at `step` (after the first opacity reset).
@@ -113,7 +113,8 @@ impl DensifyConfig {
     /// `densify_from_iter` when the background is white.
     pub fn resets_opacity_at(&self, step: u64, white_background: bool) -> bool {
         step < self.densify_until_iter
-            && ((self.opacity_reset_interval > 0 && step % self.opacity_reset_interval == 0)
+            && ((self.opacity_reset_interval > 0
+                && step.is_multiple_of(self.opacity_reset_interval))
                 || (white_background && step == self.densify_from_iter))
     }
 }

@@ -378,7 +378,7 @@ impl GeometryTrainer {
         let mut rng = self.rng_for(it);
         let sched = self.config.learning_rates.position_schedule(self.extent);
         self.model.set_position_lr(sched.at(it))?;
-        if self.config.sh_degree_interval > 0 && it % self.config.sh_degree_interval == 0 {
+        if self.config.sh_degree_interval > 0 && it.is_multiple_of(self.config.sh_degree_interval) {
             self.model.one_up_sh_degree();
         }
         if self.view_stack.is_empty() {

@@ -497,7 +497,7 @@ pub fn parse_images_txt(bytes: &[u8], path: &Path) -> Result<Vec<ColmapImage>, D
             let camera_id = field(&t, 8, "CAMERA_ID")?;
             let name = t[9..].join(" ");
             let p: Vec<&str> = points_line.split_whitespace().collect();
-            if p.len() % 3 != 0 {
+            if !p.len().is_multiple_of(3) {
                 return Err(format!(
                     "image {id}: the 2D point line has {} fields, not a multiple of 3",
                     p.len()
@@ -535,7 +535,7 @@ pub fn parse_points3d_txt(bytes: &[u8], path: &Path) -> Result<Vec<ColmapPoint>,
         }
         let t: Vec<&str> = line.split_whitespace().collect();
         let point = (|| {
-            if t.len() < 8 || (t.len() - 8) % 2 != 0 {
+            if t.len() < 8 || !(t.len() - 8).is_multiple_of(2) {
                 return Err(format!(
                     "expected `POINT3D_ID X Y Z R G B ERROR` and (IMAGE_ID, POINT2D_IDX) pairs, found {} fields",
                     t.len()

@@ -1,0 +1,209 @@
+//! The reference tile loops: one pixel and one Gaussian at a time, generic over
+//! [`gaussian::Real`].
+//!
+//! Forward: each pixel walks its row list ([`crate::rows`]) front to back with the rule of
+//! [`crate::blend`]. Backward: each pixel re-runs that walk, keeping the blended Gaussians with
+//! their transmittances, then sweeps them back to front (see [`crate::backward`] for the
+//! maths), adding its contributions to the tile's gradient records. Pixels are visited in tile
+//! raster order, so every record is a sum in that order.
+
+use gaussian::Real;
+
+use super::record::{CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY};
+use super::TileOut;
+use crate::backward::Cotangents;
+use crate::blend::{evaluate, pixel_centre, Hit, Splat, TILE_SIZE, TRANSMITTANCE_MIN};
+use crate::forward::Splats;
+use crate::rows::{at_column, RowLists};
+use crate::tiles::TileBins;
+
+/// One blended Gaussian of the current pixel: its position in the tile list, its hit, and the
+/// transmittance in front of it.
+#[derive(Clone, Copy, Debug)]
+struct Blended<T> {
+    k: u32,
+    hit: Hit<T>,
+    trans: T,
+}
+
+/// Per-thread working memory.
+#[derive(Default)]
+pub(crate) struct Scratch<T> {
+    packed: Vec<Splat<T>>,
+    rows: RowLists,
+    blended: Vec<Blended<T>>,
+}
+
+/// Packs tile `t`'s Gaussians and builds its row lists; returns its Gaussian ids.
+fn prepare<'b, T: Real>(
+    splats: &Splats<T>,
+    bins: &'b TileBins,
+    t: usize,
+    packed: &mut Vec<Splat<T>>,
+    rows: &mut RowLists,
+) -> &'b [u32] {
+    let ids = bins.tile(t);
+    packed.clear();
+    packed.extend(ids.iter().map(|&g| splats.splat(g as usize)));
+    rows.build(packed, bins.pixel_rect(t));
+    ids
+}
+
+/// Blends tile `t` into `out`.
+pub(crate) fn forward_tile<T: Real>(
+    splats: &Splats<T>,
+    bins: &TileBins,
+    background: &[T],
+    t: usize,
+    scratch: &mut Scratch<T>,
+    out: TileOut<'_, T>,
+) {
+    let d = splats.channel_count;
+    let Scratch { packed, rows, .. } = scratch;
+    let ids = prepare(splats, bins, t, packed, rows);
+    let (x0, y0, x1, y1) = bins.pixel_rect(t);
+    let t_min = T::lit(TRANSMITTANCE_MIN);
+    for py in y0..y1 {
+        let cy = pixel_centre::<T>(py);
+        let row = rows.row(py - y0);
+        for px in x0..x1 {
+            let cx = pixel_centre::<T>(px);
+            let lx = (px - x0) as u8;
+            let lp = ((py - y0) * TILE_SIZE + (px - x0)) as usize;
+            let pixel = &mut out.image[lp * d..(lp + 1) * d];
+            let mut trans = T::one();
+            let mut z = T::zero();
+            let mut n = 0u32;
+            for k in at_column(row, lx) {
+                let Some(hit) = evaluate(&packed[k], cx, cy) else {
+                    continue;
+                };
+                let next = trans * (T::one() - hit.alpha);
+                if next <= t_min {
+                    break;
+                }
+                let w = hit.alpha * trans;
+                let g = ids[k] as usize;
+                for (o, &c) in pixel.iter_mut().zip(splats.channels_of(g)) {
+                    *o += w * c;
+                }
+                z += w * splats.depths[g];
+                n += 1;
+                trans = next;
+            }
+            for (o, &b) in pixel.iter_mut().zip(background) {
+                *o += trans * b;
+            }
+            out.alpha[lp] = T::one() - trans;
+            out.depth[lp] = z;
+            out.count[lp] = n;
+        }
+    }
+}
+
+/// Accumulates tile `t`'s gradient records (`GEOMETRY + D` reals per tile intersection, in tile
+/// order) into `rec` and its background gradient into `bg_grad`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn backward_tile<T: Real>(
+    splats: &Splats<T>,
+    bins: &TileBins,
+    background: &[T],
+    cot: &Cotangents<T>,
+    t: usize,
+    scratch: &mut Scratch<T>,
+    rec: &mut [T],
+    bg_grad: &mut [T],
+) {
+    let d = splats.channel_count;
+    let stride = GEOMETRY + d;
+    let Scratch {
+        packed,
+        rows,
+        blended,
+    } = scratch;
+    let ids = prepare(splats, bins, t, packed, rows);
+    let (x0, y0, x1, y1) = bins.pixel_rect(t);
+    let width = bins.width() as usize;
+    let t_min = T::lit(TRANSMITTANCE_MIN);
+    let half = T::lit(0.5);
+    for py in y0..y1 {
+        let cy = pixel_centre::<T>(py);
+        let row = rows.row(py - y0);
+        for px in x0..x1 {
+            let cx = pixel_centre::<T>(px);
+            let lx = (px - x0) as u8;
+            let p = py as usize * width + px as usize;
+
+            // Front to back: the forward pass's decisions, alphas and transmittances, over the
+            // same row list.
+            blended.clear();
+            let mut trans = T::one();
+            for k in at_column(row, lx) {
+                let Some(hit) = evaluate(&packed[k], cx, cy) else {
+                    continue;
+                };
+                let next = trans * (T::one() - hit.alpha);
+                if next <= t_min {
+                    break;
+                }
+                blended.push(Blended {
+                    k: k as u32,
+                    hit,
+                    trans,
+                });
+                trans = next;
+            }
+
+            let v_img = &cot.image[p * d..(p + 1) * d];
+            let v_alpha = cot.alpha.map_or(T::zero(), |v| v[p]);
+            let v_depth = cot.depth.map_or(T::zero(), |v| v[p]);
+            for (b, &v) in bg_grad.iter_mut().zip(v_img) {
+                *b += trans * v;
+            }
+
+            // Back to front: S, the pixel's value behind the current Gaussian.
+            let mut behind = dot(v_img, background);
+            for bl in blended.iter().rev() {
+                let k = bl.k as usize;
+                let g = ids[k] as usize;
+                let s = &packed[k];
+                let Hit {
+                    dx,
+                    dy,
+                    falloff,
+                    alpha,
+                    clamped,
+                } = bl.hit;
+                let z = splats.depths[g];
+                let own = dot(v_img, splats.channels_of(g)) + v_depth * z + v_alpha;
+                let w = alpha * bl.trans;
+                let r = &mut rec[k * stride..(k + 1) * stride];
+                for (rc, &v) in r[GEOMETRY..].iter_mut().zip(v_img) {
+                    *rc += w * v;
+                }
+                r[DEPTH] += w * v_depth;
+                let v_a = bl.trans * (own - behind);
+                behind = alpha * own + (T::one() - alpha) * behind;
+                if !clamped {
+                    r[OPACITY] += v_a * falloff;
+                    let v_sigma = -(v_a * alpha);
+                    r[CONIC_A] += v_sigma * half * dx * dx;
+                    r[CONIC_B] += v_sigma * dx * dy;
+                    r[CONIC_C] += v_sigma * half * dy * dy;
+                    r[MEAN_X] += v_sigma * (s.a * dx + s.b * dy);
+                    r[MEAN_Y] += v_sigma * (s.b * dx + s.c * dy);
+                }
+            }
+        }
+    }
+}
+
+/// `sum_i a_i b_i`, accumulated in index order.
+#[inline(always)]
+pub(crate) fn dot<T: Real>(a: &[T], b: &[T]) -> T {
+    let mut s = T::zero();
+    for (&x, &y) in a.iter().zip(b) {
+        s += x * y;
+    }
+    s
+}

@@ -50,6 +50,7 @@ use std::sync::Mutex;
 use ndarray::{s, Array1, Array4, ArrayView1, ArrayView4, Axis};
 use rayon::prelude::*;
 
+use crate::matmul::{backend_for, matmul, GemmBackend, Pass};
 use crate::scalar::Scalar;
 
 /// Target number of output pixels per tile (a good GEMM width for `matrixmultiply`).
@@ -150,6 +151,7 @@ pub(crate) fn conv_valid<T: Scalar>(
     w: ArrayView4<T>,
     bias: Option<ArrayView1<T>>,
     relu: bool,
+    backend: GemmBackend,
 ) -> Array4<T> {
     let (n, c, hp, wp) = xp.dim();
     let (o, wc, k, k2) = w.dim();
@@ -193,21 +195,15 @@ pub(crate) fn conv_valid<T: Scalar>(
             if k == 1 {
                 // The input rows are the GEMM operand and the output rows its result.
                 let px = (r1 - r0) * w_out;
-                T::gemm(
+                matmul(
+                    backend,
                     o,
                     c,
                     px,
-                    T::ONE,
-                    ws.as_ptr(),
-                    c as isize,
-                    1,
-                    x_img[r0 * wp..].as_ptr(),
-                    plane_in as isize,
-                    1,
-                    T::ZERO,
-                    c_out,
-                    plane_out as isize,
-                    1,
+                    (ws.as_ptr(), c as isize, 1),
+                    (x_img[r0 * wp..].as_ptr(), plane_in as isize, 1),
+                    false,
+                    (c_out, plane_out as isize, 1),
                 );
                 for oc in 0..o {
                     let row = std::slice::from_raw_parts_mut(c_out.add(oc * plane_out), px);
@@ -227,21 +223,15 @@ pub(crate) fn conv_valid<T: Scalar>(
                 for i in 0..k {
                     for j in 0..k {
                         let tap = i * k + j;
-                        T::gemm(
+                        matmul(
+                            backend,
                             o,
                             c,
                             np,
-                            T::ONE,
-                            ws.as_ptr().add(tap),
-                            ckk as isize,
-                            (k * k) as isize,
-                            x_img.as_ptr().add((r0 + i) * wp + j),
-                            plane_in as isize,
-                            1,
-                            if tap == 0 { T::ZERO } else { T::ONE },
-                            acc.as_mut_ptr(),
-                            np as isize,
-                            1,
+                            (ws.as_ptr().add(tap), ckk as isize, (k * k) as isize),
+                            (x_img.as_ptr().add((r0 + i) * wp + j), plane_in as isize, 1),
+                            tap != 0,
+                            (acc.as_mut_ptr(), np as isize, 1),
                         );
                     }
                 }
@@ -284,6 +274,7 @@ pub(crate) fn conv_valid_param_grads<T: Scalar>(
     xp: ArrayView4<T>,
     dy: ArrayView4<T>,
     k: usize,
+    backend: GemmBackend,
 ) -> (Array4<T>, Array1<T>) {
     let (n, c, hp, wp) = xp.dim();
     let (dn, o, h_out, w_out) = dy.dim();
@@ -322,21 +313,15 @@ pub(crate) fn conv_valid_param_grads<T: Scalar>(
             // SAFETY: block j0 writes columns j0..j0+nb of every row of dW, disjoint from the
             // other blocks; the operands are read-only and in bounds.
             unsafe {
-                T::gemm(
+                matmul(
+                    backend,
                     o,
                     px,
                     nb,
-                    T::ONE,
-                    a_ptr.get(),
-                    plane_out as isize,
-                    1,
-                    b_ptr.get().add(j0 * csb),
-                    1,
-                    csb as isize,
-                    T::ONE,
-                    dw_ptr.get().add(j0),
-                    ckk as isize,
-                    1,
+                    (a_ptr.get(), plane_out as isize, 1),
+                    (b_ptr.get().add(j0 * csb), 1, csb as isize),
+                    true,
+                    (dw_ptr.get().add(j0), ckk as isize, 1),
                 );
             }
         });
@@ -458,7 +443,13 @@ pub fn conv3x3_reflect<T: Scalar>(
     relu: bool,
 ) -> Array4<T> {
     check_3x3(&w);
-    conv_valid(pad_reflect1(x).view(), w, Some(b), relu)
+    conv_valid(
+        pad_reflect1(x).view(),
+        w,
+        Some(b),
+        relu,
+        backend_for(Pass::Forward),
+    )
 }
 
 /// Input gradient of [`conv3x3_reflect`] (without ReLU) given the output gradient `dy [N,O,H,W]`.
@@ -474,6 +465,7 @@ pub fn conv3x3_reflect_backward_input<T: Scalar>(dy: ArrayView4<T>, w: ArrayView
         flip_transpose(w).view(),
         None,
         false,
+        backend_for(Pass::InputGrad),
     );
     fold_reflect1(dxp)
 }
@@ -484,7 +476,7 @@ pub fn conv3x3_reflect_backward_params<T: Scalar>(
     x: ArrayView4<T>,
     dy: ArrayView4<T>,
 ) -> (Array4<T>, Array1<T>) {
-    conv_valid_param_grads(pad_reflect1(x).view(), dy, 3)
+    conv_valid_param_grads(pad_reflect1(x).view(), dy, 3, backend_for(Pass::WeightGrad))
 }
 
 /// 1x1 convolution: `x [N,C,H,W]`, `w [O,C,1,1]`, `b [O]` to `[N,O,H,W]`, optionally followed by
@@ -496,13 +488,19 @@ pub fn conv1x1<T: Scalar>(
     relu: bool,
 ) -> Array4<T> {
     check_1x1(&w);
-    conv_valid(x, w, Some(b), relu)
+    conv_valid(x, w, Some(b), relu, backend_for(Pass::Forward))
 }
 
 /// Input gradient of [`conv1x1`] (without ReLU).
 pub fn conv1x1_backward_input<T: Scalar>(dy: ArrayView4<T>, w: ArrayView4<T>) -> Array4<T> {
     check_1x1(&w);
-    conv_valid(dy, flip_transpose(w).view(), None, false)
+    conv_valid(
+        dy,
+        flip_transpose(w).view(),
+        None,
+        false,
+        backend_for(Pass::InputGrad),
+    )
 }
 
 /// Weight and bias gradients of [`conv1x1`] (without ReLU). Returns `([O,C,1,1], [O])`.
@@ -510,5 +508,5 @@ pub fn conv1x1_backward_params<T: Scalar>(
     x: ArrayView4<T>,
     dy: ArrayView4<T>,
 ) -> (Array4<T>, Array1<T>) {
-    conv_valid_param_grads(x, dy, 1)
+    conv_valid_param_grads(x, dy, 1, backend_for(Pass::WeightGrad))
 }

@@ -8,7 +8,8 @@
 //!
 //! With `NETS_CONV_TABLE=1` it first prints a table of every shape and pass with both backends,
 //! timed alternately in the same process (best of `NETS_CONV_REPS`, default 3, runs each), and
-//! the ratio of the `gemm` time to the `matrixmultiply` time. Criterion then times
+//! the ratio of the `gemm` time to the `matrixmultiply` time (`NETS_CONV_PASSES=fwd,dw` restricts
+//! it to some passes). Criterion then times
 //! `conv3x3_256/{fwd,dx,dw}_{in}_{out}/{gemm,mm}`, `conv_{in}_{out}` (the forward with the default
 //! backend) and `sgemm_{in}_{out}`.
 
@@ -139,13 +140,14 @@ fn table(rng: &mut Lcg) {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(3);
+    let passes = std::env::var("NETS_CONV_PASSES").unwrap_or_else(|_| "fwd,dx,dw".into());
     println!(
         "shape     pass  gemm s   gemm GFLOP/s  mm s     mm GFLOP/s  gemm/mm time  (best of {reps}, alternating)"
     );
     for (ci, co) in SHAPES {
         let case = Case::new(rng, ci, co);
         let flop = 2.0 * (co * ci * 9 * SIZE * SIZE) as f64 / 1e9;
-        for pass in PASSES {
+        for pass in PASSES.into_iter().filter(|p| passes.contains(p)) {
             let mut best = [f64::INFINITY; 2];
             for _ in 0..reps {
                 for (i, (backend, _)) in BACKENDS.iter().enumerate() {

@@ -1,8 +1,17 @@
 //! One 3x3 reflection-padded convolution at 256x256 for every `(in, out)` width pair of the
-//! benchmarked networks, next to the raw `sgemm` of the same matrix product (`m = out`,
-//! `k = 9 * in`, `n = 256 * 256`) with its operands already laid out (no padding, no bias), split
-//! into column blocks of 2048 run on the same rayon pool. The ratio of the two is the engine's
-//! overhead over the matrix product itself. FLOPs count 2 per multiply-add.
+//! fullres relu3_1 and relu4_1 encoders and the relu3_1 and relu4_1 decoders, in each pass
+//! (forward with bias and ReLU, input gradient, weight and bias gradient) and with each GEMM
+//! backend (`gemm` and `matrixmultiply`, see `nets::matmul`), next to the raw `sgemm` of the
+//! forward matrix product (`m = out`, `k = 9 * in`, `n = 256 * 256`) with its operands already
+//! laid out (no padding, no bias), split into column blocks of 2048 run on the same rayon pool.
+//! FLOPs count 2 per multiply-add; every pass has the forward's `2 * out * 9 * in * 256 * 256`.
+//!
+//! With `NETS_CONV_TABLE=1` it first prints a table of every shape and pass with both backends,
+//! timed alternately in the same process (best of `NETS_CONV_REPS`, default 3, runs each), and
+//! the ratio of the `gemm` time to the `matrixmultiply` time (`NETS_CONV_PASSES=fwd,dw` restricts
+//! it to some passes). Criterion then times
+//! `conv3x3_256/{fwd,dx,dw}_{in}_{out}/{gemm,mm}`, `conv_{in}_{out}` (the forward with the default
+//! backend) and `sgemm_{in}_{out}`.
 
 mod common;
 
@@ -10,13 +19,17 @@ use std::time::Instant;
 
 use common::*;
 use criterion::{criterion_group, criterion_main, Criterion};
-use ndarray::Array1;
-use nets::conv::conv3x3_reflect;
+use ndarray::{Array1, Array4};
+use nets::conv::{
+    conv3x3_reflect, conv3x3_reflect_backward_input, conv3x3_reflect_backward_params,
+};
+use nets::matmul::{with_backend, GemmBackend};
 use rayon::prelude::*;
 
 const SIZE: usize = 256;
 
-const SHAPES: [(usize, usize); 10] = [
+/// The encoders' shapes, then the decoders' (512->256 is the relu4_1 decoder's first conv).
+const SHAPES: [(usize, usize); 11] = [
     (3, 64),
     (64, 64),
     (64, 128),
@@ -24,10 +37,18 @@ const SHAPES: [(usize, usize); 10] = [
     (128, 256),
     (256, 256),
     (256, 512),
+    (512, 256),
     (256, 128),
     (128, 64),
     (64, 3),
 ];
+
+const BACKENDS: [(GemmBackend, &str); 2] = [
+    (GemmBackend::Gemm, "gemm"),
+    (GemmBackend::MatrixMultiply, "mm"),
+];
+
+const PASSES: [&str; 3] = ["fwd", "dx", "dw"];
 
 /// Columns per block of the raw GEMM.
 const BLOCK: usize = 2048;
@@ -62,46 +83,116 @@ fn tiled_sgemm(o: usize, c: usize, a: &[f32], bs: &[Vec<f32>], out: &mut [f32]) 
         });
 }
 
-fn best_of<F: FnMut()>(n: usize, mut f: F) -> f64 {
-    (0..n)
-        .map(|_| {
-            let t = Instant::now();
-            f();
-            t.elapsed().as_secs_f64()
-        })
-        .fold(f64::INFINITY, f64::min)
+/// The operands of one shape.
+struct Case {
+    x: Array4<f32>,
+    w: Array4<f32>,
+    b: Array1<f32>,
+    dy: Array4<f32>,
+}
+
+impl Case {
+    fn new(rng: &mut Lcg, ci: usize, co: usize) -> Case {
+        Case {
+            x: rng.image(ci, SIZE, SIZE),
+            w: Array4::from_shape_vec((co, ci, 3, 3), rng.vec(co * ci * 9, 0.1)).unwrap(),
+            b: Array1::from_vec(rng.vec(co, 0.1)),
+            dy: rng.image(co, SIZE, SIZE),
+        }
+    }
+
+    /// Runs one pass with the current backend.
+    fn run(&self, pass: &str) {
+        match pass {
+            "fwd" => {
+                std::hint::black_box(conv3x3_reflect(
+                    self.x.view(),
+                    self.w.view(),
+                    self.b.view(),
+                    true,
+                ));
+            }
+            "dx" => {
+                std::hint::black_box(conv3x3_reflect_backward_input(
+                    self.dy.view(),
+                    self.w.view(),
+                ));
+            }
+            _ => {
+                std::hint::black_box(conv3x3_reflect_backward_params(
+                    self.x.view(),
+                    self.dy.view(),
+                ));
+            }
+        }
+    }
+}
+
+fn seconds<F: FnOnce()>(f: F) -> f64 {
+    let t = Instant::now();
+    f();
+    t.elapsed().as_secs_f64()
+}
+
+/// The table of both backends, alternating runs of the two.
+fn table(rng: &mut Lcg) {
+    let reps: usize = std::env::var("NETS_CONV_REPS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3);
+    let passes = std::env::var("NETS_CONV_PASSES").unwrap_or_else(|_| "fwd,dx,dw".into());
+    println!(
+        "shape     pass  gemm s   gemm GFLOP/s  mm s     mm GFLOP/s  gemm/mm time  (best of {reps}, alternating)"
+    );
+    for (ci, co) in SHAPES {
+        let case = Case::new(rng, ci, co);
+        let flop = 2.0 * (co * ci * 9 * SIZE * SIZE) as f64 / 1e9;
+        for pass in PASSES.into_iter().filter(|p| passes.contains(p)) {
+            let mut best = [f64::INFINITY; 2];
+            for _ in 0..reps {
+                for (i, (backend, _)) in BACKENDS.iter().enumerate() {
+                    let t = seconds(|| with_backend(*backend, || case.run(pass)));
+                    best[i] = best[i].min(t);
+                }
+            }
+            println!(
+                "{ci:>3}->{co:<3}  {pass:<4}  {:7.4}  {:12.1}  {:7.4}  {:10.1}  {:12.3}",
+                best[0],
+                flop / best[0],
+                best[1],
+                flop / best[1],
+                best[0] / best[1]
+            );
+        }
+    }
 }
 
 fn conv(c: &mut Criterion) {
     let mut rng = Lcg::new(2);
+    if std::env::var("NETS_CONV_TABLE").is_ok_and(|v| v == "1") {
+        table(&mut rng);
+    }
     let mut group = c.benchmark_group("conv3x3_256");
     group.sample_size(10);
     group.warm_up_time(std::time::Duration::from_secs(1));
     group.measurement_time(std::time::Duration::from_secs(3));
-    println!("in->out   conv s  conv GFLOP/s  sgemm s  sgemm GFLOP/s  conv/sgemm");
     for (ci, co) in SHAPES {
-        let x = rng.image(ci, SIZE, SIZE);
-        let w = ndarray::Array4::from_shape_vec((co, ci, 3, 3), rng.vec(co * ci * 9, 0.1)).unwrap();
-        let b = Array1::from_vec(rng.vec(co, 0.1));
-        let flop = 2.0 * (co * ci * 9 * SIZE * SIZE) as f64 / 1e9;
+        let case = Case::new(&mut rng, ci, co);
         let a = rng.vec(co * 9 * ci, 0.1);
         let bs: Vec<Vec<f32>> = (0..OPERANDS)
             .map(|_| rng.vec(9 * ci * BLOCK, 1.0))
             .collect();
         let mut out = vec![0f32; co * SIZE * SIZE];
-        let t_conv = best_of(3, || {
-            std::hint::black_box(conv3x3_reflect(x.view(), w.view(), b.view(), true));
-        });
-        let t_gemm = best_of(3, || tiled_sgemm(co, ci, &a, &bs, &mut out));
-        println!(
-            "{ci:>3}->{co:<3}  {t_conv:7.4}  {:12.1}  {t_gemm:7.4}  {:13.1}  {:10.2}",
-            flop / t_conv,
-            flop / t_gemm,
-            t_conv / t_gemm
-        );
         group.bench_function(format!("conv_{ci}_{co}"), |bch| {
-            bch.iter(|| conv3x3_reflect(x.view(), w.view(), b.view(), true))
+            bch.iter(|| case.run("fwd"))
         });
+        for pass in PASSES {
+            for (backend, name) in BACKENDS {
+                group.bench_function(format!("{pass}_{ci}_{co}/{name}"), |bch| {
+                    bch.iter(|| with_backend(backend, || case.run(pass)))
+                });
+            }
+        }
         group.bench_function(format!("sgemm_{ci}_{co}"), |bch| {
             bch.iter(|| tiled_sgemm(co, ci, &a, &bs, &mut out))
         });

@@ -1,5 +1,6 @@
 //! Convolution engine: 3x3 convolution with reflection padding and 1x1 convolution, forward and
-//! backward, NCHW, on top of `matrixmultiply`'s GEMM.
+//! backward, NCHW, on top of a single-threaded GEMM ([`crate::matmul`]: the `gemm` crate by
+//! default, `matrixmultiply` as the alternative).
 //!
 //! Convention (PyTorch `Conv2d`, cross-correlation): weights are `[O, C, K, K]`, biases `[O]`, and
 //! `y[n,o,r,x] = b[o] + sum_{c,i,j} w[o,c,i,j] * xp[n,c,r+i,x+j]`, where `xp` is the input padded
@@ -17,55 +18,54 @@
 //!
 //! A valid 3x3 correlation is an *implicit GEMM*: output rows are computed on the padded grid
 //! (each row `Wp` wide, of which the last two columns are discarded), where the window of tap
-//! `(i, j)` is just the padded plane shifted by `i*Wp + j`, a strided matrix `matrixmultiply`
-//! packs directly. A tile of output rows accumulates the nine products
+//! `(i, j)` is just the padded plane shifted by `i*Wp + j`, a strided matrix the GEMM packs
+//! directly. A tile of output rows accumulates the nine products
 //! `w[:, :, i, j] (O x C) * shifted input (C x tile)` into an `O x tile` accumulator and then
 //! copies the valid columns out with bias and ReLU. No im2col matrix is formed.
 //!
-//! The weight gradient uses im2col per tile: `dW[o, (c,i,j)] += dY_tile[o, p] * col[(c,i,j), p]`,
-//! accumulated tile by tile in a fixed order.
+//! The weight gradient is the same implicit GEMM transposed: with the output gradient widened to
+//! the padded width by zero columns, `dW[:, :, i, j] += dY_tile (O x tile) * shifted input^T
+//! (tile x C)` for each tap, tile by tile.
 //!
 //! # Memory bound
 //! Forward (and input-gradient) tiles are whole output rows of one image, with an accumulator of
 //! at most [`ACC_BUDGET_BYTES`] (256 KiB) unless one padded row alone is larger
-//! (`O*Wp*size_of::<T>()`; then a tile is one row). Weight-gradient tiles hold at most
-//! [`TILE_PIXELS`] pixels and an im2col buffer of at most [`COL_BUDGET_BYTES`] (16 MiB) unless one
-//! output row is larger. Each running task owns one buffer, so scratch memory is at most
-//! `threads * max(256 KiB, O*Wp*size_of::<T>())` forward and
-//! `max(16 MiB, 9*C*W*size_of::<T>())` for a weight gradient, independent of the image height and
-//! batch size: a 256x256 fullres relu4_1 forward in `f32` uses at most 2 x 528 KiB of scratch,
-//! where a whole-image im2col of its 512-channel layer would take 2.4 GB. Besides scratch, a
-//! convolution allocates its output and one padded copy of its input (or output gradient).
-
+//! (`O*Wp*size_of::<T>()`; then a tile is one row). Each running task owns one accumulator, so
+//! forward scratch memory is at most `threads * max(256 KiB, O*Wp*size_of::<T>())`, independent
+//! of the image height and batch size: a 256x256 fullres relu4_1 forward in `f32` uses at most
+//! 2 x 528 KiB, where a whole-image im2col of its 512-channel layer would take 2.4 GB. A weight
+//! gradient holds `DW_GROUPS` (4) accumulators of `9*O*C` elements (4 x 4.7 MB for 256->512 in
+//! `f32`) and, for 3x3, one copy of the output gradient widened by two columns. Besides scratch,
+//! a convolution allocates its output and one padded copy of its input (or output gradient).
+//!
 //! # Parallelism and determinism
 //! Forward and input-gradient tiles run in parallel with rayon, each with single-threaded GEMMs
-//! writing a disjoint block of the output. Weight gradients visit the tiles sequentially in a
-//! fixed order and parallelise inside a tile over fixed column blocks of `dW`. The tiling depends
-//! only on the shapes, never on the number of threads, and every output element is computed by
-//! one task through the same sequence of GEMM calls (taps in a fixed order), so results are
-//! bitwise identical for any thread count.
+//! writing a disjoint block of the output. Weight-gradient tiles are split into `DW_GROUPS` fixed
+//! contiguous groups that run in parallel, each accumulating its tiles in order into its own
+//! buffer; the buffers are then summed in group order. The tiling and grouping depend only on the
+//! shapes, never on the number of threads, and every output element is computed by one task
+//! through the same sequence of GEMM calls (taps in a fixed order), so results are bitwise
+//! identical for any thread count.
 
 use std::sync::Mutex;
 
 use ndarray::{s, Array1, Array4, ArrayView1, ArrayView4, Axis};
 use rayon::prelude::*;
 
+use crate::matmul::{backend_for, matmul, GemmBackend, Pass};
 use crate::scalar::Scalar;
 
-/// Target number of output pixels per tile (a good GEMM width for `matrixmultiply`).
+/// Target number of output pixels per tile (a good GEMM width).
 pub const TILE_PIXELS: usize = 2048;
-
-/// Upper bound on one im2col scratch buffer of the weight gradient, in bytes (unless one output
-/// row is larger).
-pub const COL_BUDGET_BYTES: usize = 16 << 20;
 
 /// Upper bound on one forward accumulator (`O` channels by tile pixels), in bytes, unless one
 /// padded row is larger. 256 KiB keeps it in a core's L2 cache while the nine taps accumulate
 /// into it; measured on the 2-core development machine, larger tiles were slower.
 pub const ACC_BUDGET_BYTES: usize = 256 << 10;
 
-/// Columns of `dW` per parallel block in the weight gradient.
-const DW_COLUMN_BLOCK: usize = 128;
+/// Fixed number of tile groups of the 3x3 weight gradient, run in parallel, each with its own
+/// `[K*K, O, C]` accumulator (see `weight_grad_implicit`).
+const DW_GROUPS: usize = 4;
 
 /// A raw pointer that may be sent to other threads; users guarantee disjoint writes.
 #[derive(Clone, Copy)]
@@ -81,17 +81,6 @@ impl<T> SyncPtr<T> {
     }
 }
 
-/// Output rows per tile for a valid convolution with `ckk = C*K*K` and output width `w_out`.
-fn rows_per_tile<T>(ckk: usize, w_out: usize, h_out: usize, kernel: usize) -> usize {
-    let by_pixels = TILE_PIXELS / w_out.max(1);
-    let by_memory = if kernel == 1 {
-        usize::MAX // no im2col buffer
-    } else {
-        COL_BUDGET_BYTES / (ckk * w_out * std::mem::size_of::<T>()).max(1)
-    };
-    by_pixels.min(by_memory).clamp(1, h_out.max(1))
-}
-
 /// The tiles `(image, first row, last row + 1)` of an output of `n` images of `h_out` rows.
 fn tiles(n: usize, h_out: usize, rows: usize) -> Vec<(usize, usize, usize)> {
     let mut v = Vec::new();
@@ -104,28 +93,6 @@ fn tiles(n: usize, h_out: usize, rows: usize) -> Vec<(usize, usize, usize)> {
         }
     }
     v
-}
-
-/// Fills `col` (`C*K*K` rows of `(r1-r0)*w_out` pixels) with the windows of image `img` of the
-/// padded input for output rows `r0..r1`.
-fn im2col<T: Scalar>(xp: &[T], dims: [usize; 3], k: usize, r0: usize, r1: usize, col: &mut [T]) {
-    let [_, hp, wp] = dims;
-    let w_out = wp - k + 1;
-    let px = (r1 - r0) * w_out;
-    col.par_chunks_mut(k * k * px)
-        .enumerate()
-        .for_each(|(c, block)| {
-            let plane = &xp[c * hp * wp..(c + 1) * hp * wp];
-            for i in 0..k {
-                for j in 0..k {
-                    let dst = &mut block[(i * k + j) * px..(i * k + j + 1) * px];
-                    for r in r0..r1 {
-                        let src = &plane[(r + i) * wp + j..(r + i) * wp + j + w_out];
-                        dst[(r - r0) * w_out..(r - r0 + 1) * w_out].copy_from_slice(src);
-                    }
-                }
-            }
-        });
 }
 
 /// Rows per tile of the implicit GEMM: at most [`TILE_PIXELS`] pixels on the padded grid and an
@@ -150,6 +117,7 @@ pub(crate) fn conv_valid<T: Scalar>(
     w: ArrayView4<T>,
     bias: Option<ArrayView1<T>>,
     relu: bool,
+    backend: GemmBackend,
 ) -> Array4<T> {
     let (n, c, hp, wp) = xp.dim();
     let (o, wc, k, k2) = w.dim();
@@ -193,21 +161,15 @@ pub(crate) fn conv_valid<T: Scalar>(
             if k == 1 {
                 // The input rows are the GEMM operand and the output rows its result.
                 let px = (r1 - r0) * w_out;
-                T::gemm(
+                matmul(
+                    backend,
                     o,
                     c,
                     px,
-                    T::ONE,
-                    ws.as_ptr(),
-                    c as isize,
-                    1,
-                    x_img[r0 * wp..].as_ptr(),
-                    plane_in as isize,
-                    1,
-                    T::ZERO,
-                    c_out,
-                    plane_out as isize,
-                    1,
+                    (ws.as_ptr(), c as isize, 1),
+                    (x_img[r0 * wp..].as_ptr(), plane_in as isize, 1),
+                    false,
+                    (c_out, plane_out as isize, 1),
                 );
                 for oc in 0..o {
                     let row = std::slice::from_raw_parts_mut(c_out.add(oc * plane_out), px);
@@ -227,21 +189,15 @@ pub(crate) fn conv_valid<T: Scalar>(
                 for i in 0..k {
                     for j in 0..k {
                         let tap = i * k + j;
-                        T::gemm(
+                        matmul(
+                            backend,
                             o,
                             c,
                             np,
-                            T::ONE,
-                            ws.as_ptr().add(tap),
-                            ckk as isize,
-                            (k * k) as isize,
-                            x_img.as_ptr().add((r0 + i) * wp + j),
-                            plane_in as isize,
-                            1,
-                            if tap == 0 { T::ZERO } else { T::ONE },
-                            acc.as_mut_ptr(),
-                            np as isize,
-                            1,
+                            (ws.as_ptr().add(tap), ckk as isize, (k * k) as isize),
+                            (x_img.as_ptr().add((r0 + i) * wp + j), plane_in as isize, 1),
+                            tap != 0,
+                            (acc.as_mut_ptr(), np as isize, 1),
                         );
                     }
                 }
@@ -284,6 +240,7 @@ pub(crate) fn conv_valid_param_grads<T: Scalar>(
     xp: ArrayView4<T>,
     dy: ArrayView4<T>,
     k: usize,
+    backend: GemmBackend,
 ) -> (Array4<T>, Array1<T>) {
     let (n, c, hp, wp) = xp.dim();
     let (dn, o, h_out, w_out) = dy.dim();
@@ -297,50 +254,13 @@ pub(crate) fn conv_valid_param_grads<T: Scalar>(
     let dy = dy.as_standard_layout();
     let xs = xp.as_slice().expect("standard layout");
     let dys = dy.as_slice().expect("standard layout");
-    let ckk = c * k * k;
-    let plane_out = h_out * w_out;
-    let mut dw = vec![T::ZERO; o * ckk];
-    let rows = rows_per_tile::<T>(ckk, w_out, h_out, k);
-    let mut col = Vec::<T>::new();
-    for (img, r0, r1) in tiles(n, h_out, rows) {
-        let px = (r1 - r0) * w_out;
-        let x_img = &xs[img * c * hp * wp..(img + 1) * c * hp * wp];
-        // B[p, j] = col[j, p]: row stride 1, column stride `csb`.
-        let (b_ptr, csb) = if k == 1 {
-            (SyncPtr(x_img[r0 * wp..].as_ptr() as *mut T), hp * wp)
-        } else {
-            col.resize(ckk * px, T::ZERO);
-            im2col(x_img, [c, hp, wp], k, r0, r1, &mut col);
-            (SyncPtr(col.as_ptr() as *mut T), px)
-        };
-        let a_ptr = SyncPtr(dys[img * o * plane_out + r0 * w_out..].as_ptr() as *mut T);
-        // Column blocks of dW are strided in memory, so they are addressed by pointer.
-        let dw_ptr = SyncPtr(dw.as_mut_ptr());
-        let blocks: Vec<usize> = (0..ckk).step_by(DW_COLUMN_BLOCK).collect();
-        blocks.par_iter().for_each(|&j0| {
-            let nb = DW_COLUMN_BLOCK.min(ckk - j0);
-            // SAFETY: block j0 writes columns j0..j0+nb of every row of dW, disjoint from the
-            // other blocks; the operands are read-only and in bounds.
-            unsafe {
-                T::gemm(
-                    o,
-                    px,
-                    nb,
-                    T::ONE,
-                    a_ptr.get(),
-                    plane_out as isize,
-                    1,
-                    b_ptr.get().add(j0 * csb),
-                    1,
-                    csb as isize,
-                    T::ONE,
-                    dw_ptr.get().add(j0),
-                    ckk as isize,
-                    1,
-                );
-            }
-        });
-    }
+    let db = bias_grad(dys, n, o, h_out * w_out);
+    let dw = weight_grad_implicit(xs, [n, c, hp, wp], dys, o, k, backend);
+    (Array4::from_shape_vec((o, c, k, k), dw).expect("shape"), db)
+}
+
+/// The bias gradient: the sum of `dy [N,O,H,W]` (as a slice) over images and pixels, per channel.
+fn bias_grad<T: Scalar>(dys: &[T], n: usize, o: usize, plane_out: usize) -> Array1<T> {
     let db: Vec<T> = (0..o)
         .into_par_iter()
         .map(|oc| {
@@ -352,10 +272,97 @@ pub(crate) fn conv_valid_param_grads<T: Scalar>(
             acc
         })
         .collect();
-    (
-        Array4::from_shape_vec((o, c, k, k), dw).expect("shape"),
-        Array1::from_vec(db),
-    )
+    Array1::from_vec(db)
+}
+
+/// Weight gradient `[O, C, K, K]` (flat) of a valid `K x K` cross-correlation, by implicit GEMM:
+/// with `dY` widened to the padded width (`K-1` zero columns per row, `dyp`; `dY` itself for `K = 1`),
+/// tap `(i, j)` is `dW[:, :, i, j] += dyp_tile (O x np) * X_ij^T (np x C)`, where `X_ij` is the
+/// padded input plane shifted by `i*Wp + j` (as in [`conv_valid`]); the zero columns cancel the
+/// products with the wrapped-around pixels. Tiles are split into [`DW_GROUPS`] fixed contiguous
+/// groups run in parallel, each accumulating its tiles in order into its own `[K*K, O, C]`
+/// buffer; the group buffers are then summed in group order. Neither depends on the thread count.
+fn weight_grad_implicit<T: Scalar>(
+    xs: &[T],
+    dims: [usize; 4],
+    dys: &[T],
+    o: usize,
+    k: usize,
+    backend: GemmBackend,
+) -> Vec<T> {
+    let [n, c, hp, wp] = dims;
+    let (h_out, w_out) = (hp - k + 1, wp - k + 1);
+    let plane_in = hp * wp;
+    let plane_dyp = h_out * wp;
+    let widened: Vec<T>;
+    let dyp = if k == 1 {
+        dys
+    } else {
+        let mut d = vec![T::ZERO; n * o * plane_dyp];
+        d.par_chunks_mut(plane_dyp)
+            .zip(dys.par_chunks(h_out * w_out))
+            .for_each(|(d, s)| {
+                for (dr, sr) in d.chunks_mut(wp).zip(s.chunks(w_out)) {
+                    dr[..w_out].copy_from_slice(sr);
+                }
+            });
+        widened = d;
+        &widened
+    };
+    let rows = (TILE_PIXELS / wp).clamp(1, h_out.max(1));
+    let jobs = tiles(n, h_out, rows);
+    let groups = DW_GROUPS.min(jobs.len());
+    let taps = k * k;
+    let partials: Vec<Vec<T>> = (0..groups)
+        .into_par_iter()
+        .map(|g| {
+            let mut acc = vec![T::ZERO; taps * o * c];
+            let (lo, hi) = (g * jobs.len() / groups, (g + 1) * jobs.len() / groups);
+            for &(img, r0, r1) in &jobs[lo..hi] {
+                let np = (r1 - r0) * wp - (k - 1);
+                let x_img = &xs[img * c * plane_in..(img + 1) * c * plane_in];
+                let dy_tile = &dyp[img * o * plane_dyp + r0 * wp..];
+                for i in 0..k {
+                    for j in 0..k {
+                        // SAFETY: `dy_tile` holds rows r0..r1 of all O channels of image `img`
+                        // (largest index (o-1)*plane_dyp + np - 1 < its length); the shifted
+                        // input reads stay inside the padded plane as shown in `conv_valid`;
+                        // `acc` is this group's own buffer, of O x C per tap.
+                        unsafe {
+                            matmul(
+                                backend,
+                                o,
+                                np,
+                                c,
+                                (dy_tile.as_ptr(), plane_dyp as isize, 1),
+                                (x_img.as_ptr().add((r0 + i) * wp + j), 1, plane_in as isize),
+                                true,
+                                (acc.as_mut_ptr().add((i * k + j) * o * c), c as isize, 1),
+                            );
+                        }
+                    }
+                }
+            }
+            acc
+        })
+        .collect();
+    // dw[o][c][tap] = sum over groups, in order, of partial[tap][o][c].
+    let mut dw = vec![T::ZERO; o * c * taps];
+    dw.par_chunks_mut(c * taps)
+        .enumerate()
+        .for_each(|(oc, row)| {
+            for (ci, cell) in row.chunks_mut(taps).enumerate() {
+                for (tap, v) in cell.iter_mut().enumerate() {
+                    let idx = (tap * o + oc) * c + ci;
+                    let mut s = partials[0][idx];
+                    for p in &partials[1..] {
+                        s += p[idx];
+                    }
+                    *v = s;
+                }
+            }
+        });
+    dw
 }
 
 /// Reflection padding by one pixel on both spatial axes (`F.pad(x, (1,1,1,1), mode="reflect")`).
@@ -458,7 +465,13 @@ pub fn conv3x3_reflect<T: Scalar>(
     relu: bool,
 ) -> Array4<T> {
     check_3x3(&w);
-    conv_valid(pad_reflect1(x).view(), w, Some(b), relu)
+    conv_valid(
+        pad_reflect1(x).view(),
+        w,
+        Some(b),
+        relu,
+        backend_for(Pass::Forward),
+    )
 }
 
 /// Input gradient of [`conv3x3_reflect`] (without ReLU) given the output gradient `dy [N,O,H,W]`.
@@ -474,6 +487,7 @@ pub fn conv3x3_reflect_backward_input<T: Scalar>(dy: ArrayView4<T>, w: ArrayView
         flip_transpose(w).view(),
         None,
         false,
+        backend_for(Pass::InputGrad),
     );
     fold_reflect1(dxp)
 }
@@ -484,7 +498,7 @@ pub fn conv3x3_reflect_backward_params<T: Scalar>(
     x: ArrayView4<T>,
     dy: ArrayView4<T>,
 ) -> (Array4<T>, Array1<T>) {
-    conv_valid_param_grads(pad_reflect1(x).view(), dy, 3)
+    conv_valid_param_grads(pad_reflect1(x).view(), dy, 3, backend_for(Pass::WeightGrad))
 }
 
 /// 1x1 convolution: `x [N,C,H,W]`, `w [O,C,1,1]`, `b [O]` to `[N,O,H,W]`, optionally followed by
@@ -496,13 +510,19 @@ pub fn conv1x1<T: Scalar>(
     relu: bool,
 ) -> Array4<T> {
     check_1x1(&w);
-    conv_valid(x, w, Some(b), relu)
+    conv_valid(x, w, Some(b), relu, backend_for(Pass::Forward))
 }
 
 /// Input gradient of [`conv1x1`] (without ReLU).
 pub fn conv1x1_backward_input<T: Scalar>(dy: ArrayView4<T>, w: ArrayView4<T>) -> Array4<T> {
     check_1x1(&w);
-    conv_valid(dy, flip_transpose(w).view(), None, false)
+    conv_valid(
+        dy,
+        flip_transpose(w).view(),
+        None,
+        false,
+        backend_for(Pass::InputGrad),
+    )
 }
 
 /// Weight and bias gradients of [`conv1x1`] (without ReLU). Returns `([O,C,1,1], [O])`.
@@ -510,5 +530,5 @@ pub fn conv1x1_backward_params<T: Scalar>(
     x: ArrayView4<T>,
     dy: ArrayView4<T>,
 ) -> (Array4<T>, Array1<T>) {
-    conv_valid_param_grads(x, dy, 1)
+    conv_valid_param_grads(x, dy, 1, backend_for(Pass::WeightGrad))
 }

@@ -41,6 +41,7 @@ pub mod layer;
 pub mod layout;
 pub mod lifter;
 mod mask;
+pub mod matmul;
 pub mod pool;
 pub mod scalar;
 mod sequential;

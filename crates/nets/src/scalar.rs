@@ -3,7 +3,8 @@
 //! Every kernel is generic over [`Scalar`] (`f32` or `f64`). Production runs in `f32`; the tests run
 //! the very same code in `f64` so that central differences are accurate enough to check gradients
 //! tightly and forward passes can be compared with the float64 oracle almost exactly. Matrix
-//! products go through `matrixmultiply` (`sgemm` for `f32`, `dgemm` for `f64`).
+//! products go through [`crate::matmul`], which picks the GEMM library; [`Scalar::gemm`] is its
+//! `matrixmultiply` backend (`sgemm` for `f32`, `dgemm` for `f64`).
 
 use std::fmt::Debug;
 use std::iter::Sum;

@@ -1,11 +1,15 @@
 //! The convolution engine on shapes that span several tiles and images: against a direct
-//! (quadruple-loop) convolution in `f64`, and bitwise identical for any number of threads.
+//! (quadruple-loop) convolution in `f64`, and bitwise identical for any number of threads, with
+//! each GEMM backend.
 
 mod common;
 
 use common::*;
 use ndarray::{Array1, Array4};
 use nets::conv::*;
+use nets::matmul::{with_backend, GemmBackend};
+
+const BACKENDS: [GemmBackend; 2] = [GemmBackend::MatrixMultiply, GemmBackend::Gemm];
 
 /// Direct 3x3 convolution with reflection padding, written independently of the engine.
 fn direct_conv3x3(x: &Array4<f64>, w: &Array4<f64>, b: &Array1<f64>) -> Array4<f64> {
@@ -37,6 +41,12 @@ fn direct_conv3x3(x: &Array4<f64>, w: &Array4<f64>, b: &Array1<f64>) -> Array4<f
 
 #[test]
 fn multi_tile_convolution_matches_a_direct_convolution() {
+    for backend in BACKENDS {
+        with_backend(backend, check_multi_tile_convolution);
+    }
+}
+
+fn check_multi_tile_convolution() {
     // 70 rows of 40 pixels: 51 rows per tile, so two tiles per image, two images.
     let mut rng = TestRng::new(7);
     let x = rng.array4((2, 5, 70, 40));
@@ -91,12 +101,14 @@ fn results_are_bitwise_identical_for_any_thread_count() {
             .build()
             .unwrap()
     };
-    let one = pool(1).install(|| run_all(&x, &w, &b, &dy));
-    let three = pool(3).install(|| run_all(&x, &w, &b, &dy));
-    for (i, (a, c)) in one.iter().zip(&three).enumerate() {
-        assert!(
-            a.iter().zip(c).all(|(p, q)| p.to_bits() == q.to_bits()),
-            "output {i} differs between 1 and 3 threads"
-        );
+    for backend in BACKENDS {
+        let run = |n| pool(n).install(|| with_backend(backend, || run_all(&x, &w, &b, &dy)));
+        let (one, three) = (run(1), run(3));
+        for (i, (a, c)) in one.iter().zip(&three).enumerate() {
+            assert!(
+                a.iter().zip(c).all(|(p, q)| p.to_bits() == q.to_bits()),
+                "{backend:?}: output {i} differs between 1 and 3 threads"
+            );
+        }
     }
 }

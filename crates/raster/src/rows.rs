@@ -1,7 +1,8 @@
-//! Per-tile row lists: for each pixel row of a tile, the tile's Gaussians (in front-to-back
-//! order) that can be blended somewhere in that row, each with the columns it can reach.
+//! Per-tile row lists: for each pixel row of a tile and each [`SPAN`]-column segment of it, the
+//! tile's Gaussians (in front-to-back order) that can be blended somewhere in that segment of
+//! the row, each with the columns of the row it can reach.
 //!
-//! The forward and backward tile loops walk a pixel's row list instead of the whole tile list.
+//! The forward and backward tile loops walk a pixel's list instead of the whole tile list.
 //! This changes no result: a Gaussian is left out of a pixel's walk only where
 //! [`crate::blend::evaluate`] certainly skips it, and skipped Gaussians touch neither the
 //! transmittance nor the stop decision, so every pixel makes the same decisions with the same
@@ -10,8 +11,11 @@
 //! # Why the reach is conservative
 //! `evaluate` skips a Gaussian wherever its computed `sigma` exceeds `sigma_cut`. With the conic
 //! `C = [[a, b], [b, c]]` positive definite, `sigma(d) = d^T C d / 2 <= s` holds only inside an
-//! ellipse whose half-extents are `sqrt(2 s c / det)` along x and `sqrt(2 s a / det)` along y
-//! (`det = a c - b^2`). The reach is that box for `s = 1.01 sigma_cut + 0.01`, computed in `f64`.
+//! ellipse. Its rows span half-extent `sqrt(2 s a / det)` in y (`det = a c - b^2`), and at a
+//! row with offset `dy`, its chord is the `dx` with `a dx^2 + 2 b dy dx + c dy^2 <= 2 s`:
+//! `dx = (-b dy +- sqrt(2 s a - det dy^2)) / a`. The reach of a row is that chord for
+//! `s = 1.01 sigma_cut + 0.01`, computed in `f64` at the row's pixel centre and widened by
+//! `1e-6` px on each side (far more than the `f64` rounding of the chord).
 //!
 //! Outside it the exact `sigma` is above `s`; the computed one differs from it by rounding. Each
 //! of `dx = mx - px` and `dy` is one correctly rounded subtraction (relative error `u`), and the
@@ -26,7 +30,12 @@
 
 use gaussian::Real;
 
-use crate::blend::Splat;
+use crate::blend::{Splat, TILE_SIZE};
+
+/// Columns per list segment of a row: the lane count of the vector kernels.
+pub(crate) const SPAN: usize = 8;
+/// Segments per tile row.
+pub(crate) const SEGMENTS: usize = TILE_SIZE as usize / SPAN;
 
 /// Relative widening of `sigma_cut` for the reach (see the module docs).
 const CUT_SCALE: f64 = 1.01;
@@ -34,9 +43,11 @@ const CUT_SCALE: f64 = 1.01;
 const CUT_PAD: f64 = 0.01;
 /// The reach is computed only for conics with `det > DEGENERACY (a + c)^2`.
 const DEGENERACY: f64 = 1e-3;
+/// Widening of each chord, in pixels.
+const CHORD_PAD: f64 = 1e-6;
 
 /// One Gaussian of a row list: its index in the tile list and the tile-local columns
-/// `x_lo..=x_hi` outside which it is certainly skipped.
+/// `x_lo..=x_hi` of the row outside which it is certainly skipped.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct RowEntry {
     pub k: u32,
@@ -47,13 +58,11 @@ pub(crate) struct RowEntry {
 /// The row lists of one tile (per-thread working memory, rebuilt for each tile).
 #[derive(Default, Debug)]
 pub(crate) struct RowLists {
-    /// `offsets[r]..offsets[r + 1]` is row `r`'s slice of `entries`.
+    /// `offsets[i]..offsets[i + 1]` is list `i = row * SEGMENTS + segment` of `entries`.
     offsets: Vec<usize>,
     entries: Vec<RowEntry>,
-    /// Per row: the next free slot of `entries` while filling.
-    cursor: Vec<usize>,
-    /// Per Gaussian of the tile: its local reach `[x_lo, x_hi, y_lo, y_hi]`, or `None`.
-    reach: Vec<Option<[u8; 4]>>,
+    /// The entries in tile order with their list, before the counting sort.
+    staged: Vec<(u32, RowEntry)>,
 }
 
 impl RowLists {
@@ -61,100 +70,185 @@ impl RowLists {
     /// [`crate::TileBins::pixel_rect`] gives it), for its packed Gaussians in tile order.
     pub fn build<T: Real>(&mut self, packed: &[Splat<T>], rect: (u32, u32, u32, u32)) {
         let (x0, y0, x1, y1) = rect;
-        let rows = (y1 - y0) as usize;
-        self.reach.clear();
-        self.reach
-            .extend(packed.iter().map(|s| reach(s, x0, y0, x1, y1)));
-        // Counting sort by row, filled in tile order, so each row keeps the front-to-back order.
-        self.offsets.clear();
-        self.offsets.resize(rows + 1, 0);
-        for [_, _, y_lo, y_hi] in self.reach.iter().flatten() {
-            for r in *y_lo..=*y_hi {
-                self.offsets[r as usize + 1] += 1;
+        let (w, h) = ((x1 - x0) as usize, (y1 - y0) as usize);
+        let lists = h * SEGMENTS;
+        self.staged.clear();
+        for (k, s) in packed.iter().enumerate() {
+            let k = k as u32;
+            let mut push = |row: usize, x_lo: usize, x_hi: usize| {
+                let e = RowEntry {
+                    k,
+                    x_lo: x_lo as u8,
+                    x_hi: x_hi as u8,
+                };
+                for seg in x_lo / SPAN..=x_hi / SPAN {
+                    self.staged.push(((row * SEGMENTS + seg) as u32, e));
+                }
+            };
+            match Reach::of(s, x0, y0) {
+                Reach::Nothing => {}
+                Reach::Whole => (0..h).for_each(|row| push(row, 0, w - 1)),
+                Reach::Ellipse(e) => {
+                    for row in e.rows(h) {
+                        if let Some((lo, hi)) = e.chord(row, w) {
+                            push(row, lo, hi);
+                        }
+                    }
+                }
             }
         }
-        for r in 0..rows {
-            self.offsets[r + 1] += self.offsets[r];
+        // Counting sort by list, stable, so each list keeps the front-to-back order.
+        self.offsets.clear();
+        self.offsets.resize(lists + 1, 0);
+        for &(list, _) in &self.staged {
+            self.offsets[list as usize + 1] += 1;
+        }
+        for i in 0..lists {
+            self.offsets[i + 1] += self.offsets[i];
         }
         self.entries.clear();
         self.entries.resize(
-            self.offsets[rows],
+            self.staged.len(),
             RowEntry {
                 k: 0,
                 x_lo: 0,
                 x_hi: 0,
             },
         );
-        self.cursor.clear();
-        self.cursor.extend_from_slice(&self.offsets[..rows]);
-        for (k, r) in self.reach.iter().enumerate() {
-            let Some([x_lo, x_hi, y_lo, y_hi]) = *r else {
-                continue;
-            };
-            for row in y_lo..=y_hi {
-                let slot = &mut self.cursor[row as usize];
-                self.entries[*slot] = RowEntry {
-                    k: k as u32,
-                    x_lo,
-                    x_hi,
-                };
-                *slot += 1;
-            }
+        // `offsets[i]` serves as list i's cursor, then is restored from its successor.
+        for &(list, e) in &self.staged {
+            let slot = &mut self.offsets[list as usize];
+            self.entries[*slot] = e;
+            *slot += 1;
         }
+        for i in (1..=lists).rev() {
+            self.offsets[i] = self.offsets[i - 1];
+        }
+        self.offsets[0] = 0;
     }
 
-    /// The Gaussians that can be blended in tile-local row `r`, in tile order.
+    /// The Gaussians that can be blended in segment `seg` (columns `seg * SPAN..`) of tile-local
+    /// row `r`, in tile order.
     #[inline]
-    pub fn row(&self, r: u32) -> &[RowEntry] {
-        let r = r as usize;
-        &self.entries[self.offsets[r]..self.offsets[r + 1]]
+    pub fn list(&self, r: u32, seg: usize) -> &[RowEntry] {
+        let i = r as usize * SEGMENTS + seg;
+        &self.entries[self.offsets[i]..self.offsets[i + 1]]
     }
 }
 
-/// The tile indices of a row list's Gaussians that can be blended at tile-local column `lx`,
-/// in tile order: the walk of one pixel.
+/// The tile indices of a list's Gaussians that can be blended at tile-local column `lx`, in
+/// tile order: the walk of one pixel.
 #[inline]
-pub(crate) fn at_column(row: &[RowEntry], lx: u8) -> impl Iterator<Item = usize> + '_ {
-    row.iter()
+pub(crate) fn at_column(list: &[RowEntry], lx: u8) -> impl Iterator<Item = usize> + '_ {
+    list.iter()
         .filter(move |e| e.x_lo <= lx && lx <= e.x_hi)
         .map(|e| e.k as usize)
 }
 
-/// The tile-local pixel rectangle `[x_lo, x_hi, y_lo, y_hi]` (inclusive) outside which
-/// `evaluate` certainly skips `s`, for the tile `(x0, y0, x1, y1)`; `None` when it reaches no
-/// pixel of the tile.
-pub(crate) fn reach<T: Real>(s: &Splat<T>, x0: u32, y0: u32, x1: u32, y1: u32) -> Option<[u8; 4]> {
-    let whole = Some([0, (x1 - x0 - 1) as u8, 0, (y1 - y0 - 1) as u8]);
-    let cut = s.sigma_cut.to_f64_exact();
-    if cut.is_nan() || cut == f64::INFINITY {
-        return whole;
+/// Where a Gaussian can be blended in a tile.
+enum Reach {
+    Nothing,
+    Whole,
+    Ellipse(Ellipse),
+}
+
+/// The widened ellipse of a Gaussian, in tile-local pixel coordinates.
+struct Ellipse {
+    /// Centre, relative to the tile's corner.
+    mx: f64,
+    my: f64,
+    a: f64,
+    b: f64,
+    det: f64,
+    /// `2 s`.
+    s2: f64,
+}
+
+impl Reach {
+    /// The reach of `s` in the tile whose corner is `(x0, y0)`.
+    fn of<T: Real>(s: &Splat<T>, x0: u32, y0: u32) -> Reach {
+        let cut = s.sigma_cut.to_f64_exact();
+        if cut.is_nan() || cut == f64::INFINITY {
+            return Reach::Whole;
+        }
+        if cut < 0.0 {
+            return Reach::Nothing;
+        }
+        let (a, b, c) = (s.a.to_f64_exact(), s.b.to_f64_exact(), s.c.to_f64_exact());
+        let (mx, my) = (s.mx.to_f64_exact(), s.my.to_f64_exact());
+        let det = a * c - b * b;
+        let trace = a + c;
+        if ![a, b, c, mx, my, det].iter().all(|v| v.is_finite())
+            || a <= 0.0
+            || c <= 0.0
+            || det <= DEGENERACY * trace * trace
+        {
+            return Reach::Whole;
+        }
+        Reach::Ellipse(Ellipse {
+            mx: mx - x0 as f64,
+            my: my - y0 as f64,
+            a,
+            b,
+            det,
+            s2: 2.0 * (CUT_SCALE * cut + CUT_PAD),
+        })
     }
-    if cut < 0.0 {
-        return None;
+}
+
+/// `ceil(v)` clamped to `[lo, hi + 1]`, without a library call (`v` not NaN).
+#[inline]
+fn ceil_in(v: f64, lo: i64, hi: i64) -> i64 {
+    if v <= lo as f64 {
+        return lo;
     }
-    let (a, b, c) = (s.a.to_f64_exact(), s.b.to_f64_exact(), s.c.to_f64_exact());
-    let (mx, my) = (s.mx.to_f64_exact(), s.my.to_f64_exact());
-    let det = a * c - b * b;
-    let trace = a + c;
-    if ![a, b, c, mx, my, det].iter().all(|v| v.is_finite())
-        || a <= 0.0
-        || c <= 0.0
-        || det <= DEGENERACY * trace * trace
-    {
-        return whole;
+    if v > hi as f64 {
+        return hi + 1;
     }
-    let s2 = 2.0 * (CUT_SCALE * cut + CUT_PAD);
-    let hx = (s2 * c / det).sqrt();
-    let hy = (s2 * a / det).sqrt();
-    // Pixel i (centre i + 0.5) is in reach when |m - i - 0.5| <= h.
-    let span = |m: f64, h: f64, lo: u32, hi: u32| -> Option<(u8, u8)> {
-        let first = (m - h - 0.5).ceil().max(lo as f64);
-        let last = (m + h - 0.5).floor().min(hi as f64 - 1.0);
-        (first <= last).then(|| ((first as u32 - lo) as u8, (last as u32 - lo) as u8))
-    };
-    let (x_lo, x_hi) = span(mx, hx, x0, x1)?;
-    let (y_lo, y_hi) = span(my, hy, y0, y1)?;
-    Some([x_lo, x_hi, y_lo, y_hi])
+    let t = v as i64;
+    t + ((t as f64) < v) as i64
+}
+
+/// `floor(v)` clamped to `[lo - 1, hi]`, without a library call (`v` not NaN).
+#[inline]
+fn floor_in(v: f64, lo: i64, hi: i64) -> i64 {
+    if v >= hi as f64 {
+        return hi;
+    }
+    if v < lo as f64 {
+        return lo - 1;
+    }
+    let t = v as i64;
+    t - ((t as f64) > v) as i64
+}
+
+impl Ellipse {
+    /// The tile-local rows (of `h`) the ellipse can reach: pixel row `i` (centre `i + 0.5`) when
+    /// `|my - i - 0.5| <= sqrt(2 s a / det)`.
+    fn rows(&self, h: usize) -> std::ops::Range<usize> {
+        let hy = (self.s2 * self.a / self.det).sqrt() + CHORD_PAD;
+        let first = ceil_in(self.my - hy - 0.5, 0, h as i64 - 1);
+        let last = floor_in(self.my + hy - 0.5, 0, h as i64 - 1);
+        first as usize..(last + 1).max(first) as usize
+    }
+
+    /// The tile-local columns (of `w`) of `row` in the ellipse's chord, or `None`.
+    fn chord(&self, row: usize, w: usize) -> Option<(usize, usize)> {
+        let dy = self.my - (row as f64 + 0.5);
+        let disc = self.s2 * self.a - self.det * dy * dy;
+        if disc.is_nan() {
+            return None;
+        }
+        let half = disc.max(0.0).sqrt() / self.a + CHORD_PAD;
+        // dx = mx - px lies in [centre - half, centre + half], centre = -b dy / a.
+        let centre = -self.b * dy / self.a;
+        let px_lo = self.mx - centre - half;
+        let px_hi = self.mx - centre + half;
+        // Pixel i (centre i + 0.5) is in reach when px_lo <= i + 0.5 <= px_hi.
+        let first = ceil_in(px_lo - 0.5, 0, w as i64 - 1);
+        let last = floor_in(px_hi - 0.5, 0, w as i64 - 1);
+        (first <= last).then_some((first as usize, last as usize))
+    }
 }
 
 #[cfg(test)]
@@ -162,6 +256,21 @@ mod tests {
     use super::*;
     use crate::blend::{evaluate, pixel_centre, TILE_SIZE};
     use proptest::prelude::*;
+
+    /// The pixels of a tile whose walk contains the single Gaussian `s` (tile-local, row-major).
+    fn reached<T: Real>(s: &Splat<T>, rect: (u32, u32, u32, u32)) -> Vec<bool> {
+        let mut rows = RowLists::default();
+        rows.build(std::slice::from_ref(s), rect);
+        let (x0, y0, x1, y1) = rect;
+        let mut out = vec![];
+        for ly in 0..y1 - y0 {
+            for lx in 0..(x1 - x0) as u8 {
+                let list = rows.list(ly, lx as usize / SPAN);
+                out.push(at_column(list, lx).next().is_some());
+            }
+        }
+        out
+    }
 
     /// Every pixel of a tile outside a Gaussian's reach is one that `evaluate` skips.
     fn check_conservative<T: Real>(mean: [f64; 2], conic: [f64; 3], opacity: f64) {
@@ -171,20 +280,15 @@ mod tests {
             T::lit(opacity),
         );
         let (x0, y0) = (TILE_SIZE, 2 * TILE_SIZE);
-        let (x1, y1) = (x0 + TILE_SIZE, y0 + TILE_SIZE);
-        let r = reach(&s, x0, y0, x1, y1);
-        for py in y0..y1 {
-            for px in x0..x1 {
-                let (lx, ly) = ((px - x0) as u8, (py - y0) as u8);
-                let inside = r.is_some_and(|[xl, xh, yl, yh]| {
-                    (xl..=xh).contains(&lx) && (yl..=yh).contains(&ly)
-                });
-                if !inside {
-                    assert!(
-                        evaluate(&s, pixel_centre::<T>(px), pixel_centre::<T>(py)).is_none(),
-                        "pixel ({px}, {py}) is blended but outside the reach {r:?} of {s:?}"
-                    );
-                }
+        let rect = (x0, y0, x0 + TILE_SIZE, y0 + TILE_SIZE);
+        let inside = reached(&s, rect);
+        for (i, &inside) in inside.iter().enumerate() {
+            let (px, py) = (x0 + i as u32 % TILE_SIZE, y0 + i as u32 / TILE_SIZE);
+            if !inside {
+                assert!(
+                    evaluate(&s, pixel_centre::<T>(px), pixel_centre::<T>(py)).is_none(),
+                    "pixel ({px}, {py}) is blended but outside the reach of {s:?}"
+                );
             }
         }
     }
@@ -220,18 +324,31 @@ mod tests {
 
     #[test]
     fn degenerate_and_non_finite_gaussians_reach_the_whole_tile_or_nothing() {
-        let whole = Some([0, 15, 0, 15]);
-        let at = |conic: [f64; 3], opacity: f64| {
-            reach(&Splat::new([8.0, 8.0], conic, opacity), 0, 0, 16, 16)
-        };
+        let rect = (0, 0, 16, 16);
+        let at =
+            |conic: [f64; 3], opacity: f64| reached(&Splat::new([8.0, 8.0], conic, opacity), rect);
+        let count = |r: &[bool]| r.iter().filter(|&&b| b).count();
         // Not positive definite, nearly degenerate, or non-finite: no culling.
-        assert_eq!(at([1.0, 2.0, 1.0], 0.5), whole);
-        assert_eq!(at([1.0, 0.9999, 1.0], 0.5), whole);
-        assert_eq!(at([f64::NAN, 0.0, 1.0], 0.5), whole);
+        assert_eq!(count(&at([1.0, 2.0, 1.0], 0.5)), 256);
+        assert_eq!(count(&at([1.0, 0.9999, 1.0], 0.5)), 256);
+        assert_eq!(count(&at([f64::NAN, 0.0, 1.0], 0.5)), 256);
         // Opacity below ALPHA_MIN: skipped everywhere.
-        assert_eq!(at([1.0, 0.0, 1.0], 1e-3), None);
-        // A small round Gaussian in the middle reaches a small box around its centre.
-        let r = at([1.0, 0.0, 1.0], 0.5).unwrap();
-        assert!(r[0] > 3 && r[1] < 12 && r[2] > 3 && r[3] < 12, "{r:?}");
+        assert_eq!(count(&at([1.0, 0.0, 1.0], 1e-3)), 0);
+        // A small round Gaussian in the middle reaches a disc around its centre: the centre
+        // pixels, not the corners of its bounding box.
+        let r = at([1.0, 0.0, 1.0], 0.5);
+        assert!(r[8 * 16 + 8] && r[7 * 16 + 7]);
+        assert!(count(&r) < 60, "{}", count(&r));
+        assert!(!r[5 * 16 + 5] && !r[0]);
+    }
+
+    #[test]
+    fn partial_tiles_and_both_segments_are_covered() {
+        // A wide ellipse across a 13-column, 5-row tile at the image border reaches both
+        // segments of its row and no column past the tile.
+        let s = Splat::new([6.5f64, 2.5], [0.02, 0.0, 2.0], 0.9);
+        let r = reached(&s, (0, 0, 13, 5));
+        assert_eq!(r.len(), 65);
+        assert!((0..13).all(|x| r[2 * 13 + x]), "{r:?}");
     }
 }

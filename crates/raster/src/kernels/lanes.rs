@@ -25,10 +25,13 @@ use crate::forward::Splats;
 use crate::rows::{RowEntry, RowLists};
 use crate::tiles::TileBins;
 
-/// Pixels evaluated together: one 256-bit vector of `f32`.
-pub(crate) const LANES: usize = 8;
+/// Pixels evaluated together: one 256-bit vector of `f32`, one segment of the row lists.
+pub(crate) const LANES: usize = crate::rows::SPAN;
 /// Lane blocks per tile row.
 const BLOCKS: usize = TILE_SIZE as usize / LANES;
+/// Entries evaluated ahead of the forward pass's blending (a few more than are typically
+/// blended before a block saturates would waste evaluations; far fewer would add branches).
+const STAGED: usize = 16;
 /// Channels per step of the channel loops; channel rows are padded with zeros to a multiple.
 const CHUNK: usize = 8;
 
@@ -123,6 +126,26 @@ struct Eval {
 /// exponential.
 #[inline(always)]
 fn evaluate(s: &Splat<f32>, lanes: Mask, cx: &[f32; LANES], cy: f32) -> Option<Eval> {
+    let (dx, sigma, hit) = sigma_lanes(s, lanes, cx, cy);
+    (hit != 0).then(|| alpha_lanes(s, hit, dx, &sigma))
+}
+
+/// [`evaluate`] without the early exit: the same lanes and values (`hit` may be empty), with
+/// no data-dependent branch.
+#[inline(always)]
+fn evaluate_all(s: &Splat<f32>, lanes: Mask, cx: &[f32; LANES], cy: f32) -> Eval {
+    let (dx, sigma, hit) = sigma_lanes(s, lanes, cx, cy);
+    alpha_lanes(s, hit, dx, &sigma)
+}
+
+/// The offsets, `sigma` and the lanes of `lanes` where `sigma` is not skipped.
+#[inline(always)]
+fn sigma_lanes(
+    s: &Splat<f32>,
+    lanes: Mask,
+    cx: &[f32; LANES],
+    cy: f32,
+) -> ([f32; LANES], [f32; LANES], Mask) {
     let dy = s.my - cy;
     let c_dy2 = s.c * (dy * dy);
     let mut dx = [0f32; LANES];
@@ -133,15 +156,18 @@ fn evaluate(s: &Splat<f32>, lanes: Mask, cx: &[f32; LANES], cy: f32) -> Option<E
         sigma[l] = 0.5 * (s.a * (dx[l] * dx[l]) + c_dy2) + s.b * dx[l] * dy;
         keep[l] = !(sigma[l].is_nan() || sigma[l] < 0.0 || sigma[l] > s.sigma_cut);
     }
-    let hit = bits(&keep) & lanes;
-    if hit == 0 {
-        return None;
-    }
+    (dx, sigma, bits(&keep) & lanes)
+}
+
+/// The falloff, clamped alpha and the lanes of `hit` whose alpha is not skipped.
+#[inline(always)]
+fn alpha_lanes(s: &Splat<f32>, hit: Mask, dx: [f32; LANES], sigma: &[f32; LANES]) -> Eval {
     let alpha_max = ALPHA_MAX as f32;
     let alpha_min = ALPHA_MIN as f32;
     let mut falloff = [0f32; LANES];
     let mut alpha = [0f32; LANES];
     let mut clamped = [false; LANES];
+    let mut keep = [false; LANES];
     for l in 0..LANES {
         falloff[l] = exp_f32(-sigma[l]);
         let raw = s.opacity * falloff[l];
@@ -149,31 +175,37 @@ fn evaluate(s: &Splat<f32>, lanes: Mask, cx: &[f32; LANES], cy: f32) -> Option<E
         alpha[l] = if clamped[l] { alpha_max } else { raw };
         keep[l] = !(alpha[l].is_nan() || alpha[l] < alpha_min);
     }
-    Some(Eval {
+    Eval {
         hit: hit & bits(&keep),
         clamped: bits(&clamped),
         dx,
         falloff,
         alpha,
-    })
+    }
 }
 
-/// Applies the transmittance stop to a block: lanes of `ev.hit` whose transmittance would fall
+/// Applies the transmittance stop to a block: live lanes of `hit` whose transmittance would fall
 /// to the threshold stop (they leave `live` and do not blend). Returns the blending lanes and
 /// the transmittances in front of the Gaussian, and moves `trans` behind it.
 #[inline(always)]
-fn advance(ev: &Eval, trans: &mut [f32; LANES], live: &mut Mask) -> (Mask, [f32; LANES]) {
+fn advance(
+    hit: Mask,
+    alpha: &[f32; LANES],
+    trans: &mut [f32; LANES],
+    live: &mut Mask,
+) -> (Mask, [f32; LANES]) {
     let t_min = TRANSMITTANCE_MIN as f32;
     let front = *trans;
     let mut next = [0f32; LANES];
     let mut low = [false; LANES];
     for l in 0..LANES {
-        next[l] = trans[l] * (1.0 - ev.alpha[l]);
+        next[l] = trans[l] * (1.0 - alpha[l]);
         low[l] = next[l] <= t_min;
     }
-    let stop = ev.hit & bits(&low);
+    let hit = hit & *live;
+    let stop = hit & bits(&low);
     *live &= !stop;
-    let blend = ev.hit & !stop;
+    let blend = hit & !stop;
     for l in 0..LANES {
         trans[l] = if has(blend, l) { next[l] } else { trans[l] };
     }
@@ -262,36 +294,45 @@ impl WithSimd for ForwardTile<'_, '_> {
         for py in y0..y1 {
             let ly = (py - y0) as usize;
             let cy = pixel_centre::<f32>(py);
-            let row = rows.row(py - y0);
             for first in (0..BLOCKS).map(|b| b * LANES).take_while(|&f| f < width) {
+                let row = rows.list(py - y0, first / LANES);
                 let (cx, mut live) = block_lanes(x0, first, width);
                 block.clear();
                 block.resize(LANES * dp, 0.0);
                 let mut trans = [1f32; LANES];
                 let mut z = [0f32; LANES];
                 let mut n = [0u32; LANES];
-                for e in row {
-                    let lanes = reach_lanes(e, first) & live;
-                    if lanes == 0 {
-                        continue;
+                let mut staged = [(0u32, 0 as Mask, [0f32; LANES]); STAGED];
+                // Evaluate the next entries until STAGED ones hit some lane (without
+                // data-dependent branches: every entry is written, a hit one is kept), then
+                // blend those in order.
+                let mut next_entry = 0;
+                'walk: while next_entry < row.len() {
+                    let mut m = 0;
+                    while next_entry < row.len() && m < STAGED {
+                        let e = &row[next_entry];
+                        next_entry += 1;
+                        let lanes = reach_lanes(e, first) & live;
+                        let ev = evaluate_all(&packed[e.k as usize], lanes, &cx, cy);
+                        staged[m] = (e.k, ev.hit, ev.alpha);
+                        m += (ev.hit != 0) as usize;
                     }
-                    let k = e.k as usize;
-                    let Some(ev) = evaluate(&packed[k], lanes, &cx, cy) else {
-                        continue;
-                    };
-                    let (blend, front) = advance(&ev, &mut trans, &mut live);
-                    let depth = splats.depths[ids[k] as usize];
-                    let mut w = [0f32; LANES];
-                    for l in 0..LANES {
-                        w[l] = ev.alpha[l] * front[l];
-                        let b = has(blend, l);
-                        z[l] = if b { z[l] + w[l] * depth } else { z[l] };
-                        n[l] += b as u32;
-                    }
-                    let col = &channels[k * dp..(k + 1) * dp];
-                    for_each_lane(blend, |l| axpy(&mut block[l * dp..(l + 1) * dp], w[l], col));
-                    if live == 0 {
-                        break;
+                    for &(k, hit, alpha) in &staged[..m] {
+                        let k = k as usize;
+                        let (blend, front) = advance(hit, &alpha, &mut trans, &mut live);
+                        let depth = splats.depths[ids[k] as usize];
+                        let mut w = [0f32; LANES];
+                        for l in 0..LANES {
+                            w[l] = alpha[l] * front[l];
+                            let b = has(blend, l);
+                            z[l] = if b { z[l] + w[l] * depth } else { z[l] };
+                            n[l] += b as u32;
+                        }
+                        let col = &channels[k * dp..(k + 1) * dp];
+                        for_each_lane(blend, |l| axpy(&mut block[l * dp..(l + 1) * dp], w[l], col));
+                        if live == 0 {
+                            break 'walk;
+                        }
                     }
                 }
                 let lp0 = ly * TILE_SIZE as usize + first;
@@ -361,8 +402,8 @@ impl WithSimd for BackwardTile<'_, '_> {
         block.resize(LANES * dp, 0.0);
         for py in y0..y1 {
             let cy = pixel_centre::<f32>(py);
-            let row = rows.row(py - y0);
             for first in (0..BLOCKS).map(|b| b * LANES).take_while(|&f| f < width) {
+                let row = rows.list(py - y0, first / LANES);
                 let (cx, mut live) = block_lanes(x0, first, width);
                 let count = LANES.min(width - first);
 
@@ -377,7 +418,7 @@ impl WithSimd for BackwardTile<'_, '_> {
                     let Some(ev) = evaluate(&packed[e.k as usize], lanes, &cx, cy) else {
                         continue;
                     };
-                    let (blend, front) = advance(&ev, &mut trans, &mut live);
+                    let (blend, front) = advance(ev.hit, &ev.alpha, &mut trans, &mut live);
                     if blend != 0 {
                         blended.push(BlendedLanes {
                             k: e.k,

@@ -1,7 +1,7 @@
 //! The reference tile loops: one pixel and one Gaussian at a time, generic over
 //! [`gaussian::Real`].
 //!
-//! Forward: each pixel walks its row list ([`crate::rows`]) front to back with the rule of
+//! Forward: each pixel walks its row segment's list ([`crate::rows`]) front to back with the rule of
 //! [`crate::blend`]. Backward: each pixel re-runs that walk, keeping the blended Gaussians with
 //! their transmittances, then sweeps them back to front (see [`crate::backward`] for the
 //! maths), adding its contributions to the tile's gradient records. Pixels are visited in tile
@@ -14,7 +14,7 @@ use super::TileOut;
 use crate::backward::Cotangents;
 use crate::blend::{evaluate, pixel_centre, Hit, Splat, TILE_SIZE, TRANSMITTANCE_MIN};
 use crate::forward::Splats;
-use crate::rows::{at_column, RowLists};
+use crate::rows::{at_column, RowLists, SPAN};
 use crate::tiles::TileBins;
 
 /// One blended Gaussian of the current pixel: its position in the tile list, its hit, and the
@@ -65,10 +65,10 @@ pub(crate) fn forward_tile<T: Real>(
     let t_min = T::lit(TRANSMITTANCE_MIN);
     for py in y0..y1 {
         let cy = pixel_centre::<T>(py);
-        let row = rows.row(py - y0);
         for px in x0..x1 {
             let cx = pixel_centre::<T>(px);
             let lx = (px - x0) as u8;
+            let row = rows.list(py - y0, lx as usize / SPAN);
             let lp = ((py - y0) * TILE_SIZE + (px - x0)) as usize;
             let pixel = &mut out.image[lp * d..(lp + 1) * d];
             let mut trans = T::one();
@@ -128,10 +128,10 @@ pub(crate) fn backward_tile<T: Real>(
     let half = T::lit(0.5);
     for py in y0..y1 {
         let cy = pixel_centre::<T>(py);
-        let row = rows.row(py - y0);
         for px in x0..x1 {
             let cx = pixel_centre::<T>(px);
             let lx = (px - x0) as u8;
+            let row = rows.list(py - y0, lx as usize / SPAN);
             let p = py as usize * width + px as usize;
 
             // Front to back: the forward pass's decisions, alphas and transmittances, over the

@@ -15,7 +15,8 @@
 //! row with offset `dy`, its chord is the `dx` with `a dx^2 + 2 b dy dx + c dy^2 <= 2 s`:
 //! `dx = (-b dy +- sqrt(2 s a - det dy^2)) / a`. The reach of a row is that chord for
 //! `s = 1.01 sigma_cut + 0.01`, computed in `f64` at the row's pixel centre and widened by
-//! `1e-6` px on each side (far more than the `f64` rounding of the chord).
+//! `1e-6` px on each side: a pixel the `f64` rounding of the chord could leave out lies at
+//! `sigma` within a relative `1e-12` or so of `s`, far above the cut (the 1% margin below).
 //!
 //! Outside it the exact `sigma` is above `s`; the computed one differs from it by rounding. Each
 //! of `dx = mx - px` and `dy` is one correctly rounded subtraction (relative error `u`), and the
@@ -157,11 +158,12 @@ struct Ellipse {
     /// Centre, relative to the tile's corner.
     mx: f64,
     my: f64,
-    a: f64,
-    b: f64,
+    /// `b / a` and `1 / a`.
+    b_over_a: f64,
+    inv_a: f64,
     det: f64,
-    /// `2 s`.
-    s2: f64,
+    /// `2 s a`.
+    s2a: f64,
 }
 
 impl Reach {
@@ -188,10 +190,10 @@ impl Reach {
         Reach::Ellipse(Ellipse {
             mx: mx - x0 as f64,
             my: my - y0 as f64,
-            a,
-            b,
+            b_over_a: b / a,
+            inv_a: 1.0 / a,
             det,
-            s2: 2.0 * (CUT_SCALE * cut + CUT_PAD),
+            s2a: 2.0 * (CUT_SCALE * cut + CUT_PAD) * a,
         })
     }
 }
@@ -226,7 +228,7 @@ impl Ellipse {
     /// The tile-local rows (of `h`) the ellipse can reach: pixel row `i` (centre `i + 0.5`) when
     /// `|my - i - 0.5| <= sqrt(2 s a / det)`.
     fn rows(&self, h: usize) -> std::ops::Range<usize> {
-        let hy = (self.s2 * self.a / self.det).sqrt() + CHORD_PAD;
+        let hy = (self.s2a / self.det).sqrt() + CHORD_PAD;
         let first = ceil_in(self.my - hy - 0.5, 0, h as i64 - 1);
         let last = floor_in(self.my + hy - 0.5, 0, h as i64 - 1);
         first as usize..(last + 1).max(first) as usize
@@ -235,13 +237,13 @@ impl Ellipse {
     /// The tile-local columns (of `w`) of `row` in the ellipse's chord, or `None`.
     fn chord(&self, row: usize, w: usize) -> Option<(usize, usize)> {
         let dy = self.my - (row as f64 + 0.5);
-        let disc = self.s2 * self.a - self.det * dy * dy;
+        let disc = self.s2a - self.det * dy * dy;
         if disc.is_nan() {
             return None;
         }
-        let half = disc.max(0.0).sqrt() / self.a + CHORD_PAD;
+        let half = disc.max(0.0).sqrt() * self.inv_a + CHORD_PAD;
         // dx = mx - px lies in [centre - half, centre + half], centre = -b dy / a.
-        let centre = -self.b * dy / self.a;
+        let centre = -self.b_over_a * dy;
         let px_lo = self.mx - centre - half;
         let px_hi = self.mx - centre + half;
         // Pixel i (centre i + 0.5) is in reach when px_lo <= i + 0.5 <= px_hi.

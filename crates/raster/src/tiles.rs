@@ -5,8 +5,11 @@
 //! tile grid. Each tile lists the Gaussians touching it in ascending view depth; ties keep
 //! ascending Gaussian index (a stable sort, as `torch.sort(stable=True)` over all Gaussians).
 //!
-//! Memory: one `u32` per tile-Gaussian intersection plus one `usize` per tile, and transiently one
-//! `u32` per Gaussian (the depth order) and three `u32`/`usize` per tile.
+//! The depth order comes from a radix sort ([`depth_order`]), linear in the number of Gaussians.
+//!
+//! Memory: one `u32` per tile-Gaussian intersection plus one `usize` per tile, and transiently
+//! 32 bytes per Gaussian (its tile rectangle, and a key and index twice for the radix sort) and
+//! three `u32`/`usize` per tile.
 
 use gaussian::Real;
 use rayon::prelude::*;
@@ -114,10 +117,10 @@ impl TileBins {
             .collect();
 
         // Stable depth order of the Gaussians that touch any tile (ties: ascending index).
-        let mut order: Vec<u32> = (0..n as u32)
+        let order: Vec<u32> = (0..n as u32)
             .filter(|&g| rects[g as usize].is_some())
             .collect();
-        order.par_sort_by(|&i, &j| depths[i as usize].total_cmp_real(&depths[j as usize]));
+        let order = depth_order(order, depths);
 
         let mut counts = vec![0usize; tile_count];
         for r in rects.iter().flatten() {
@@ -237,17 +240,95 @@ impl TileBins {
     }
 }
 
-/// Ascending order on reals for the depth sort: numeric order (so `-0.0 == 0.0` and equal depths
-/// keep index order under the stable sort), NaN after every number.
-trait DepthOrder {
-    fn total_cmp_real(&self, other: &Self) -> std::cmp::Ordering;
+/// `ids` sorted stably by ascending depth: numeric order (so `-0.0 == 0.0` and equal depths
+/// keep their order in `ids`), NaN after every number.
+///
+/// A least-significant-digit radix sort of order-preserving 64-bit keys (the depth in `f64`,
+/// exactly, with its bits mapped so that unsigned order is numeric order), one stable counting
+/// pass per byte; a byte that all keys share is skipped (for `f32` depths, three of the eight
+/// always are). Linear in the number of Gaussians.
+pub fn depth_order<T: Real>(ids: Vec<u32>, depths: &[T]) -> Vec<u32> {
+    let key = |g: u32| -> u64 {
+        let d = depths[g as usize].to_f64_exact();
+        if d.is_nan() {
+            return u64::MAX;
+        }
+        // -0.0 sorts with 0.0.
+        let bits = if d == 0.0 { 0 } else { d.to_bits() };
+        if bits >> 63 == 1 {
+            !bits
+        } else {
+            bits | 1 << 63
+        }
+    };
+    let mut items: Vec<(u64, u32)> = ids.into_iter().map(|g| (key(g), g)).collect();
+    let mut counts = vec![[0usize; 256]; 8];
+    for &(k, _) in &items {
+        for (byte, c) in counts.iter_mut().enumerate() {
+            c[(k >> (8 * byte)) as usize & 0xff] += 1;
+        }
+    }
+    let mut spare = vec![(0u64, 0u32); items.len()];
+    for (byte, c) in counts.iter().enumerate() {
+        if c.contains(&items.len()) {
+            continue;
+        }
+        let mut start = [0usize; 256];
+        let mut total = 0;
+        for (s, &x) in start.iter_mut().zip(c) {
+            *s = total;
+            total += x;
+        }
+        for &item in &items {
+            let b = (item.0 >> (8 * byte)) as usize & 0xff;
+            spare[start[b]] = item;
+            start[b] += 1;
+        }
+        std::mem::swap(&mut items, &mut spare);
+    }
+    items.into_iter().map(|(_, g)| g).collect()
 }
 
-impl<T: Real> DepthOrder for T {
-    fn total_cmp_real(&self, other: &Self) -> std::cmp::Ordering {
-        match self.partial_cmp(other) {
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// Ascending order on reals for a comparison sort: numeric order, NaN after every number.
+    fn numeric(a: f64, b: f64) -> std::cmp::Ordering {
+        match a.partial_cmp(&b) {
             Some(o) => o,
-            None => self.is_nan().cmp(&other.is_nan()),
+            None => a.is_nan().cmp(&b.is_nan()),
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(300))]
+
+        // Any depths, with many ties, signed zeros, infinities and NaNs: the same order as a
+        // stable comparison sort, in f32 and f64.
+        #[test]
+        fn the_radix_depth_order_is_the_stable_numeric_order(
+            picks in prop::collection::vec((0usize..12, -1e6f64..1e6), 0..400),
+        ) {
+            let specials = [
+                0.0, -0.0, 1.0, 1.0, -1.0, f64::INFINITY, f64::NEG_INFINITY, f64::NAN,
+                f64::MIN_POSITIVE, -1e-300,
+            ];
+            let depths: Vec<f64> = picks
+                .iter()
+                .map(|&(i, v)| if i < specials.len() { specials[i] } else { v })
+                .collect();
+            let ids: Vec<u32> = (0..depths.len() as u32).rev().collect();
+            let mut expected = ids.clone();
+            expected.sort_by(|&i, &j| numeric(depths[i as usize], depths[j as usize]));
+            prop_assert_eq!(depth_order(ids.clone(), &depths), expected.clone());
+            let d32: Vec<f32> = depths.iter().map(|&d| d as f32).collect();
+            let mut expected32 = ids.clone();
+            expected32.sort_by(|&i, &j| {
+                numeric(d32[i as usize] as f64, d32[j as usize] as f64)
+            });
+            prop_assert_eq!(depth_order(ids, &d32), expected32);
         }
     }
 }

@@ -1,10 +1,10 @@
-//! Per-tile row lists: for each pixel row of a tile and each [`SPAN`]-column segment of it, the
+//! Per-tile row lists: for each pixel row of a tile and each 8-column segment of it, the
 //! tile's Gaussians (in front-to-back order) that can be blended somewhere in that segment of
 //! the row, each with the columns of the row it can reach.
 //!
 //! The forward and backward tile loops walk a pixel's list instead of the whole tile list.
-//! This changes no result: a Gaussian is left out of a pixel's walk only where
-//! [`crate::blend::evaluate`] certainly skips it, and skipped Gaussians touch neither the
+//! This changes no result: a Gaussian is left out of a pixel's walk only where the blending
+//! rule of [`crate::blend`] certainly skips it, and skipped Gaussians touch neither the
 //! transmittance nor the stop decision, so every pixel makes the same decisions with the same
 //! arithmetic in the same order.
 //!
@@ -198,30 +198,20 @@ impl Reach {
     }
 }
 
-/// `ceil(v)` clamped to `[lo, hi + 1]`, without a library call (`v` not NaN).
+/// `ceil(v)` clamped to `[lo, hi + 1]`, without branches or a library call (`v` not NaN).
 #[inline]
 fn ceil_in(v: f64, lo: i64, hi: i64) -> i64 {
-    if v <= lo as f64 {
-        return lo;
-    }
-    if v > hi as f64 {
-        return hi + 1;
-    }
-    let t = v as i64;
-    t + ((t as f64) < v) as i64
+    let c = v.max(lo as f64).min((hi + 1) as f64);
+    let t = c as i64;
+    t + ((t as f64) < c) as i64
 }
 
-/// `floor(v)` clamped to `[lo - 1, hi]`, without a library call (`v` not NaN).
+/// `floor(v)` clamped to `[lo - 1, hi]`, without branches or a library call (`v` not NaN).
 #[inline]
 fn floor_in(v: f64, lo: i64, hi: i64) -> i64 {
-    if v >= hi as f64 {
-        return hi;
-    }
-    if v < lo as f64 {
-        return lo - 1;
-    }
-    let t = v as i64;
-    t - ((t as f64) > v) as i64
+    let c = v.max((lo - 1) as f64).min(hi as f64);
+    let t = c as i64;
+    t - ((t as f64) > c) as i64
 }
 
 impl Ellipse {

@@ -1,12 +1,13 @@
 //! The tile kernels and the choice between them.
 //!
 //! Two implementations of the per-tile blending loops exist:
-//! * [`scalar`], the generic reference: one pixel and one Gaussian at a time, for any
+//! * `scalar`, the generic reference: one pixel and one Gaussian at a time, for any
 //!   [`gaussian::Real`]. It is the only path in `f64` (the oracle and gradient checks) and the
 //!   baseline of every benchmark.
-//! * [`lanes`], the `f32` vector kernels: a run of [`lanes::LANES`] pixels of a tile row against
-//!   one Gaussian at a time (lane masks for the skip, the alpha clamp and the transmittance
-//!   stop), and the channel accumulation and its backward vectorised across channels.
+//! * `lanes`, the `f32` vector kernels: a run of 8 pixels of a tile row (one segment of the row
+//!   lists of [`crate::rows`]) against one Gaussian at a time, with lane masks for the skip, the
+//!   alpha clamp and the transmittance stop; the channel accumulation and its backward are
+//!   vectorised across channels.
 //!
 //! Both evaluate every value with the same IEEE-754 operations in the same order (no fused
 //! multiply-add; the exponential is [`gaussian::exp_f32`] in both), so in `f32` they make the

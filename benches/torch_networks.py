@@ -3,7 +3,8 @@
 Optional and never part of the build or the tests: run by benches/side_by_side.sh when a Python
 with PyTorch is available (for example the environment built by ../shared/oracle/setup.sh).
 Same shapes as the Rust benches: 256x256 input, fullres (no pooling, no upsampling), float32,
-two threads, gradients off. Prints one line per pass: name, median seconds, GFLOP/s.
+two threads; gradients off except in the decoder forward+backward (input and weight gradients).
+Prints one line per pass: name, median seconds, GFLOP/s.
 """
 import statistics
 import sys
@@ -62,8 +63,31 @@ def bench(name, net, channels, reps=5):
     print(f"{name}\t{med:.4f}\t{flops(net, x) / med / 1e9:.1f}")
 
 
+def bench_forward_backward(name, net, channels, reps=5):
+    """Forward with a tape, then the gradients of the input and of every weight for a fixed
+    cotangent on the output (as Decoder::forward_with_tape + Decoder::backward in dsgs)."""
+    x = torch.rand(1, channels, SIZE, SIZE, requires_grad=True)
+    with torch.no_grad():
+        cot = torch.rand_like(net(x))
+
+    def step():
+        net.zero_grad(set_to_none=True)
+        x.grad = None
+        net(x).backward(cot)
+
+    step()
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - t0)
+    med = statistics.median(times)
+    print(f"{name}\t{med:.4f}\t{3 * flops(net, x) / med / 1e9:.1f}")
+
+
 print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads")
 print("pass\tseconds\tGFLOP/s")
 bench("encoder_relu3_1_fullres_256", encoder(3), 3)
 bench("encoder_relu4_1_fullres_256", encoder(4), 3, reps=3)
 bench("decoder_relu3_1_fullres_256", decoder3(), 256)
+bench_forward_backward("decoder_relu3_1_fullres_forward_backward_256", decoder3(), 256)

@@ -177,6 +177,12 @@ pub fn rasterize_backward_with<T: Real>(
         (Some(token), Some(s), Some(b), Some(c)) => Some((token, s, b, c)),
         _ => None,
     };
+    let packed32 = lanes_in.map(|(_, s, _, _)| s.packed()).unwrap_or_default();
+    let packed = if lanes_in.is_some() {
+        Vec::new()
+    } else {
+        splats.packed()
+    };
     // Each Gaussian's intersections in ascending order, so that the sum of its records runs in
     // intersection order in time linear in the intersections (see `GaussianLists`).
     let lists = GaussianLists::new(bins.gaussian_ids(), n)?;
@@ -213,6 +219,7 @@ pub fn rasterize_backward_with<T: Real>(
                     (Some((token, splats, background, cot)), Some((rec, bg_grad))) => {
                         token.run(lanes::BackwardTile {
                             splats,
+                            packed: &packed32,
                             bins,
                             background,
                             cot,
@@ -224,6 +231,7 @@ pub fn rasterize_backward_with<T: Real>(
                     }
                     _ => scalar::backward_tile(
                         splats,
+                        &packed,
                         bins,
                         background,
                         cot,

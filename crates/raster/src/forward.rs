@@ -91,6 +91,15 @@ impl<'a, T: Real> Splats<'a, T> {
         })
     }
 
+    /// The packed form of every Gaussian, computed once per pass (each tile copies the ones it
+    /// lists instead of recomputing the alpha cut per intersection).
+    pub(crate) fn packed(&self) -> Vec<Splat<T>> {
+        (0..self.len())
+            .into_par_iter()
+            .map(|g| self.splat(g))
+            .collect()
+    }
+
     /// Channel values of Gaussian `g`.
     #[inline]
     pub(crate) fn channels_of(&self, g: usize) -> &[T] {
@@ -170,7 +179,16 @@ pub fn rasterize_binned_with<T: Real>(
     let tiles = bins.tile_count();
     // The lane kernels run in f32 only.
     let token = Token::for_kernel(kernel);
-    let lanes_in = splats.as_f32().zip(T::as_f32_slice(background));
+    let lanes_in = token.and(splats.as_f32().zip(T::as_f32_slice(background)));
+    let packed32 = lanes_in
+        .as_ref()
+        .map(|(s, _)| s.packed())
+        .unwrap_or_default();
+    let packed = if lanes_in.is_some() {
+        Vec::new()
+    } else {
+        splats.packed()
+    };
     // Staging rows hold at least one channel so that chunking works when `d == 0`.
     let d_stage = d.max(1);
     let mut t_image = vec![T::zero(); tiles * TILE_PIXELS * d_stage];
@@ -196,6 +214,7 @@ pub fn rasterize_binned_with<T: Real>(
                     (Some(token), Some((splats, background)), Some(out)) => {
                         token.run(lanes::ForwardTile {
                             splats,
+                            packed: &packed32,
                             bins: &bins,
                             background,
                             t,
@@ -203,7 +222,15 @@ pub fn rasterize_binned_with<T: Real>(
                             out,
                         })
                     }
-                    _ => scalar::forward_tile(splats, &bins, background, t, scalar_scratch, out),
+                    _ => scalar::forward_tile(
+                        splats,
+                        &packed,
+                        &bins,
+                        background,
+                        t,
+                        scalar_scratch,
+                        out,
+                    ),
                 }
             },
         );

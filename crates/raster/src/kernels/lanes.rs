@@ -227,10 +227,11 @@ fn reach_lanes(e: &RowEntry, first: usize) -> Mask {
     (span >> first) & ((1 << LANES) - 1)
 }
 
-/// Packs tile `t`'s Gaussians, their channel rows (padded to `padded` values) and its row
+/// Gathers tile `t`'s packed Gaussians (from `all`, one per Gaussian), their channel rows (padded to `padded` values) and its row
 /// lists; returns its Gaussian ids.
 fn prepare<'b>(
     splats: &Splats<f32>,
+    all: &[Splat<f32>],
     bins: &'b TileBins,
     t: usize,
     padded: usize,
@@ -239,9 +240,7 @@ fn prepare<'b>(
     let d = splats.channel_count;
     let ids = bins.tile(t);
     scratch.packed.clear();
-    scratch
-        .packed
-        .extend(ids.iter().map(|&g| splats.splat(g as usize)));
+    scratch.packed.extend(ids.iter().map(|&g| all[g as usize]));
     scratch.rows.build(&scratch.packed, bins.pixel_rect(t));
     scratch.channels.clear();
     scratch.channels.resize(ids.len() * padded, 0.0);
@@ -259,6 +258,8 @@ fn padded(d: usize) -> usize {
 /// The forward pass over one tile (see [`super::scalar::forward_tile`]).
 pub(crate) struct ForwardTile<'a, 'b> {
     pub splats: &'a Splats<'a, f32>,
+    /// Every Gaussian packed ([`Splats::packed`]).
+    pub packed: &'a [Splat<f32>],
     pub bins: &'a TileBins,
     pub background: &'a [f32],
     pub t: usize,
@@ -273,6 +274,7 @@ impl WithSimd for ForwardTile<'_, '_> {
     fn with_simd<S: Simd>(self, _: S) {
         let ForwardTile {
             splats,
+            packed: all,
             bins,
             background,
             t,
@@ -281,7 +283,7 @@ impl WithSimd for ForwardTile<'_, '_> {
         } = self;
         let d = splats.channel_count;
         let dp = padded(d);
-        let ids = prepare(splats, bins, t, dp, scratch);
+        let ids = prepare(splats, all, bins, t, dp, scratch);
         let Scratch {
             packed,
             rows,
@@ -354,6 +356,8 @@ impl WithSimd for ForwardTile<'_, '_> {
 /// The backward pass over one tile (see [`super::scalar::backward_tile`]).
 pub(crate) struct BackwardTile<'a, 'b> {
     pub splats: &'a Splats<'a, f32>,
+    /// Every Gaussian packed ([`Splats::packed`]).
+    pub packed: &'a [Splat<f32>],
     pub bins: &'a TileBins,
     pub background: &'a [f32],
     pub cot: &'a Cotangents<'a, f32>,
@@ -370,6 +374,7 @@ impl WithSimd for BackwardTile<'_, '_> {
     fn with_simd<S: Simd>(self, _: S) {
         let BackwardTile {
             splats,
+            packed: all,
             bins,
             background,
             cot,
@@ -381,7 +386,7 @@ impl WithSimd for BackwardTile<'_, '_> {
         let d = splats.channel_count;
         let dp = padded(d);
         let stride = GEOMETRY + d;
-        let ids = prepare(splats, bins, t, dp, scratch);
+        let ids = prepare(splats, all, bins, t, dp, scratch);
         let Scratch {
             packed,
             rows,

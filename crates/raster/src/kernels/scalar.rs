@@ -34,9 +34,10 @@ pub(crate) struct Scratch<T> {
     blended: Vec<Blended<T>>,
 }
 
-/// Packs tile `t`'s Gaussians and builds its row lists; returns its Gaussian ids.
+/// Gathers tile `t`'s packed Gaussians (from `all`, one per Gaussian) and builds its row lists;
+/// returns its Gaussian ids.
 fn prepare<'b, T: Real>(
-    splats: &Splats<T>,
+    all: &[Splat<T>],
     bins: &'b TileBins,
     t: usize,
     packed: &mut Vec<Splat<T>>,
@@ -44,14 +45,15 @@ fn prepare<'b, T: Real>(
 ) -> &'b [u32] {
     let ids = bins.tile(t);
     packed.clear();
-    packed.extend(ids.iter().map(|&g| splats.splat(g as usize)));
+    packed.extend(ids.iter().map(|&g| all[g as usize]));
     rows.build(packed, bins.pixel_rect(t));
     ids
 }
 
-/// Blends tile `t` into `out`.
+/// Blends tile `t` into `out` (`all`: every Gaussian packed, as [`Splats::packed`] gives).
 pub(crate) fn forward_tile<T: Real>(
     splats: &Splats<T>,
+    all: &[Splat<T>],
     bins: &TileBins,
     background: &[T],
     t: usize,
@@ -60,7 +62,7 @@ pub(crate) fn forward_tile<T: Real>(
 ) {
     let d = splats.channel_count;
     let Scratch { packed, rows, .. } = scratch;
-    let ids = prepare(splats, bins, t, packed, rows);
+    let ids = prepare(all, bins, t, packed, rows);
     let (x0, y0, x1, y1) = bins.pixel_rect(t);
     let t_min = T::lit(TRANSMITTANCE_MIN);
     for py in y0..y1 {
@@ -106,6 +108,7 @@ pub(crate) fn forward_tile<T: Real>(
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn backward_tile<T: Real>(
     splats: &Splats<T>,
+    all: &[Splat<T>],
     bins: &TileBins,
     background: &[T],
     cot: &Cotangents<T>,
@@ -121,7 +124,7 @@ pub(crate) fn backward_tile<T: Real>(
         rows,
         blended,
     } = scratch;
-    let ids = prepare(splats, bins, t, packed, rows);
+    let ids = prepare(all, bins, t, packed, rows);
     let (x0, y0, x1, y1) = bins.pixel_rect(t);
     let width = bins.width() as usize;
     let t_min = T::lit(TRANSMITTANCE_MIN);

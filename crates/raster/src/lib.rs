@@ -6,7 +6,7 @@
 //!   (accumulated and alpha-normalised) and a per-pixel count of blended Gaussians.
 //! * [`rasterize_backward`] returns exact gradients with respect to all of those inputs and the
 //!   background, from cotangents on the channel, alpha and depth images.
-//! * [`render`] and [`render_backward`] chain projection, SH colour and/or features, and the
+//! * [`render()`] and [`render_backward`] chain projection, SH colour and/or features, and the
 //!   rasterizer, from a camera and a [`gaussian::FeatureGaussians`] scene to gradients of every
 //!   scene parameter.
 //! * [`stats`] computes the densification statistics (screen radii, NDC gradient norms).

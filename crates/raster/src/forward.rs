@@ -11,16 +11,22 @@
 //! row, with the columns they can reach); the others are ones the blending rule skips there.
 //!
 //! Memory: the outputs (`D + 3` reals and one `u32` per pixel), a tile-major staging copy of
-//! them of the same size, the [`TileBins`], and per thread one tile's packed Gaussians
-//! (7 reals per Gaussian in the tile) and row lists (8 bytes per Gaussian and row it reaches).
+//! them of the same size, the [`TileBins`], every Gaussian packed (7 reals each), and per thread
+//! one tile's packed Gaussians (7 reals per Gaussian in the tile) and row lists (8 bytes per
+//! Gaussian and row segment it reaches). The row lists of all tiles are kept in the returned
+//! bins for the backward pass when they fit [`crate::tiles::ROW_LIST_BUDGET_BYTES`] (64 MiB);
+//! otherwise none are kept and the backward pass builds them again.
 
 use gaussian::Real;
 use rayon::prelude::*;
 
 use crate::blend::{Splat, TILE_PIXELS, TILE_SIZE};
 use crate::error::{check_len, RasterError};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
 use crate::kernels::{lanes, scalar, Kernel, TileOut, Token};
-use crate::tiles::TileBins;
+use crate::rows::RowLists;
+use crate::tiles::{TileBins, ROW_LIST_BUDGET_BYTES};
 
 /// Projected Gaussians with their per-Gaussian channel values: what the rasterizer blends.
 ///
@@ -173,6 +179,9 @@ pub fn rasterize_binned_with<T: Real>(
     splats.validate()?;
     let (width, height) = (bins.width(), bins.height());
     bins.check(splats.len())?;
+    // Row lists kept from another pass may belong to other Gaussians: build them anew.
+    let mut bins = bins;
+    bins.keep_rows(None);
     let d = splats.channel_count;
     check_len("background", background.len(), d)?;
 
@@ -195,22 +204,26 @@ pub fn rasterize_binned_with<T: Real>(
     let mut t_alpha = vec![T::zero(); tiles * TILE_PIXELS];
     let mut t_depth = vec![T::zero(); tiles * TILE_PIXELS];
     let mut t_count = vec![0u32; tiles * TILE_PIXELS];
+    // The row lists each tile builds, kept for the backward pass while they fit the budget.
+    let mut kept: Vec<RowLists> = (0..tiles).map(|_| RowLists::default()).collect();
+    let kept_bytes = AtomicUsize::new(0);
     t_image
         .par_chunks_mut(TILE_PIXELS * d_stage)
         .zip(t_alpha.par_chunks_mut(TILE_PIXELS))
         .zip(t_depth.par_chunks_mut(TILE_PIXELS))
         .zip(t_count.par_chunks_mut(TILE_PIXELS))
+        .zip(kept.par_iter_mut())
         .enumerate()
         .for_each_init(
             <(scalar::Scratch<T>, lanes::Scratch)>::default,
-            |(scalar_scratch, lane_scratch), (t, (((image, alpha), depth), count))| {
+            |(scalar_scratch, lane_scratch), (t, ((((image, alpha), depth), count), keep))| {
                 let mut out = TileOut {
                     image,
                     alpha,
                     depth,
                     count,
                 };
-                match (token, &lanes_in, out.as_f32()) {
+                let rows = match (token, &lanes_in, out.as_f32()) {
                     (Some(token), Some((splats, background)), Some(out)) => {
                         token.run(lanes::ForwardTile {
                             splats,
@@ -220,20 +233,32 @@ pub fn rasterize_binned_with<T: Real>(
                             t,
                             scratch: lane_scratch,
                             out,
-                        })
+                        });
+                        lane_scratch.rows()
                     }
-                    _ => scalar::forward_tile(
-                        splats,
-                        &packed,
-                        &bins,
-                        background,
-                        t,
-                        scalar_scratch,
-                        out,
-                    ),
+                    _ => {
+                        scalar::forward_tile(
+                            splats,
+                            &packed,
+                            &bins,
+                            background,
+                            t,
+                            scalar_scratch,
+                            out,
+                        );
+                        scalar_scratch.rows()
+                    }
+                };
+                let bytes = rows.kept_bytes();
+                if kept_bytes.fetch_add(bytes, Ordering::Relaxed) + bytes <= ROW_LIST_BUDGET_BYTES {
+                    *keep = rows.take_kept();
                 }
             },
         );
+
+    // Keep the row lists only if all of them fit.
+    let all_fit = kept_bytes.into_inner() <= ROW_LIST_BUDGET_BYTES;
+    bins.keep_rows(all_fit.then_some(kept));
 
     // Tile-major staging to row-major images.
     let w = width as usize;

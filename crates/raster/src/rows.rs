@@ -56,8 +56,9 @@ pub(crate) struct RowEntry {
     pub x_hi: u8,
 }
 
-/// The row lists of one tile (per-thread working memory, rebuilt for each tile).
-#[derive(Default, Debug)]
+/// The row lists of one tile (per-thread working memory, rebuilt for each tile, or kept for the
+/// backward pass in [`crate::TileBins`]).
+#[derive(Clone, Default, Debug)]
 pub(crate) struct RowLists {
     /// `offsets[i]..offsets[i + 1]` is list `i = row * SEGMENTS + segment` of `entries`.
     offsets: Vec<usize>,
@@ -126,6 +127,19 @@ impl RowLists {
             self.offsets[i] = self.offsets[i - 1];
         }
         self.offsets[0] = 0;
+    }
+
+    /// Moves the lists out (leaving this empty but with its build buffer, for the next tile).
+    pub fn take_kept(&mut self) -> RowLists {
+        let mut kept = std::mem::take(self);
+        self.staged = std::mem::take(&mut kept.staged);
+        kept
+    }
+
+    /// The size in bytes of the lists [`RowLists::take_kept`] moves out.
+    pub fn kept_bytes(&self) -> usize {
+        self.offsets.len() * std::mem::size_of::<usize>()
+            + self.entries.len() * std::mem::size_of::<RowEntry>()
     }
 
     /// The Gaussians that can be blended in segment `seg` (columns `seg * SPAN..`) of tile-local

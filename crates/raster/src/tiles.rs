@@ -14,11 +14,20 @@
 use gaussian::Real;
 use rayon::prelude::*;
 
+use std::sync::Arc;
+
 use crate::blend::TILE_SIZE;
 use crate::error::{check_len, RasterError};
+use crate::rows::RowLists;
 
 /// The per-tile, depth-sorted lists of Gaussian indices for one image.
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
+///
+/// After a forward pass ([`crate::rasterize`]) the bins also carry that pass's per-tile row
+/// lists ([`crate::rows`]), when they fit [`ROW_LIST_BUDGET_BYTES`], so that the backward pass
+/// does not build them again. Those depend on the Gaussians' means, conics and opacities: pass
+/// the bins only to the backward pass of the same Gaussians (as the backward pass requires
+/// anyway). Equality compares the binning only.
+#[derive(Clone, Debug, Default)]
 pub struct TileBins {
     width: u32,
     height: u32,
@@ -29,7 +38,34 @@ pub struct TileBins {
     offsets: Vec<usize>,
     /// Gaussian indices, tile-major, front to back within a tile.
     gaussian_ids: Vec<u32>,
+    /// The forward pass's row lists, one per tile.
+    row_lists: Option<Arc<Vec<RowLists>>>,
 }
+
+/// At most this many bytes of row lists are kept in the bins from the forward pass for the
+/// backward pass; beyond it the backward pass builds them again (same values either way).
+pub const ROW_LIST_BUDGET_BYTES: usize = 64 << 20;
+
+impl PartialEq for TileBins {
+    fn eq(&self, other: &Self) -> bool {
+        (
+            self.width,
+            self.height,
+            self.gaussian_count,
+            self.tiles_x,
+            self.tiles_y,
+        ) == (
+            other.width,
+            other.height,
+            other.gaussian_count,
+            other.tiles_x,
+            other.tiles_y,
+        ) && self.offsets == other.offsets
+            && self.gaussian_ids == other.gaussian_ids
+    }
+}
+
+impl Eq for TileBins {}
 
 /// A half-open rectangle of tiles `[x0, x1) x [y0, y1)`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -159,6 +195,7 @@ impl TileBins {
             tiles_y,
             offsets,
             gaussian_ids,
+            row_lists: None,
         })
     }
 
@@ -221,10 +258,21 @@ impl TileBins {
         )
     }
 
-    /// Bytes held by the bins.
+    /// Bytes held by the binning itself (not counting kept row lists, at most
+    /// [`ROW_LIST_BUDGET_BYTES`]).
     pub fn memory_bytes(&self) -> usize {
         self.offsets.len() * std::mem::size_of::<usize>()
             + self.gaussian_ids.len() * std::mem::size_of::<u32>()
+    }
+
+    /// The row lists of tile `t` kept by the forward pass, if any.
+    pub(crate) fn kept_rows(&self, t: usize) -> Option<&RowLists> {
+        self.row_lists.as_ref().map(|r| &r[t])
+    }
+
+    /// Keeps the forward pass's row lists (one per tile), or drops any when `None`.
+    pub(crate) fn keep_rows(&mut self, rows: Option<Vec<RowLists>>) {
+        self.row_lists = rows.filter(|r| r.len() == self.tile_count()).map(Arc::new);
     }
 
     /// `Ok` when the bins were built for `count` Gaussians.

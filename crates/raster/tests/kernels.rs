@@ -14,7 +14,16 @@ use raster::{
 
 /// Everything a kernel computes, as bits, every NaN as the one canonical NaN (vector code may
 /// propagate another NaN operand than scalar code; the payload carries no meaning).
-fn fingerprint(s: &Scene2d, kernel: Kernel, cot_seed: u64, with_aux: bool) -> Vec<Vec<u32>> {
+///
+/// The backward pass takes the forward pass's bins (with the row lists it kept) or, with
+/// `fresh_bins`, bins built anew (so it builds the row lists itself).
+fn fingerprint(
+    s: &Scene2d,
+    kernel: Kernel,
+    cot_seed: u64,
+    with_aux: bool,
+    fresh_bins: bool,
+) -> Vec<Vec<u32>> {
     let f = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
     let means: Vec<[f32; 2]> = s.means2d.iter().map(|r| r.map(|x| x as f32)).collect();
     let conics: Vec<[f32; 3]> = s.conics.iter().map(|r| r.map(|x| x as f32)).collect();
@@ -34,7 +43,8 @@ fn fingerprint(s: &Scene2d, kernel: Kernel, cot_seed: u64, with_aux: bool) -> Ve
         channel_count: s.channel_count,
     };
     let bins = TileBins::new(s.width, s.height, &means, &depths, &s.radii).unwrap();
-    let out = rasterize_binned_with(&splats, bins, &bg, kernel).unwrap();
+    let out = rasterize_binned_with(&splats, bins.clone(), &bg, kernel).unwrap();
+    let backward_bins = if fresh_bins { &bins } else { &out.bins };
     let mut rng = Rng(cot_seed);
     let px = (s.width * s.height) as usize;
     let vi = f(&rng.vec(px * s.channel_count, -1.0, 1.0));
@@ -46,7 +56,7 @@ fn fingerprint(s: &Scene2d, kernel: Kernel, cot_seed: u64, with_aux: bool) -> Ve
         depth: with_aux.then_some(&vd[..]),
     };
     // A small record budget so that several batches run.
-    let g = rasterize_backward_with(&splats, &out.bins, &bg, &cot, 4096, kernel).unwrap();
+    let g = rasterize_backward_with(&splats, backward_bins, &bg, &cot, 4096, kernel).unwrap();
     let bits = |v: &[f32]| {
         v.iter()
             .map(|x| if x.is_nan() { f32::NAN } else { *x }.to_bits())
@@ -81,15 +91,22 @@ const PARTS: [&str; 11] = [
     "background grad",
 ];
 
-/// Asserts that every lane kernel this machine can run matches the scalar loops bit for bit.
+/// Asserts that every lane kernel this machine can run matches the scalar loops bit for bit,
+/// with and without the row lists kept by the forward pass.
 fn check_all_kernels(s: &Scene2d, cot_seed: u64, with_aux: bool) {
-    let reference = fingerprint(s, Kernel::Scalar, cot_seed, with_aux);
-    for isa in Isa::available() {
-        let got = fingerprint(s, Kernel::Lanes(isa), cot_seed, with_aux);
+    let reference = fingerprint(s, Kernel::Scalar, cot_seed, with_aux, true);
+    let runs = Isa::available()
+        .into_iter()
+        .flat_map(|isa| [(Kernel::Lanes(isa), false), (Kernel::Lanes(isa), true)])
+        .chain([(Kernel::Scalar, false)]);
+    for (kernel, fresh) in runs {
+        let got = fingerprint(s, kernel, cot_seed, with_aux, fresh);
+        let isa = kernel;
         for ((r, g), part) in reference.iter().zip(&got).zip(PARTS) {
             if let Some(i) = r.iter().zip(g).position(|(a, b)| a != b) {
                 panic!(
-                    "{} kernel differs from scalar in {part} at {i}: {:e} vs {:e}",
+                    "{} kernel (fresh bins: {fresh}) differs from scalar in {part} at {i}: \
+                     {:e} vs {:e}",
                     isa.name(),
                     f32::from_bits(g[i]),
                     f32::from_bits(r[i]),
@@ -169,4 +186,48 @@ proptest! {
         }
         check_all_kernels(&s, seed ^ 0x5eed, with_aux);
     }
+}
+
+#[test]
+fn a_forward_pass_ignores_row_lists_kept_for_other_gaussians() {
+    // Bins kept by a forward pass of one scene, reused for a forward pass of the same means,
+    // depths and radii with other conics and opacities: the second pass builds its own lists.
+    let mut rng = Rng(17);
+    let a = random_scene(&mut rng, 600, 50, 40, 3);
+    let mut b = a.clone();
+    for (o, c) in b.opacities.iter_mut().zip(&mut b.conics) {
+        *o = (*o * 1.5).min(0.99);
+        *c = [c[0] * 0.25, c[1] * 0.25, c[2] * 0.25];
+    }
+    let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+    let run = |s: &Scene2d, bins: TileBins| {
+        let means: Vec<[f32; 2]> = s.means2d.iter().map(|r| r.map(|x| x as f32)).collect();
+        let conics: Vec<[f32; 3]> = s.conics.iter().map(|r| r.map(|x| x as f32)).collect();
+        let (depths, opac, ch) = (f32s(&s.depths), f32s(&s.opacities), f32s(&s.channels));
+        let splats = Splats {
+            means2d: &means,
+            conics: &conics,
+            depths: &depths,
+            radii: &s.radii,
+            opacities: &opac,
+            channels: &ch,
+            channel_count: s.channel_count,
+        };
+        let fresh = TileBins::new(s.width, s.height, &means, &depths, &s.radii).unwrap();
+        let bins = if bins == TileBins::default() {
+            fresh
+        } else {
+            bins
+        };
+        rasterize_binned_with(&splats, bins, &f32s(&s.background), Kernel::auto().unwrap()).unwrap()
+    };
+    let kept_from_a = run(&a, TileBins::default()).bins;
+    let reused = run(&b, kept_from_a);
+    let fresh = run(&b, TileBins::default());
+    assert_eq!(reused.blended, fresh.blended);
+    assert!(reused
+        .image
+        .iter()
+        .zip(&fresh.image)
+        .all(|(x, y)| x.to_bits() == y.to_bits()));
 }

@@ -71,6 +71,13 @@ pub(crate) struct Scratch {
     v_image_t: Vec<f32>,
 }
 
+impl Scratch {
+    /// The row lists the last tile built.
+    pub fn rows(&mut self) -> &mut RowLists {
+        &mut self.rows
+    }
+}
+
 /// The lanes where `m` is true.
 #[inline(always)]
 fn bits(m: &[bool; LANES]) -> Mask {
@@ -227,8 +234,9 @@ fn reach_lanes(e: &RowEntry, first: usize) -> Mask {
     (span >> first) & ((1 << LANES) - 1)
 }
 
-/// Gathers tile `t`'s packed Gaussians (from `all`, one per Gaussian), their channel rows (padded to `padded` values) and its row
-/// lists; returns its Gaussian ids.
+/// Gathers tile `t`'s packed Gaussians (from `all`, one per Gaussian) and their channel rows
+/// (padded to `padded` values), and builds its row lists unless the bins kept them; returns its
+/// Gaussian ids.
 fn prepare<'b>(
     splats: &Splats<f32>,
     all: &[Splat<f32>],
@@ -241,7 +249,9 @@ fn prepare<'b>(
     let ids = bins.tile(t);
     scratch.packed.clear();
     scratch.packed.extend(ids.iter().map(|&g| all[g as usize]));
-    scratch.rows.build(&scratch.packed, bins.pixel_rect(t));
+    if bins.kept_rows(t).is_none() {
+        scratch.rows.build(&scratch.packed, bins.pixel_rect(t));
+    }
     scratch.channels.clear();
     scratch.channels.resize(ids.len() * padded, 0.0);
     for (row, &g) in scratch.channels.chunks_exact_mut(padded).zip(ids) {
@@ -291,6 +301,7 @@ impl WithSimd for ForwardTile<'_, '_> {
             block,
             ..
         } = scratch;
+        let rows = bins.kept_rows(t).unwrap_or(rows);
         let (x0, y0, x1, y1) = bins.pixel_rect(t);
         let width = (x1 - x0) as usize;
         for py in y0..y1 {
@@ -396,6 +407,7 @@ impl WithSimd for BackwardTile<'_, '_> {
             blended,
             v_image_t,
         } = scratch;
+        let rows = bins.kept_rows(t).unwrap_or(rows);
         let (x0, y0, x1, y1) = bins.pixel_rect(t);
         let width = (x1 - x0) as usize;
         let image_width = bins.width() as usize;

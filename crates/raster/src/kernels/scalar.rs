@@ -34,20 +34,33 @@ pub(crate) struct Scratch<T> {
     blended: Vec<Blended<T>>,
 }
 
-/// Gathers tile `t`'s packed Gaussians (from `all`, one per Gaussian) and builds its row lists;
-/// returns its Gaussian ids.
+/// Gathers tile `t`'s packed Gaussians (from `all`, one per Gaussian) and builds its row lists
+/// unless the bins kept them; returns its Gaussian ids and the row lists.
 fn prepare<'b, T: Real>(
     all: &[Splat<T>],
     bins: &'b TileBins,
     t: usize,
     packed: &mut Vec<Splat<T>>,
-    rows: &mut RowLists,
-) -> &'b [u32] {
+    rows: &'b mut RowLists,
+) -> (&'b [u32], &'b RowLists) {
     let ids = bins.tile(t);
     packed.clear();
     packed.extend(ids.iter().map(|&g| all[g as usize]));
-    rows.build(packed, bins.pixel_rect(t));
-    ids
+    let rows = match bins.kept_rows(t) {
+        Some(kept) => kept,
+        None => {
+            rows.build(packed, bins.pixel_rect(t));
+            rows
+        }
+    };
+    (ids, rows)
+}
+
+impl<T> Scratch<T> {
+    /// The row lists the last tile built.
+    pub fn rows(&mut self) -> &mut RowLists {
+        &mut self.rows
+    }
 }
 
 /// Blends tile `t` into `out` (`all`: every Gaussian packed, as [`Splats::packed`] gives).
@@ -62,7 +75,7 @@ pub(crate) fn forward_tile<T: Real>(
 ) {
     let d = splats.channel_count;
     let Scratch { packed, rows, .. } = scratch;
-    let ids = prepare(all, bins, t, packed, rows);
+    let (ids, rows) = prepare(all, bins, t, packed, rows);
     let (x0, y0, x1, y1) = bins.pixel_rect(t);
     let t_min = T::lit(TRANSMITTANCE_MIN);
     for py in y0..y1 {
@@ -124,7 +137,7 @@ pub(crate) fn backward_tile<T: Real>(
         rows,
         blended,
     } = scratch;
-    let ids = prepare(all, bins, t, packed, rows);
+    let (ids, rows) = prepare(all, bins, t, packed, rows);
     let (x0, y0, x1, y1) = bins.pixel_rect(t);
     let width = bins.width() as usize;
     let t_min = T::lit(TRANSMITTANCE_MIN);

@@ -7,7 +7,7 @@ use common::{random_scene, Rng, Scene2d};
 use gaussian::Real;
 use raster::{
     rasterize, rasterize_backward, rasterize_backward_with_budget, Cotangents, RasterError,
-    Rasterized, SplatGrads, Splats,
+    Rasterized, SplatGrads,
 };
 
 /// A scene with a few thousand overlapping Gaussians over a 150x100 image.
@@ -21,24 +21,9 @@ fn bits<T: Real>(v: &[T]) -> Vec<u64> {
 
 fn run<T: Real>(s: &Scene2d, budget: usize) -> (Rasterized<T>, SplatGrads<T>) {
     let c = |v: &[f64]| v.iter().map(|&x| T::lit(x)).collect::<Vec<T>>();
-    let cr2: Vec<[T; 2]> = s.means2d.iter().map(|r| r.map(T::lit)).collect();
-    let cr3: Vec<[T; 3]> = s.conics.iter().map(|r| r.map(T::lit)).collect();
-    let (depths, opac, ch, bg) = (
-        c(&s.depths),
-        c(&s.opacities),
-        c(&s.channels),
-        c(&s.background),
-    );
-    let splats = Splats {
-        means2d: &cr2,
-        conics: &cr3,
-        depths: &depths,
-        radii: &s.radii,
-        opacities: &opac,
-        channels: &ch,
-        channel_count: s.channel_count,
-    };
-    let out = rasterize(&splats, s.width, s.height, &bg).unwrap();
+    let scene = s.cast::<T>();
+    let (splats, bg) = (scene.splats(), &scene.background);
+    let out = rasterize(&splats, s.width, s.height, bg).unwrap();
     let mut rng = Rng(11);
     let px = (s.width * s.height) as usize;
     let vi = c(&rng.vec(px * s.channel_count, -1.0, 1.0));
@@ -49,7 +34,7 @@ fn run<T: Real>(s: &Scene2d, budget: usize) -> (Rasterized<T>, SplatGrads<T>) {
         alpha: Some(&va),
         depth: Some(&vd),
     };
-    let g = rasterize_backward_with_budget(&splats, &out.bins, &bg, &cot, budget).unwrap();
+    let g = rasterize_backward_with_budget(&splats, &out.bins, bg, &cot, budget).unwrap();
     (out, g)
 }
 

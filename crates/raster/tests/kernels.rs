@@ -8,9 +8,7 @@ mod common;
 
 use common::{random_scene, Rng, Scene2d};
 use proptest::prelude::*;
-use raster::{
-    rasterize_backward_with, rasterize_binned_with, Cotangents, Isa, Kernel, Splats, TileBins,
-};
+use raster::{rasterize_backward_with, rasterize_binned_with, Cotangents, Isa, Kernel, TileBins};
 
 /// Everything a kernel computes, as bits, every NaN as the one canonical NaN (vector code may
 /// propagate another NaN operand than scalar code; the payload carries no meaning).
@@ -25,25 +23,17 @@ fn fingerprint(
     fresh_bins: bool,
 ) -> Vec<Vec<u32>> {
     let f = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
-    let means: Vec<[f32; 2]> = s.means2d.iter().map(|r| r.map(|x| x as f32)).collect();
-    let conics: Vec<[f32; 3]> = s.conics.iter().map(|r| r.map(|x| x as f32)).collect();
-    let (depths, opac, ch, bg) = (
-        f(&s.depths),
-        f(&s.opacities),
-        f(&s.channels),
-        f(&s.background),
-    );
-    let splats = Splats {
-        means2d: &means,
-        conics: &conics,
-        depths: &depths,
-        radii: &s.radii,
-        opacities: &opac,
-        channels: &ch,
-        channel_count: s.channel_count,
-    };
-    let bins = TileBins::new(s.width, s.height, &means, &depths, &s.radii).unwrap();
-    let out = rasterize_binned_with(&splats, bins.clone(), &bg, kernel).unwrap();
+    let scene = s.cast::<f32>();
+    let (splats, bg) = (scene.splats(), &scene.background);
+    let bins = TileBins::new(
+        s.width,
+        s.height,
+        splats.means2d,
+        splats.depths,
+        splats.radii,
+    )
+    .unwrap();
+    let out = rasterize_binned_with(&splats, bins.clone(), bg, kernel).unwrap();
     let backward_bins = if fresh_bins { &bins } else { &out.bins };
     let mut rng = Rng(cot_seed);
     let px = (s.width * s.height) as usize;
@@ -56,7 +46,7 @@ fn fingerprint(
         depth: with_aux.then_some(&vd[..]),
     };
     // A small record budget so that several batches run.
-    let g = rasterize_backward_with(&splats, backward_bins, &bg, &cot, 4096, kernel).unwrap();
+    let g = rasterize_backward_with(&splats, backward_bins, bg, &cot, 4096, kernel).unwrap();
     let bits = |v: &[f32]| {
         v.iter()
             .map(|x| if x.is_nan() { f32::NAN } else { *x }.to_bits())
@@ -199,31 +189,24 @@ fn a_forward_pass_ignores_row_lists_kept_for_other_gaussians() {
         *o = (*o * 1.5).min(0.99);
         *c = [c[0] * 0.25, c[1] * 0.25, c[2] * 0.25];
     }
-    let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
-    let run = |s: &Scene2d, bins: TileBins| {
-        let means: Vec<[f32; 2]> = s.means2d.iter().map(|r| r.map(|x| x as f32)).collect();
-        let conics: Vec<[f32; 3]> = s.conics.iter().map(|r| r.map(|x| x as f32)).collect();
-        let (depths, opac, ch) = (f32s(&s.depths), f32s(&s.opacities), f32s(&s.channels));
-        let splats = Splats {
-            means2d: &means,
-            conics: &conics,
-            depths: &depths,
-            radii: &s.radii,
-            opacities: &opac,
-            channels: &ch,
-            channel_count: s.channel_count,
-        };
-        let fresh = TileBins::new(s.width, s.height, &means, &depths, &s.radii).unwrap();
-        let bins = if bins == TileBins::default() {
-            fresh
-        } else {
-            bins
-        };
-        rasterize_binned_with(&splats, bins, &f32s(&s.background), Kernel::auto().unwrap()).unwrap()
+    let run = |s: &Scene2d, bins: Option<TileBins>| {
+        let scene = s.cast::<f32>();
+        let splats = scene.splats();
+        let bins = bins.unwrap_or_else(|| {
+            TileBins::new(
+                s.width,
+                s.height,
+                splats.means2d,
+                splats.depths,
+                splats.radii,
+            )
+            .unwrap()
+        });
+        rasterize_binned_with(&splats, bins, &scene.background, Kernel::auto().unwrap()).unwrap()
     };
-    let kept_from_a = run(&a, TileBins::default()).bins;
-    let reused = run(&b, kept_from_a);
-    let fresh = run(&b, TileBins::default());
+    let kept_from_a = run(&a, None).bins;
+    let reused = run(&b, Some(kept_from_a));
+    let fresh = run(&b, None);
     assert_eq!(reused.blended, fresh.blended);
     assert!(reused
         .image

@@ -14,7 +14,7 @@ use super::TileOut;
 use crate::backward::Cotangents;
 use crate::blend::{evaluate, pixel_centre, Hit, Splat, TILE_SIZE, TRANSMITTANCE_MIN};
 use crate::forward::Splats;
-use crate::rows::{at_column, RowLists, SPAN};
+use crate::rows::{at_column, RowEntry, RowLists, SPAN};
 use crate::tiles::TileBins;
 
 /// One blended Gaussian of the current pixel: its position in the tile list, its hit, and the
@@ -77,7 +77,6 @@ pub(crate) fn forward_tile<T: Real>(
     let Scratch { packed, rows, .. } = scratch;
     let (ids, rows) = prepare(all, bins, t, packed, rows);
     let (x0, y0, x1, y1) = bins.pixel_rect(t);
-    let t_min = T::lit(TRANSMITTANCE_MIN);
     for py in y0..y1 {
         let cy = pixel_centre::<T>(py);
         for px in x0..x1 {
@@ -86,17 +85,9 @@ pub(crate) fn forward_tile<T: Real>(
             let row = rows.list(py - y0, lx as usize / SPAN);
             let lp = ((py - y0) * TILE_SIZE + (px - x0)) as usize;
             let pixel = &mut out.image[lp * d..(lp + 1) * d];
-            let mut trans = T::one();
             let mut z = T::zero();
             let mut n = 0u32;
-            for k in at_column(row, lx) {
-                let Some(hit) = evaluate(&packed[k], cx, cy) else {
-                    continue;
-                };
-                let next = trans * (T::one() - hit.alpha);
-                if next <= t_min {
-                    break;
-                }
+            let trans = walk_pixel(row, packed, lx, cx, cy, |k, hit, trans| {
                 let w = hit.alpha * trans;
                 let g = ids[k] as usize;
                 for (o, &c) in pixel.iter_mut().zip(splats.channels_of(g)) {
@@ -104,8 +95,7 @@ pub(crate) fn forward_tile<T: Real>(
                 }
                 z += w * splats.depths[g];
                 n += 1;
-                trans = next;
-            }
+            });
             for (o, &b) in pixel.iter_mut().zip(background) {
                 *o += trans * b;
             }
@@ -140,7 +130,6 @@ pub(crate) fn backward_tile<T: Real>(
     let (ids, rows) = prepare(all, bins, t, packed, rows);
     let (x0, y0, x1, y1) = bins.pixel_rect(t);
     let width = bins.width() as usize;
-    let t_min = T::lit(TRANSMITTANCE_MIN);
     let half = T::lit(0.5);
     for py in y0..y1 {
         let cy = pixel_centre::<T>(py);
@@ -153,22 +142,13 @@ pub(crate) fn backward_tile<T: Real>(
             // Front to back: the forward pass's decisions, alphas and transmittances, over the
             // same row list.
             blended.clear();
-            let mut trans = T::one();
-            for k in at_column(row, lx) {
-                let Some(hit) = evaluate(&packed[k], cx, cy) else {
-                    continue;
-                };
-                let next = trans * (T::one() - hit.alpha);
-                if next <= t_min {
-                    break;
-                }
+            let trans = walk_pixel(row, packed, lx, cx, cy, |k, hit, trans| {
                 blended.push(Blended {
                     k: k as u32,
                     hit,
                     trans,
-                });
-                trans = next;
-            }
+                })
+            });
 
             let v_img = &cot.image[p * d..(p + 1) * d];
             let v_alpha = cot.alpha.map_or(T::zero(), |v| v[p]);
@@ -212,6 +192,34 @@ pub(crate) fn backward_tile<T: Real>(
             }
         }
     }
+}
+
+/// The front-to-back walk of one pixel (tile-local column `lx`, centre `(cx, cy)`) over its
+/// row list with the rule of [`crate::blend`]: calls `blend(k, hit, trans)` for each Gaussian it
+/// blends, in order, with the transmittance in front of it; returns the final transmittance.
+#[inline(always)]
+fn walk_pixel<T: Real>(
+    row: &[RowEntry],
+    packed: &[Splat<T>],
+    lx: u8,
+    cx: T,
+    cy: T,
+    mut blend: impl FnMut(usize, Hit<T>, T),
+) -> T {
+    let t_min = T::lit(TRANSMITTANCE_MIN);
+    let mut trans = T::one();
+    for k in at_column(row, lx) {
+        let Some(hit) = evaluate(&packed[k], cx, cy) else {
+            continue;
+        };
+        let next = trans * (T::one() - hit.alpha);
+        if next <= t_min {
+            break;
+        }
+        blend(k, hit, trans);
+        trans = next;
+    }
+    trans
 }
 
 /// `sum_i a_i b_i`, accumulated in index order.

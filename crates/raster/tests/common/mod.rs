@@ -151,7 +151,47 @@ pub struct Scene2d {
     pub background: Vec<f64>,
 }
 
+/// A [`Scene2d`]'s arrays in another real type.
+pub struct SceneIn<T> {
+    pub means2d: Vec<[T; 2]>,
+    pub conics: Vec<[T; 3]>,
+    pub depths: Vec<T>,
+    pub radii: Vec<[u32; 2]>,
+    pub opacities: Vec<T>,
+    pub channels: Vec<T>,
+    pub channel_count: usize,
+    pub background: Vec<T>,
+}
+
+impl<T: Real> SceneIn<T> {
+    pub fn splats(&self) -> Splats<'_, T> {
+        Splats {
+            means2d: &self.means2d,
+            conics: &self.conics,
+            depths: &self.depths,
+            radii: &self.radii,
+            opacities: &self.opacities,
+            channels: &self.channels,
+            channel_count: self.channel_count,
+        }
+    }
+}
+
 impl Scene2d {
+    /// The scene rounded to `T`.
+    pub fn cast<T: Real>(&self) -> SceneIn<T> {
+        SceneIn {
+            means2d: cast_rows(&self.means2d),
+            conics: cast_rows(&self.conics),
+            depths: cast(&self.depths),
+            radii: self.radii.clone(),
+            opacities: cast(&self.opacities),
+            channels: cast(&self.channels),
+            channel_count: self.channel_count,
+            background: cast(&self.background),
+        }
+    }
+
     pub fn splats(&self) -> Splats<'_, f64> {
         Splats {
             means2d: &self.means2d,

@@ -15,7 +15,8 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use gaussian::ply::{save_ply, write_atomic};
+use base::write_atomic;
+use gaussian::ply::save_ply;
 use serde::Serialize;
 use train::{BakeConfig, BakeReport, Variant};
 

@@ -21,9 +21,9 @@
 //! keep their size, and cameras made from nothing are 256 x 256.
 
 use anyhow::{bail, Context, Result};
-use gaussian::camera_path::{interpolate, orbit, orbit_from};
+use gaussian::camera_path::{interpolate, look_at_point, mean_up, orbit, orbit_from};
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
-use glam::{DMat3, DVec3};
+use glam::DVec3;
 
 /// The orbit radius, in median distances of the Gaussians from their median centre.
 pub const ORBIT_RADIUS_FACTOR: f64 = 2.5;
@@ -155,35 +155,6 @@ pub fn median_centre(scene: &FeatureGaussians<f32>) -> DVec3 {
         }
     };
     DVec3::new(median(0), median(1), median(2))
-}
-
-/// The point nearest (least squares) to the optical axes of the cameras; `None` when the axes
-/// are (nearly) parallel.
-pub fn look_at_point(cameras: &[Camera]) -> Option<DVec3> {
-    let mut a = DMat3::ZERO;
-    let mut b = DVec3::ZERO;
-    for c in cameras {
-        let d = c.view_direction().normalize();
-        let p = DMat3::IDENTITY - DMat3::from_cols(d * d.x, d * d.y, d * d.z);
-        a += p;
-        b += p * c.center();
-    }
-    // Parallel axes make `a` singular; require a reasonably conditioned system.
-    let det = a.determinant();
-    let scale = (cameras.len() as f64).powi(3);
-    if cameras.len() < 2 || det.abs() < 1e-6 * scale {
-        return None;
-    }
-    Some(a.inverse() * b)
-}
-
-/// The mean image-up direction (camera `-y`) of the cameras in world coordinates.
-pub fn mean_up(cameras: &[Camera]) -> Option<DVec3> {
-    let sum: DVec3 = cameras
-        .iter()
-        .map(|c| c.rotation().transpose() * DVec3::NEG_Y)
-        .sum();
-    sum.try_normalize()
 }
 
 fn resize_all(cameras: Vec<Camera>, req: &CameraRequest) -> Result<Vec<Camera>> {
@@ -334,14 +305,6 @@ mod tests {
                 look_at(k(), eye, DVec3::new(1.0, 2.0, 3.0), DVec3::Y).unwrap()
             })
             .collect()
-    }
-
-    #[test]
-    fn look_at_point_finds_the_common_target() {
-        let p = look_at_point(&ring(5)).unwrap();
-        assert!((p - DVec3::new(1.0, 2.0, 3.0)).length() < 1e-9, "{p}");
-        let up = mean_up(&ring(5)).unwrap();
-        assert!(up.dot(DVec3::Y) > 0.9);
     }
 
     #[test]

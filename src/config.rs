@@ -78,7 +78,7 @@ pub fn to_toml<T: Serialize>(config: &T) -> Result<String> {
 pub fn save<T: Serialize>(config: &T, dir: &Path) -> Result<PathBuf> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let path = dir.join(CONFIG_FILE);
-    gaussian::ply::write_atomic(&path, to_toml(config)?.as_bytes())
+    base::write_atomic(&path, to_toml(config)?.as_bytes())
         .with_context(|| format!("writing {}", path.display()))?;
     Ok(path)
 }

@@ -323,5 +323,5 @@ pub fn table(r: &EvalReport) -> String {
 /// Writes the report as JSON (atomically).
 pub fn write_report(path: &Path, r: &EvalReport) -> Result<()> {
     let json = serde_json::to_vec_pretty(r).context("serialising the report")?;
-    gaussian::ply::write_atomic(path, &json).with_context(|| format!("writing {}", path.display()))
+    base::write_atomic(path, &json).with_context(|| format!("writing {}", path.display()))
 }

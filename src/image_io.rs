@@ -8,9 +8,9 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
+use base::write_atomic;
 use gaussian::dataset::images::{load_rgb, resize};
 pub use gaussian::dataset::RgbImage;
-use gaussian::ply::write_atomic;
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, ImageEncoder};
 use ndarray::Array4;

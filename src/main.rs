@@ -539,15 +539,48 @@ struct EvalStyleArgs {
 fn main() -> ExitCode {
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e:#}");
-            ExitCode::FAILURE
-        }
+        Err(e) => match e.downcast_ref::<Interrupted>() {
+            Some(stop) => {
+                eprintln!("{stop}");
+                ExitCode::from(INTERRUPTED_EXIT)
+            }
+            None => {
+                eprintln!("error: {e:#}");
+                ExitCode::FAILURE
+            }
+        },
     }
 }
 
-/// The stop flag of the training commands, set by the first Ctrl-C: the run ends after the
-/// current iteration and writes a checkpoint to resume from. A second Ctrl-C exits at once.
+/// Exit status of a training run stopped by SIGINT, SIGTERM or SIGHUP after writing its
+/// checkpoint (128 + SIGINT, the shell convention for an interrupted command).
+const INTERRUPTED_EXIT: u8 = 130;
+
+/// A training run that a signal stopped after writing its checkpoint: not an error, but not a
+/// finished run either; the message says how to resume.
+#[derive(Debug)]
+struct Interrupted(String);
+
+impl std::fmt::Display for Interrupted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for Interrupted {}
+
+/// The [`Interrupted`] outcome of a run stopped at `step` with its checkpoint at `checkpoint`.
+fn interrupted(step: u64, checkpoint: &Path) -> anyhow::Error {
+    Interrupted(format!(
+        "stopped early at iteration {step}; resume with --resume {}",
+        checkpoint.display()
+    ))
+    .into()
+}
+
+/// The stop flag of the training commands, set by the first Ctrl-C, SIGTERM or SIGHUP: the run
+/// ends after the current iteration, writes a checkpoint to resume from and exits with status
+/// [`INTERRUPTED_EXIT`]. A second signal exits at once.
 fn stop_flag() -> Option<&'static AtomicBool> {
     static STOP: AtomicBool = AtomicBool::new(false);
     let installed = ctrlc::set_handler(|| {
@@ -555,12 +588,12 @@ fn stop_flag() -> Option<&'static AtomicBool> {
             eprintln!("\ninterrupted again: exiting without a checkpoint");
             std::process::exit(130);
         }
-        eprintln!("\ninterrupt: stopping after this iteration and writing a checkpoint (Ctrl-C again to exit at once)");
+        eprintln!("\nstop requested: stopping after this iteration and writing a checkpoint (Ctrl-C again to exit at once)");
     });
     match installed {
         Ok(()) => Some(&STOP),
         Err(e) => {
-            eprintln!("warning: no Ctrl-C handler ({e}); an interrupted run resumes from its last periodic checkpoint");
+            eprintln!("warning: no stop-signal handler ({e}); an interrupted run resumes from its last periodic checkpoint");
             None
         }
     }
@@ -645,14 +678,10 @@ fn fit_geometry(a: FitGeometryArgs) -> Result<()> {
         r.gaussians,
         r.ply.display()
     );
-    if let Some(p) = &r.stop_checkpoint {
-        println!(
-            "stopped early at iteration {}; resume with --resume {}",
-            r.step,
-            p.display()
-        );
+    match &r.stop_checkpoint {
+        Some(p) => Err(interrupted(r.step, p)),
+        None => Ok(()),
     }
-    Ok(())
 }
 
 fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
@@ -703,8 +732,7 @@ fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
         interrupted: r.interrupted,
         checkpoint: &r.checkpoint,
     };
-    end.print(r.weights.as_deref().map(|p| ("decoder", p)));
-    Ok(())
+    end.finish(r.weights.as_deref().map(|p| ("decoder", p)))
 }
 
 /// How a resumable training run ended, for its closing lines.
@@ -717,9 +745,9 @@ struct RunEnd<'a> {
 }
 
 impl RunEnd<'_> {
-    /// Prints the iteration rate and checkpoint, the `written` output (what, where) and, after
-    /// Ctrl-C, how to resume.
-    fn print(&self, written: Option<(&str, &Path)>) {
+    /// Prints the iteration rate and checkpoint and the `written` output (what, where); a run
+    /// stopped by a signal becomes the [`Interrupted`] outcome, which says how to resume.
+    fn finish(&self, written: Option<(&str, &Path)>) -> Result<()> {
         let done = self.step - self.first_step;
         println!(
             "{done} iterations in {:.1} s ({:.2} it/s); checkpoint {}",
@@ -731,12 +759,9 @@ impl RunEnd<'_> {
             println!("{what} written to {}", p.display());
         }
         if self.interrupted {
-            println!(
-                "stopped early at iteration {}; resume with --resume {}",
-                self.step,
-                self.checkpoint.display()
-            );
+            return Err(interrupted(self.step, self.checkpoint));
         }
+        Ok(())
     }
 }
 
@@ -789,8 +814,7 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
         interrupted: r.interrupted,
         checkpoint: &r.checkpoint,
     };
-    end.print(r.bundle.as_deref().map(|p| ("scene bundle", p)));
-    Ok(())
+    end.finish(r.bundle.as_deref().map(|p| ("scene bundle", p)))
 }
 
 fn bake(a: BakeArgs) -> Result<()> {

@@ -95,6 +95,45 @@ pub fn look_at(intrinsics: Intrinsics, eye: DVec3, target: DVec3, up: DVec3) -> 
     ))
 }
 
+/// The point nearest, in the least-squares sense, to the optical axes of `cameras`: what a
+/// capture looks at. `None` for fewer than two cameras or (nearly) parallel axes.
+///
+/// Each axis contributes its orthogonal projector `P = I - d d^T`; the point solves
+/// `(sum P) x = sum P c`. For parallel axes the matrix is singular: its determinant is compared
+/// with the cube of its trace (scale-free; about `1e-9` means axes within about `1e-4` rad of
+/// each other).
+pub fn look_at_point(cameras: &[Camera]) -> Option<DVec3> {
+    if cameras.len() < 2 {
+        return None;
+    }
+    let mut a = DMat3::ZERO;
+    let mut b = DVec3::ZERO;
+    for c in cameras {
+        let d = c.view_direction().normalize();
+        let p = DMat3::IDENTITY - DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+        a += p;
+        b += p * c.center();
+    }
+    let tr = a.x_axis.x + a.y_axis.y + a.z_axis.z;
+    // A NaN determinant (non-finite poses) fails the comparison too.
+    let conditioned = a.determinant().abs() > 1e-9 * tr * tr * tr;
+    if !conditioned {
+        return None;
+    }
+    let x = a.inverse() * b;
+    x.is_finite().then_some(x)
+}
+
+/// The mean image-up direction (camera `-y`) of `cameras` in world coordinates, normalised;
+/// `None` when there are none or their directions cancel out.
+pub fn mean_up(cameras: &[Camera]) -> Option<DVec3> {
+    let sum: DVec3 = cameras
+        .iter()
+        .map(|c| c.rotation().transpose() * DVec3::NEG_Y)
+        .sum();
+    sum.try_normalize()
+}
+
 /// `n_frames` cameras on a circle around `center` (angles `2 pi f / n_frames`, so the path
 /// loops without repeating a frame) at distance `radius` and elevation `elevation` (radians)
 /// above the plane orthogonal to `up`, each looking at `center`. The first camera lies in the
@@ -182,6 +221,42 @@ fn orbit_with_start(
 mod tests {
     use super::*;
     use glam::DMat4;
+
+    /// Cameras on a tilted ring around `target`, looking at it with image up along +y.
+    fn ring(n: usize, target: DVec3) -> Vec<Camera> {
+        (0..n)
+            .map(|i| {
+                let a = i as f64 * 0.4;
+                let eye = DVec3::new(3.0 * a.cos(), 1.0, 3.0 * a.sin()) + target;
+                look_at(intr(), eye, target, DVec3::NEG_Y).unwrap()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn look_at_point_finds_the_common_target_and_mean_up_the_image_up() {
+        let target = DVec3::new(1.0, 2.0, 3.0);
+        let p = look_at_point(&ring(5, target)).unwrap();
+        assert!((p - target).length() < 1e-9, "{p}");
+        let up = mean_up(&ring(5, target)).unwrap();
+        assert!(up.dot(DVec3::NEG_Y) > 0.9, "{up}");
+    }
+
+    #[test]
+    fn look_at_point_is_none_for_parallel_axes_or_a_single_camera() {
+        let target = DVec3::new(1.0, 2.0, 3.0);
+        assert!(look_at_point(&ring(1, target)).is_none());
+        assert!(look_at_point(&[]).is_none());
+        // Cameras side by side, all looking along +z.
+        let parallel: Vec<Camera> = (0..4)
+            .map(|i| {
+                let eye = DVec3::new(i as f64, 0.0, 0.0);
+                look_at(intr(), eye, eye + DVec3::Z, DVec3::NEG_Y).unwrap()
+            })
+            .collect();
+        assert!(look_at_point(&parallel).is_none());
+        assert!(mean_up(&[]).is_none());
+    }
 
     fn intr() -> Intrinsics {
         Intrinsics {

@@ -10,14 +10,14 @@ pub mod dataset;
 pub mod npy;
 pub mod ply;
 pub mod project;
-pub mod real;
 pub mod scene;
 pub mod sh;
 
+/// The workspace's numeric trait and exponential, from `dsgs-base`.
+pub use base::{exp_f32, Real};
 pub use camera::{Camera, Intrinsics};
 pub use dataset::{Dataset, DatasetError, LoadOptions, Resolution};
 pub use ply::{load_ply, save_ply, PlyError};
 pub use project::{project, project_backward, ProjectSettings, Projected, ProjectionGrads};
-pub use real::{exp_f32, Real};
 pub use scene::{scene_extent_from_cameras, FeatureGaussians, SceneError};
 pub use sh::{sh_colors, sh_colors_backward};

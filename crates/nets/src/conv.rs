@@ -49,11 +49,11 @@
 
 use std::sync::Mutex;
 
+use base::Real;
 use ndarray::{s, Array1, Array4, ArrayView1, ArrayView4, Axis};
 use rayon::prelude::*;
 
 use crate::matmul::{backend_for, matmul, GemmBackend, Pass};
-use crate::scalar::Scalar;
 
 /// Target number of output pixels per tile (a good GEMM width).
 pub const TILE_PIXELS: usize = 2048;
@@ -112,7 +112,7 @@ fn rows_per_implicit_tile<T>(o: usize, wp: usize, h_out: usize) -> usize {
 /// accumulates `K*K` products `w[:, :, i, j] (O x C) * shifted input (C x tile)` into an
 /// `O x tile` accumulator in a fixed tap order, and copies the valid columns out, adding the bias
 /// and applying the ReLU. No im2col buffer is formed.
-pub(crate) fn conv_valid<T: Scalar>(
+pub(crate) fn conv_valid<T: Real>(
     xp: ArrayView4<T>,
     w: ArrayView4<T>,
     bias: Option<ArrayView1<T>>,
@@ -173,7 +173,7 @@ pub(crate) fn conv_valid<T: Scalar>(
                 );
                 for oc in 0..o {
                     let row = std::slice::from_raw_parts_mut(c_out.add(oc * plane_out), px);
-                    let b = bias.as_ref().map_or(T::ZERO, |b| b[oc]);
+                    let b = bias.as_ref().map_or(T::zero(), |b| b[oc]);
                     for v in row.iter_mut() {
                         *v = bias_relu(*v, b, relu);
                     }
@@ -185,7 +185,7 @@ pub(crate) fn conv_valid<T: Scalar>(
                     .ok()
                     .and_then(|mut p| p.pop())
                     .unwrap_or_default();
-                acc.resize(o * np, T::ZERO);
+                acc.resize(o * np, T::zero());
                 for i in 0..k {
                     for j in 0..k {
                         let tap = i * k + j;
@@ -202,7 +202,7 @@ pub(crate) fn conv_valid<T: Scalar>(
                     }
                 }
                 for oc in 0..o {
-                    let b = bias.as_ref().map_or(T::ZERO, |b| b[oc]);
+                    let b = bias.as_ref().map_or(T::zero(), |b| b[oc]);
                     for r in 0..r1 - r0 {
                         let dst = std::slice::from_raw_parts_mut(
                             c_out.add(oc * plane_out + r * w_out),
@@ -225,18 +225,18 @@ pub(crate) fn conv_valid<T: Scalar>(
 
 /// `v + b`, through a ReLU when `relu`.
 #[inline]
-fn bias_relu<T: Scalar>(v: T, b: T, relu: bool) -> T {
+fn bias_relu<T: Real>(v: T, b: T, relu: bool) -> T {
     let t = v + b;
-    if !relu || t > T::ZERO {
+    if !relu || t > T::zero() {
         t
     } else {
-        T::ZERO
+        T::zero()
     }
 }
 
 /// Gradients of a valid cross-correlation with respect to its weights and bias, given the padded
 /// input `xp [N,C,Hp,Wp]`, the output gradient `dy [N,O,Hp-K+1,Wp-K+1]` and the kernel size.
-pub(crate) fn conv_valid_param_grads<T: Scalar>(
+pub(crate) fn conv_valid_param_grads<T: Real>(
     xp: ArrayView4<T>,
     dy: ArrayView4<T>,
     k: usize,
@@ -260,11 +260,11 @@ pub(crate) fn conv_valid_param_grads<T: Scalar>(
 }
 
 /// The bias gradient: the sum of `dy [N,O,H,W]` (as a slice) over images and pixels, per channel.
-fn bias_grad<T: Scalar>(dys: &[T], n: usize, o: usize, plane_out: usize) -> Array1<T> {
+fn bias_grad<T: Real>(dys: &[T], n: usize, o: usize, plane_out: usize) -> Array1<T> {
     let db: Vec<T> = (0..o)
         .into_par_iter()
         .map(|oc| {
-            let mut acc = T::ZERO;
+            let mut acc = T::zero();
             for img in 0..n {
                 let start = (img * o + oc) * plane_out;
                 acc += dys[start..start + plane_out].iter().copied().sum::<T>();
@@ -282,7 +282,7 @@ fn bias_grad<T: Scalar>(dys: &[T], n: usize, o: usize, plane_out: usize) -> Arra
 /// products with the wrapped-around pixels. Tiles are split into [`DW_GROUPS`] fixed contiguous
 /// groups run in parallel, each accumulating its tiles in order into its own `[K*K, O, C]`
 /// buffer; the group buffers are then summed in group order. Neither depends on the thread count.
-fn weight_grad_implicit<T: Scalar>(
+fn weight_grad_implicit<T: Real>(
     xs: &[T],
     dims: [usize; 4],
     dys: &[T],
@@ -298,7 +298,7 @@ fn weight_grad_implicit<T: Scalar>(
     let dyp = if k == 1 {
         dys
     } else {
-        let mut d = vec![T::ZERO; n * o * plane_dyp];
+        let mut d = vec![T::zero(); n * o * plane_dyp];
         d.par_chunks_mut(plane_dyp)
             .zip(dys.par_chunks(h_out * w_out))
             .for_each(|(d, s)| {
@@ -316,7 +316,7 @@ fn weight_grad_implicit<T: Scalar>(
     let partials: Vec<Vec<T>> = (0..groups)
         .into_par_iter()
         .map(|g| {
-            let mut acc = vec![T::ZERO; taps * o * c];
+            let mut acc = vec![T::zero(); taps * o * c];
             let (lo, hi) = (g * jobs.len() / groups, (g + 1) * jobs.len() / groups);
             for &(img, r0, r1) in &jobs[lo..hi] {
                 let np = (r1 - r0) * wp - (k - 1);
@@ -347,7 +347,7 @@ fn weight_grad_implicit<T: Scalar>(
         })
         .collect();
     // dw[o][c][tap] = sum over groups, in order, of partial[tap][o][c].
-    let mut dw = vec![T::ZERO; o * c * taps];
+    let mut dw = vec![T::zero(); o * c * taps];
     dw.par_chunks_mut(c * taps)
         .enumerate()
         .for_each(|(oc, row)| {
@@ -369,7 +369,7 @@ fn weight_grad_implicit<T: Scalar>(
 ///
 /// # Panics
 /// If the height or width is below 2 (reflection needs a neighbour to mirror).
-pub fn pad_reflect1<T: Scalar>(x: ArrayView4<T>) -> Array4<T> {
+pub fn pad_reflect1<T: Real>(x: ArrayView4<T>) -> Array4<T> {
     let (n, c, h, w) = x.dim();
     assert!(
         h >= 2 && w >= 2,
@@ -394,7 +394,7 @@ pub fn pad_reflect1<T: Scalar>(x: ArrayView4<T>) -> Array4<T> {
 }
 
 /// Zero padding by `p` pixels on both spatial axes.
-fn pad_zero<T: Scalar>(x: ArrayView4<T>, p: usize) -> Array4<T> {
+fn pad_zero<T: Real>(x: ArrayView4<T>, p: usize) -> Array4<T> {
     let (n, c, h, w) = x.dim();
     let mut out = Array4::<T>::zeros((n, c, h + 2 * p, w + 2 * p));
     out.slice_mut(s![.., .., p..p + h, p..p + w]).assign(&x);
@@ -403,7 +403,7 @@ fn pad_zero<T: Scalar>(x: ArrayView4<T>, p: usize) -> Array4<T> {
 
 /// The adjoint of [`pad_reflect1`]: folds the gradient of a reflection-padded tensor
 /// `[N,C,H+2,W+2]` back onto the `[N,C,H,W]` pixels the border was copied from.
-fn fold_reflect1<T: Scalar>(gp: Array4<T>) -> Array4<T> {
+fn fold_reflect1<T: Real>(gp: Array4<T>) -> Array4<T> {
     let (n, c, hp, wp) = gp.dim();
     let (h, w) = (hp - 2, wp - 2);
     let mut out = Array4::<T>::zeros((n, c, h, w));
@@ -436,19 +436,19 @@ fn fold_reflect1<T: Scalar>(gp: Array4<T>) -> Array4<T> {
 }
 
 /// The kernel of the input gradient: `wt[c,o,i,j] = w[o,c,K-1-i,K-1-j]`.
-fn flip_transpose<T: Scalar>(w: ArrayView4<T>) -> Array4<T> {
+fn flip_transpose<T: Real>(w: ArrayView4<T>) -> Array4<T> {
     let (o, c, k, _) = w.dim();
     Array4::from_shape_fn((c, o, k, k), |(ci, oi, i, j)| {
         w[[oi, ci, k - 1 - i, k - 1 - j]]
     })
 }
 
-fn check_3x3(w: &ArrayView4<impl Scalar>) {
+fn check_3x3(w: &ArrayView4<impl Real>) {
     let (_, _, kh, kw) = w.dim();
     assert!(kh == 3 && kw == 3, "expected a 3x3 kernel, got {kh}x{kw}");
 }
 
-fn check_1x1(w: &ArrayView4<impl Scalar>) {
+fn check_1x1(w: &ArrayView4<impl Real>) {
     let (_, _, kh, kw) = w.dim();
     assert!(kh == 1 && kw == 1, "expected a 1x1 kernel, got {kh}x{kw}");
 }
@@ -458,7 +458,7 @@ fn check_1x1(w: &ArrayView4<impl Scalar>) {
 ///
 /// # Panics
 /// On inconsistent shapes or `H < 2` or `W < 2`.
-pub fn conv3x3_reflect<T: Scalar>(
+pub fn conv3x3_reflect<T: Real>(
     x: ArrayView4<T>,
     w: ArrayView4<T>,
     b: ArrayView1<T>,
@@ -475,7 +475,7 @@ pub fn conv3x3_reflect<T: Scalar>(
 }
 
 /// Input gradient of [`conv3x3_reflect`] (without ReLU) given the output gradient `dy [N,O,H,W]`.
-pub fn conv3x3_reflect_backward_input<T: Scalar>(dy: ArrayView4<T>, w: ArrayView4<T>) -> Array4<T> {
+pub fn conv3x3_reflect_backward_input<T: Real>(dy: ArrayView4<T>, w: ArrayView4<T>) -> Array4<T> {
     check_3x3(&w);
     let (_, _, h, wd) = dy.dim();
     assert!(
@@ -494,7 +494,7 @@ pub fn conv3x3_reflect_backward_input<T: Scalar>(dy: ArrayView4<T>, w: ArrayView
 
 /// Weight and bias gradients of [`conv3x3_reflect`] (without ReLU) given its input `x` and the
 /// output gradient `dy`. Returns `([O,C,3,3], [O])`.
-pub fn conv3x3_reflect_backward_params<T: Scalar>(
+pub fn conv3x3_reflect_backward_params<T: Real>(
     x: ArrayView4<T>,
     dy: ArrayView4<T>,
 ) -> (Array4<T>, Array1<T>) {
@@ -503,7 +503,7 @@ pub fn conv3x3_reflect_backward_params<T: Scalar>(
 
 /// 1x1 convolution: `x [N,C,H,W]`, `w [O,C,1,1]`, `b [O]` to `[N,O,H,W]`, optionally followed by
 /// ReLU.
-pub fn conv1x1<T: Scalar>(
+pub fn conv1x1<T: Real>(
     x: ArrayView4<T>,
     w: ArrayView4<T>,
     b: ArrayView1<T>,
@@ -514,7 +514,7 @@ pub fn conv1x1<T: Scalar>(
 }
 
 /// Input gradient of [`conv1x1`] (without ReLU).
-pub fn conv1x1_backward_input<T: Scalar>(dy: ArrayView4<T>, w: ArrayView4<T>) -> Array4<T> {
+pub fn conv1x1_backward_input<T: Real>(dy: ArrayView4<T>, w: ArrayView4<T>) -> Array4<T> {
     check_1x1(&w);
     conv_valid(
         dy,
@@ -526,7 +526,7 @@ pub fn conv1x1_backward_input<T: Scalar>(dy: ArrayView4<T>, w: ArrayView4<T>) ->
 }
 
 /// Weight and bias gradients of [`conv1x1`] (without ReLU). Returns `([O,C,1,1], [O])`.
-pub fn conv1x1_backward_params<T: Scalar>(
+pub fn conv1x1_backward_params<T: Real>(
     x: ArrayView4<T>,
     dy: ArrayView4<T>,
 ) -> (Array4<T>, Array1<T>) {

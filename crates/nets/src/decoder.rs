@@ -6,19 +6,19 @@
 
 use std::path::Path;
 
+use base::Real;
 use ndarray::{Array4, ArrayView4};
 
 use crate::error::NetError;
 use crate::layer::{ConvGrad, ConvLayer};
 use crate::layout::{decoder_spec, read_conv, DecoderSpec};
-use crate::scalar::Scalar;
 use crate::sequential::{self, Step, Tape};
 use crate::state_dict::StateDict;
 use crate::Resolution;
 
 /// The decoder from `relu{depth}_1` features to an image.
 #[derive(Clone, Debug)]
-pub struct Decoder<T: Scalar = f32> {
+pub struct Decoder<T: Real = f32> {
     /// Deepest level first.
     levels: Vec<Vec<ConvLayer<T>>>,
     final_relu: bool,
@@ -27,18 +27,18 @@ pub struct Decoder<T: Scalar = f32> {
 
 /// What [`Decoder::backward`] needs from a forward pass: every conv input and the ReLU masks.
 #[derive(Clone, Debug)]
-pub struct DecoderTape<T: Scalar = f32>(Tape<T>);
+pub struct DecoderTape<T: Real = f32>(Tape<T>);
 
 /// Gradients of a scalar loss through the decoder.
 #[derive(Clone, Debug)]
-pub struct DecoderGrads<T: Scalar = f32> {
+pub struct DecoderGrads<T: Real = f32> {
     /// With respect to the decoder input.
     pub input: Array4<T>,
     /// With respect to each conv's weight and bias, in [`Decoder::layers`] order.
     pub params: Vec<ConvGrad<T>>,
 }
 
-impl<T: Scalar> Decoder<T> {
+impl<T: Real> Decoder<T> {
     /// Builds the decoder from a state dict in the Sequential (AdaIN/WCT) or named (compressed)
     /// layout. Depth and widths come from the weights.
     pub fn from_state_dict(sd: &StateDict) -> Result<Decoder<T>, NetError> {
@@ -121,7 +121,7 @@ impl<T: Scalar> Decoder<T> {
     }
 
     /// The same decoder in another precision.
-    pub fn cast<U: Scalar>(&self) -> Decoder<U> {
+    pub fn cast<U: Real>(&self) -> Decoder<U> {
         Decoder {
             levels: self
                 .levels

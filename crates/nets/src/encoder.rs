@@ -8,20 +8,20 @@
 
 use std::path::Path;
 
+use base::Real;
 use ndarray::{Array4, ArrayView4};
 
 use crate::error::NetError;
 use crate::layer::{ConvGrad, ConvLayer};
 use crate::layout::{encoder_spec, read_conv, EncoderSpec};
 use crate::pool::PoolRounding;
-use crate::scalar::Scalar;
 use crate::sequential::{self, Step, Tape};
 use crate::state_dict::StateDict;
 use crate::Resolution;
 
 /// The VGG encoder to `relu{depth}_1`.
 #[derive(Clone, Debug)]
-pub struct Encoder<T: Scalar = f32> {
+pub struct Encoder<T: Real = f32> {
     input_conv: ConvLayer<T>,
     /// `levels[k-1]` = the convs of level `k` that run; the last level holds only `conv{depth}_1`.
     levels: Vec<Vec<ConvLayer<T>>>,
@@ -32,9 +32,9 @@ pub struct Encoder<T: Scalar = f32> {
 /// What [`Encoder::backward`] needs from a forward pass: the ReLU masks (one bit per element)
 /// and the max-pool arg-maxes. Conv inputs are not kept (the encoder is frozen).
 #[derive(Clone, Debug)]
-pub struct EncoderTape<T: Scalar = f32>(Tape<T>);
+pub struct EncoderTape<T: Real = f32>(Tape<T>);
 
-impl<T: Scalar> Encoder<T> {
+impl<T: Real> Encoder<T> {
     /// Builds the encoder from a state dict in the Sequential (AdaIN/WCT) or named (compressed)
     /// layout, to the deepest `relu{k}_1` the weights reach (e.g. `relu5_1` for the whole
     /// `vgg_normalised.pth`, `relu3_1` for `vgg_normalised_conv3_1.pth`); use
@@ -140,7 +140,7 @@ impl<T: Scalar> Encoder<T> {
     }
 
     /// The same encoder in another precision.
-    pub fn cast<U: Scalar>(&self) -> Encoder<U> {
+    pub fn cast<U: Real>(&self) -> Encoder<U> {
         Encoder {
             input_conv: self.input_conv.cast(),
             levels: self

@@ -3,14 +3,14 @@
 //! Weights are OIHW (`[O, C, K, K]`, `K` = 1 or 3) and biases `[O]`, as in PyTorch. A 3x3 layer
 //! always uses reflection padding 1; a 1x1 layer uses none.
 
+use base::Real;
 use ndarray::{Array1, Array4, ArrayView4};
 
 use crate::conv;
-use crate::scalar::Scalar;
 
 /// One convolution of a network.
 #[derive(Clone, Debug)]
-pub struct ConvLayer<T: Scalar = f32> {
+pub struct ConvLayer<T: Real = f32> {
     /// Canonical name, e.g. `conv0` (the encoder's 1x1 input conv) or `conv3_1`.
     pub name: String,
     /// The key prefix of this layer in the state dict it was built from, e.g. `16`, `conv31` or
@@ -22,7 +22,7 @@ pub struct ConvLayer<T: Scalar = f32> {
     pub bias: Array1<T>,
 }
 
-impl<T: Scalar> ConvLayer<T> {
+impl<T: Real> ConvLayer<T> {
     /// Output channels.
     pub fn out_channels(&self) -> usize {
         self.weight.dim().0
@@ -39,12 +39,12 @@ impl<T: Scalar> ConvLayer<T> {
     }
 
     /// The same layer in another precision.
-    pub fn cast<U: Scalar>(&self) -> ConvLayer<U> {
+    pub fn cast<U: Real>(&self) -> ConvLayer<U> {
         ConvLayer {
             name: self.name.clone(),
             source: self.source.clone(),
-            weight: self.weight.mapv(|v| U::from_f64(v.to_f64())),
-            bias: self.bias.mapv(|v| U::from_f64(v.to_f64())),
+            weight: self.weight.mapv(|v| U::lit(v.to_f64_exact())),
+            bias: self.bias.mapv(|v| U::lit(v.to_f64_exact())),
         }
     }
 
@@ -94,7 +94,7 @@ impl<T: Scalar> ConvLayer<T> {
 
 /// The gradient of a scalar loss with respect to one layer's parameters.
 #[derive(Clone, Debug)]
-pub struct ConvGrad<T: Scalar = f32> {
+pub struct ConvGrad<T: Real = f32> {
     /// Canonical name of the layer (see [`ConvLayer::name`]).
     pub name: String,
     /// Key prefix of the layer in its source state dict (see [`ConvLayer::source`]).

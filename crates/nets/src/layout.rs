@@ -21,12 +21,12 @@
 
 use std::collections::BTreeSet;
 
+use base::Real;
 use ndarray::{Array1, Array4};
 
 use crate::error::NetError;
 use crate::layer::ConvLayer;
 use crate::pool::PoolRounding;
-use crate::scalar::Scalar;
 use crate::state_dict::StateDict;
 
 /// The key families a state dict may use.
@@ -364,7 +364,7 @@ pub(crate) fn decoder_spec(
 
 /// Reads one conv layer: `{source}.weight` of shape `[O, in_channels, kernel, kernel]` (any `O`
 /// and, when `in_channels` is `None`, any input width) and `{source}.bias` of shape `[O]`.
-pub(crate) fn read_conv<T: Scalar>(
+pub(crate) fn read_conv<T: Real>(
     sd: &StateDict,
     r: &LayerRef,
     kernel: usize,
@@ -399,11 +399,8 @@ pub(crate) fn read_conv<T: Scalar>(
         });
     }
     let dims = (w.shape[0], w.shape[1], kernel, kernel);
-    let weight = Array4::from_shape_vec(
-        dims,
-        w.data.iter().map(|&v| T::from_f64(v as f64)).collect(),
-    )
-    .map_err(|_| NetError::TensorShape {
+    let data = w.data.iter().map(|&v| T::lit(v as f64)).collect();
+    let weight = Array4::from_shape_vec(dims, data).map_err(|_| NetError::TensorShape {
         name: wname.clone(),
         found: w.shape.clone(),
         expected: format!("{} elements", dims.0 * dims.1 * kernel * kernel),
@@ -415,7 +412,7 @@ pub(crate) fn read_conv<T: Scalar>(
             expected: format!("[{}] elements", w.shape[0]),
         });
     }
-    let bias = Array1::from_iter(b.data.iter().map(|&v| T::from_f64(v as f64)));
+    let bias = Array1::from_iter(b.data.iter().map(|&v| T::lit(v as f64)));
     Ok(ConvLayer {
         name: r.name.clone(),
         source: r.source.clone(),

@@ -2,8 +2,11 @@
 //! AdaIN-style decoder, the MLP lifter, their backward passes, the convolution engine they run on,
 //! and their canonical safetensors weights format.
 //!
-//! Tensors are `ndarray::Array4` in NCHW order. Networks and kernels are generic over
-//! [`Scalar`] (`f32` in production, the default type parameter; `f64` for checking gradients).
+//! Tensors are `ndarray::Array4` in NCHW order. Networks and kernels are generic over the
+//! workspace's numeric trait [`base::Real`] (`f32` in production, the default type parameter;
+//! `f64` for checking gradients, so that central differences are accurate enough to check them
+//! tightly and forward passes match the float64 oracle almost exactly). Matrix products go
+//! through [`matmul`], which picks the GEMM library.
 //!
 //! * [`Encoder`]: features `relu1_1 ..= relu{depth}_1`, forward with tape, backward from
 //!   cotangents on any subset of the features.
@@ -43,7 +46,6 @@ pub mod lifter;
 mod mask;
 pub mod matmul;
 pub mod pool;
-pub mod scalar;
 mod sequential;
 pub mod state_dict;
 pub mod upsample;
@@ -56,7 +58,6 @@ pub use layer::{ConvGrad, ConvLayer};
 pub use layout::Layout;
 pub use lifter::{Lifter, LifterGrads, LifterTape};
 pub use pool::PoolRounding;
-pub use scalar::Scalar;
 pub use state_dict::{StateDict, TensorF32};
 pub use weights_file::NetWeights;
 

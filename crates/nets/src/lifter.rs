@@ -2,35 +2,35 @@
 //! to the encoder width, followed by ReLU, i.e. `relu(conv1x1(x))` with weights `[C, F, 1, 1]` and
 //! bias `[C]`.
 
+use base::Real;
 use ndarray::{Array1, Array4, ArrayView4};
 
 use crate::error::NetError;
 use crate::layer::{ConvGrad, ConvLayer};
 use crate::layout::{read_conv, LayerRef};
-use crate::scalar::Scalar;
 use crate::sequential::{self, Step, Tape};
 use crate::state_dict::StateDict;
 
 /// `relu(W x + b)` per pixel.
 #[derive(Clone, Debug)]
-pub struct Lifter<T: Scalar = f32> {
+pub struct Lifter<T: Real = f32> {
     conv: ConvLayer<T>,
 }
 
 /// What [`Lifter::backward`] needs: the input and the ReLU mask.
 #[derive(Clone, Debug)]
-pub struct LifterTape<T: Scalar = f32>(Tape<T>);
+pub struct LifterTape<T: Real = f32>(Tape<T>);
 
 /// Gradients of a scalar loss through the lifter.
 #[derive(Clone, Debug)]
-pub struct LifterGrads<T: Scalar = f32> {
+pub struct LifterGrads<T: Real = f32> {
     /// With respect to the input features.
     pub input: Array4<T>,
     /// With respect to the weight `[C, F, 1, 1]` and bias `[C]` (named `lifter`).
     pub params: ConvGrad<T>,
 }
 
-impl<T: Scalar> Lifter<T> {
+impl<T: Real> Lifter<T> {
     /// A lifter from its weight `[C, F, 1, 1]` and bias `[C]`.
     pub fn new(weight: Array4<T>, bias: Array1<T>) -> Result<Lifter<T>, NetError> {
         let (o, _, kh, kw) = weight.dim();
@@ -110,7 +110,7 @@ impl<T: Scalar> Lifter<T> {
     }
 
     /// The same lifter in another precision.
-    pub fn cast<U: Scalar>(&self) -> Lifter<U> {
+    pub fn cast<U: Real>(&self) -> Lifter<U> {
         Lifter {
             conv: self.conv.cast(),
         }

@@ -1,7 +1,7 @@
 //! A packed bit mask recording where a ReLU was active (`x > 0`), the only thing its backward
 //! pass needs. One bit per element keeps the tape of a deep network small.
 
-use crate::scalar::Scalar;
+use base::Real;
 
 /// One bit per element: set where the ReLU output is positive.
 #[derive(Clone, Debug)]
@@ -12,12 +12,12 @@ pub(crate) struct ReluMask {
 
 impl ReluMask {
     /// The mask of a ReLU output (positive output iff positive input).
-    pub(crate) fn of_output<T: Scalar>(y: &[T]) -> ReluMask {
+    pub(crate) fn of_output<T: Real>(y: &[T]) -> ReluMask {
         let mut bits = vec![0u64; y.len().div_ceil(64)];
         for (word, chunk) in bits.iter_mut().zip(y.chunks(64)) {
             let mut b = 0u64;
             for (i, &v) in chunk.iter().enumerate() {
-                b |= ((v > T::ZERO) as u64) << i;
+                b |= ((v > T::zero()) as u64) << i;
             }
             *word = b;
         }
@@ -25,7 +25,7 @@ impl ReluMask {
     }
 
     /// Zeroes the gradient where the ReLU was inactive (PyTorch's `threshold_backward`).
-    pub(crate) fn apply<T: Scalar>(&self, g: &mut [T]) {
+    pub(crate) fn apply<T: Real>(&self, g: &mut [T]) {
         assert_eq!(
             g.len(),
             self.len,
@@ -34,7 +34,7 @@ impl ReluMask {
         for (word, chunk) in self.bits.iter().zip(g.chunks_mut(64)) {
             for (i, v) in chunk.iter_mut().enumerate() {
                 if (word >> i) & 1 == 0 {
-                    *v = T::ZERO;
+                    *v = T::zero();
                 }
             }
         }

@@ -18,9 +18,10 @@
 //! both, and running the tests in `f64` through the very code path production runs in `f32` is
 //! what makes them a check of that path.
 
+use std::any::TypeId;
 use std::cell::Cell;
 
-use crate::scalar::Scalar;
+use base::Real;
 
 /// A GEMM library.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -85,7 +86,7 @@ pub fn backend_for(pass: Pass) -> GemmBackend {
 /// must not alias `A` or `B`.
 #[allow(clippy::too_many_arguments)]
 #[inline]
-pub(crate) unsafe fn matmul<T: Scalar>(
+pub(crate) unsafe fn matmul<T: Real>(
     backend: GemmBackend,
     m: usize,
     k: usize,
@@ -101,18 +102,18 @@ pub(crate) unsafe fn matmul<T: Scalar>(
     match backend {
         // SAFETY: forwarded contract (`beta = 0` means `C` is not read).
         GemmBackend::MatrixMultiply => unsafe {
-            T::gemm(
+            matrixmultiply_gemm(
                 m,
                 k,
                 n,
-                T::ONE,
+                T::one(),
                 a,
                 rsa,
                 csa,
                 b,
                 rsb,
                 csb,
-                if accumulate { T::ONE } else { T::ZERO },
+                if accumulate { T::one() } else { T::zero() },
                 c,
                 rsc,
                 csc,
@@ -136,13 +137,92 @@ pub(crate) unsafe fn matmul<T: Scalar>(
                 b,
                 csb,
                 rsb,
-                T::ONE,
-                T::ONE,
+                T::one(),
+                T::one(),
                 false,
                 false,
                 false,
                 gemm::Parallelism::None,
             )
         },
+    }
+}
+
+/// `matrixmultiply`'s `C = alpha * A * B + beta * C` with arbitrary element strides, where `A` is
+/// `m x k`, `B` is `k x n` and `C` is `m x n`: `sgemm` when `T` is `f32`, `dgemm` when it is
+/// `f64`. When `beta` is zero, `C` is not read (it may be uninitialised garbage or NaN).
+///
+/// The routine is chosen by comparing `T`'s [`TypeId`] with `f32`'s, a constant per
+/// instantiation that the optimiser folds. [`Real`] is sealed and implemented for `f32` and `f64`
+/// only, so a `T` that is not `f32` is `f64`.
+///
+/// # Safety
+/// The pointers with their strides must address valid memory for the given shapes, and `C`
+/// must not alias `A` or `B`.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+unsafe fn matrixmultiply_gemm<T: Real>(
+    m: usize,
+    k: usize,
+    n: usize,
+    alpha: T,
+    a: *const T,
+    rsa: isize,
+    csa: isize,
+    b: *const T,
+    rsb: isize,
+    csb: isize,
+    beta: T,
+    c: *mut T,
+    rsc: isize,
+    csc: isize,
+) {
+    // `alpha` and `beta` go through `f64`, which is exact: the identity for `f64`, and a widening
+    // and the narrowing back for `f32`, which returns the same value.
+    let (alpha, beta) = (alpha.to_f64_exact(), beta.to_f64_exact());
+    if TypeId::of::<T>() == TypeId::of::<f32>() {
+        // SAFETY: `T` is `f32` (equal `TypeId`s), so the casts only rename the pointee type of
+        // pointers to `f32` elements; the caller's contract on them carries over unchanged.
+        unsafe {
+            matrixmultiply::sgemm(
+                m,
+                k,
+                n,
+                alpha as f32,
+                a.cast::<f32>(),
+                rsa,
+                csa,
+                b.cast::<f32>(),
+                rsb,
+                csb,
+                beta as f32,
+                c.cast::<f32>(),
+                rsc,
+                csc,
+            )
+        }
+    } else {
+        debug_assert!(TypeId::of::<T>() == TypeId::of::<f64>());
+        // SAFETY: `T` is not `f32`, and `Real` is sealed and implemented for `f32` and `f64`
+        // only, so `T` is `f64` and the casts only rename the pointee type of pointers to `f64`
+        // elements; the caller's contract on them carries over unchanged.
+        unsafe {
+            matrixmultiply::dgemm(
+                m,
+                k,
+                n,
+                alpha,
+                a.cast::<f64>(),
+                rsa,
+                csa,
+                b.cast::<f64>(),
+                rsb,
+                csb,
+                beta,
+                c.cast::<f64>(),
+                rsc,
+                csc,
+            )
+        }
     }
 }

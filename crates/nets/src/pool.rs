@@ -6,10 +6,9 @@
 //! maximum of its pixels inside the input). Ties pick the first maximum in row-major window order,
 //! as PyTorch does, and the backward pass routes each output gradient to that pixel.
 
+use base::Real;
 use ndarray::{Array4, ArrayView4, Axis};
 use rayon::prelude::*;
-
-use crate::scalar::Scalar;
 
 /// How the pooled size is rounded when the input size is odd.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -50,7 +49,7 @@ pub struct PoolArgmax {
 ///
 /// # Panics
 /// If the pooled size would be zero (only possible with `Floor` and `H < 2` or `W < 2`).
-pub fn max_pool2x2<T: Scalar>(x: ArrayView4<T>, rounding: PoolRounding) -> (Array4<T>, PoolArgmax) {
+pub fn max_pool2x2<T: Real>(x: ArrayView4<T>, rounding: PoolRounding) -> (Array4<T>, PoolArgmax) {
     let (n, c, h, w) = x.dim();
     let (ho, wo) = (rounding.pooled(h), rounding.pooled(w));
     assert!(
@@ -70,7 +69,7 @@ pub fn max_pool2x2<T: Scalar>(x: ArrayView4<T>, rounding: PoolRounding) -> (Arra
             let xin = &xs[plane * h * w..(plane + 1) * h * w];
             for oy in 0..ho {
                 for ox in 0..wo {
-                    let mut best = T::NEG_INFINITY;
+                    let mut best = T::neg_infinity();
                     let mut arg = 0u8;
                     let mut first = true;
                     for d in 0..4u8 {
@@ -99,7 +98,7 @@ pub fn max_pool2x2<T: Scalar>(x: ArrayView4<T>, rounding: PoolRounding) -> (Arra
 }
 
 /// Max-pooling backward: routes `dy [N,C,H',W']` to the arg-max pixels of an `[N,C,H,W]` input.
-pub fn max_pool2x2_backward<T: Scalar>(dy: ArrayView4<T>, argmax: &PoolArgmax) -> Array4<T> {
+pub fn max_pool2x2_backward<T: Real>(dy: ArrayView4<T>, argmax: &PoolArgmax) -> Array4<T> {
     let (n, c, ho, wo) = dy.dim();
     let (h, w) = argmax.input_hw;
     assert_eq!(

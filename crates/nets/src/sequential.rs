@@ -2,17 +2,17 @@
 //! feature outputs), run forward with an optional tape and backward from cotangents on any of its
 //! outputs. The encoder, decoder and lifter are each such a program.
 
+use base::Real;
 use ndarray::{Array4, ArrayView4};
 
 use crate::error::NetError;
 use crate::layer::{ConvGrad, ConvLayer};
 use crate::mask::ReluMask;
 use crate::pool::{max_pool2x2, max_pool2x2_backward, PoolArgmax, PoolRounding};
-use crate::scalar::Scalar;
 use crate::upsample::{upsample2x, upsample2x_backward};
 
 /// One step of a program.
-pub(crate) enum Step<'a, T: Scalar> {
+pub(crate) enum Step<'a, T: Real> {
     /// A convolution, followed by ReLU when `relu`.
     Conv { layer: &'a ConvLayer<T>, relu: bool },
     /// 2x2 max-pool with stride 2.
@@ -25,7 +25,7 @@ pub(crate) enum Step<'a, T: Scalar> {
 
 /// What one step saved for backward.
 #[derive(Clone, Debug)]
-enum Saved<T: Scalar> {
+enum Saved<T: Real> {
     Conv {
         /// The conv's input, kept only when parameter gradients are wanted.
         input: Option<Array4<T>>,
@@ -38,14 +38,14 @@ enum Saved<T: Scalar> {
 
 /// Everything a program's backward pass needs from its forward pass.
 #[derive(Clone, Debug)]
-pub(crate) struct Tape<T: Scalar> {
+pub(crate) struct Tape<T: Real> {
     saved: Vec<Saved<T>>,
     input_dim: (usize, usize, usize, usize),
     output_dims: Vec<(usize, usize, usize, usize)>,
 }
 
 /// Checks that an input of `dim` can run through `steps`; returns the output shapes.
-pub(crate) fn check_shapes<T: Scalar>(
+pub(crate) fn check_shapes<T: Real>(
     steps: &[Step<'_, T>],
     dim: (usize, usize, usize, usize),
     what: &str,
@@ -94,7 +94,7 @@ pub(crate) type ForwardResult<T> = Result<(Vec<Array4<T>>, Option<Tape<T>>), Net
 
 /// Runs a program forward. Returns its outputs and, when `tape` is set, what backward needs
 /// (conv inputs only when `keep_conv_inputs`).
-pub(crate) fn forward<T: Scalar>(
+pub(crate) fn forward<T: Real>(
     steps: &[Step<'_, T>],
     x: ArrayView4<T>,
     tape: bool,
@@ -148,7 +148,7 @@ pub(crate) fn forward<T: Scalar>(
 }
 
 /// The result of a backward pass.
-pub(crate) struct Backward<T: Scalar> {
+pub(crate) struct Backward<T: Real> {
     /// Gradient with respect to the program input.
     pub(crate) input: Array4<T>,
     /// Per convolution, in program order, when parameter gradients were requested.
@@ -156,7 +156,7 @@ pub(crate) struct Backward<T: Scalar> {
 }
 
 /// Runs a program backward from cotangents on any subset of its outputs (`None` = zero).
-pub(crate) fn backward<T: Scalar>(
+pub(crate) fn backward<T: Real>(
     steps: &[Step<'_, T>],
     tape: &Tape<T>,
     cotangents: &[Option<ArrayView4<T>>],

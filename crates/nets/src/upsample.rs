@@ -1,13 +1,12 @@
 //! Nearest-neighbour 2x upsampling (`F.interpolate(x, scale_factor=2, mode="nearest")`), forward
 //! and backward: output pixel `(y, x)` copies input pixel `(y/2, x/2)`.
 
+use base::Real;
 use ndarray::{Array4, ArrayView4, Axis};
 use rayon::prelude::*;
 
-use crate::scalar::Scalar;
-
 /// Nearest-neighbour 2x upsampling (`F.interpolate(scale_factor=2, mode="nearest")`).
-pub fn upsample2x<T: Scalar>(x: ArrayView4<T>) -> Array4<T> {
+pub fn upsample2x<T: Real>(x: ArrayView4<T>) -> Array4<T> {
     let (n, c, h, w) = x.dim();
     let mut out = Array4::<T>::zeros((n, c, 2 * h, 2 * w));
     out.axis_iter_mut(Axis(0))
@@ -25,7 +24,7 @@ pub fn upsample2x<T: Scalar>(x: ArrayView4<T>) -> Array4<T> {
 
 /// Backward of [`upsample2x`]: each input pixel receives the sum of its 2x2 block of output
 /// gradients (summed in row-major order).
-pub fn upsample2x_backward<T: Scalar>(dy: ArrayView4<T>) -> Array4<T> {
+pub fn upsample2x_backward<T: Real>(dy: ArrayView4<T>) -> Array4<T> {
     let (n, c, h2, w2) = dy.dim();
     assert!(
         h2 % 2 == 0 && w2 % 2 == 0,

@@ -22,8 +22,7 @@
 //! property of them, and is not stored.
 
 use std::collections::HashMap;
-use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use safetensors::tensor::TensorView;
 use safetensors::{Dtype, SafeTensors};
@@ -127,35 +126,12 @@ impl NetWeights {
             .map_err(|e| NetError::Input(format!("cannot serialise weights: {e}")))
     }
 
-    /// Writes the file atomically (temporary file in the same directory, then rename).
+    /// Writes the file atomically ([`base::write_atomic`]).
     pub fn save(&self, path: &Path) -> Result<(), NetError> {
         let bytes = self.to_bytes()?;
-        let io = |source| NetError::Io {
+        base::write_atomic(path, &bytes).map_err(|source| NetError::Io {
             path: path.to_path_buf(),
             source,
-        };
-        let dir = match path.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-            _ => PathBuf::from("."),
-        };
-        let name = path
-            .file_name()
-            .ok_or_else(|| NetError::File {
-                path: path.to_path_buf(),
-                detail: "not a file path".into(),
-            })?
-            .to_string_lossy()
-            .into_owned();
-        let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
-        let write = || -> std::io::Result<()> {
-            let mut f = std::fs::File::create(&tmp)?;
-            f.write_all(&bytes)?;
-            f.sync_all()?;
-            std::fs::rename(&tmp, path)
-        };
-        write().map_err(|e| {
-            let _ = std::fs::remove_file(&tmp);
-            io(e)
         })
     }
 

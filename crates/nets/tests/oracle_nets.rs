@@ -289,7 +289,7 @@ fn decoder_gradients_of_the_style_loss_match_the_oracle_fullres() {
     check_decoder_gradients(Resolution::Fullres);
 }
 
-fn check_wide<T: nets::Scalar>(tol: f64) {
+fn check_wide<T: base::Real>(tol: f64) {
     let fx = nets_fixture();
     let x = arr4::<T>(fx.get("wide.input"));
     let w = arr4::<T>(fx.get("wide.weight"));
@@ -297,13 +297,13 @@ fn check_wide<T: nets::Scalar>(tol: f64) {
         .get("wide.bias")
         .data
         .iter()
-        .map(|&v| T::from_f64(v))
+        .map(|&v| T::lit(v))
         .collect();
     let y = conv::conv3x3_reflect(x.view(), w.view(), b.view(), true);
     let v = arr4::<T>(fx.get("wide.v_output"));
     let g = ndarray::Zip::from(&v)
         .and(&y)
-        .map_collect(|&v, &y| if y > T::ZERO { v } else { T::ZERO });
+        .map_collect(|&v, &y| if y > T::zero() { v } else { T::zero() });
     let dx = conv::conv3x3_reflect_backward_input(g.view(), w.view());
     let (dw, db) = conv::conv3x3_reflect_backward_params(x.view(), g.view());
     let errs = [

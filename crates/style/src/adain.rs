@@ -14,14 +14,14 @@
 //! Style statistics with `N = 1` broadcast over a content batch; otherwise `N` must match.
 //! Element-wise arithmetic is carried out in `f64` and rounded once to the output type.
 
+use base::Real;
 use ndarray::Array4;
 
 use crate::error::{check_shape, Result, StyleError};
-use crate::scalar::Scalar;
 use crate::stats::{channel_stats, dims, map_planes, planes, ChannelStats};
 
 /// `(x - mean) / std` per channel with the given statistics of `x` (`[N, C]`).
-pub fn normalize<T: Scalar>(x: &Array4<T>, stats: &ChannelStats<T>) -> Result<Array4<T>> {
+pub fn normalize<T: Real>(x: &Array4<T>, stats: &ChannelStats<T>) -> Result<Array4<T>> {
     let (n, c, _, _) = dims(x);
     check_shape("normalize stats", stats.mean.shape(), &[n, c])?;
     check_shape("normalize stats (std)", stats.std.shape(), &[n, c])?;
@@ -35,17 +35,14 @@ pub fn normalize<T: Scalar>(x: &Array4<T>, stats: &ChannelStats<T>) -> Result<Ar
 }
 
 /// Instance normalisation with the feature map's own statistics: `normalize(x, stats(x))`.
-pub fn instance_normalize<T: Scalar>(x: &Array4<T>) -> Result<Array4<T>> {
+pub fn instance_normalize<T: Real>(x: &Array4<T>) -> Result<Array4<T>> {
     normalize(x, &channel_stats(x)?)
 }
 
 /// Backward of [`instance_normalize`], through the statistics as well. With `y` the normalised
 /// map, `m` pixels and cotangent `g`:
 /// `dL/dx = (g - mean(g) - y * sum(g * y) / (m - 1)) / std`.
-pub fn instance_normalize_backward<T: Scalar>(
-    x: &Array4<T>,
-    grad: &Array4<T>,
-) -> Result<Array4<T>> {
+pub fn instance_normalize_backward<T: Real>(x: &Array4<T>, grad: &Array4<T>) -> Result<Array4<T>> {
     check_shape("instance_normalize cotangent", grad.shape(), x.shape())?;
     let stats = channel_stats(x)?;
     Ok(normalize_backward_impl(x, None, &stats, grad))
@@ -53,7 +50,7 @@ pub fn instance_normalize_backward<T: Scalar>(
 
 /// The instance-normalisation backward over the pixels of `mask` (all when `None`) with the
 /// statistics of those pixels; pixels outside the mask get zero. Shapes are checked by callers.
-pub(crate) fn normalize_backward_impl<T: Scalar>(
+pub(crate) fn normalize_backward_impl<T: Real>(
     x: &Array4<T>,
     mask: Option<&[bool]>,
     stats: &ChannelStats<T>,
@@ -88,7 +85,7 @@ pub(crate) fn normalize_backward_impl<T: Scalar>(
 
 /// The 3D transform `T(y) = std_s * y + mean_s` per channel, for features `y` that are already
 /// normalised (e.g. lifted Gaussian features).
-pub fn style_transform<T: Scalar>(y: &Array4<T>, style: &ChannelStats<T>) -> Result<Array4<T>> {
+pub fn style_transform<T: Real>(y: &Array4<T>, style: &ChannelStats<T>) -> Result<Array4<T>> {
     let (n, c, _, _) = dims(y);
     style.check_applies("style statistics", n, c)?;
     Ok(map_planes(y, |i, j, inp, out| {
@@ -104,7 +101,7 @@ pub fn style_transform<T: Scalar>(y: &Array4<T>, style: &ChannelStats<T>) -> Res
 /// Backward of [`style_transform`]: returns `(dL/dy, dL/d(style stats))`. The statistics'
 /// cotangent has the style's shape (summed over the batch when the style broadcasts):
 /// `dL/dmean_s = sum g`, `dL/dstd_s = sum g * y`, `dL/dy = std_s * g`.
-pub fn style_transform_backward<T: Scalar>(
+pub fn style_transform_backward<T: Real>(
     y: &Array4<T>,
     style: &ChannelStats<T>,
     grad: &Array4<T>,
@@ -147,7 +144,7 @@ pub fn style_transform_backward<T: Scalar>(
 }
 
 /// `adain(c, s)` with the style given by its statistics.
-pub fn adain_with_stats<T: Scalar>(
+pub fn adain_with_stats<T: Real>(
     content: &Array4<T>,
     style: &ChannelStats<T>,
 ) -> Result<Array4<T>> {
@@ -156,13 +153,13 @@ pub fn adain_with_stats<T: Scalar>(
 
 /// `adain(c, s) = (c - mean_c) / std_c * std_s + mean_s` from content and style feature maps
 /// (they may differ in spatial size).
-pub fn adain<T: Scalar>(content: &Array4<T>, style: &Array4<T>) -> Result<Array4<T>> {
+pub fn adain<T: Real>(content: &Array4<T>, style: &Array4<T>) -> Result<Array4<T>> {
     adain_with_stats(content, &channel_stats(style)?)
 }
 
 /// Backward of [`adain_with_stats`]: returns `(dL/dcontent, dL/d(style stats))`. Chain the second
 /// through [`crate::stats::channel_stats_backward`] to reach the style features.
-pub fn adain_backward<T: Scalar>(
+pub fn adain_backward<T: Real>(
     content: &Array4<T>,
     style: &ChannelStats<T>,
     grad: &Array4<T>,
@@ -173,7 +170,7 @@ pub fn adain_backward<T: Scalar>(
 }
 
 /// `alpha * a + (1 - alpha) * b`, element-wise.
-pub fn blend<T: Scalar>(a: &Array4<T>, b: &Array4<T>, alpha: f64) -> Result<Array4<T>> {
+pub fn blend<T: Real>(a: &Array4<T>, b: &Array4<T>, alpha: f64) -> Result<Array4<T>> {
     check_shape("blend operands", b.shape(), a.shape())?;
     check_finite("blend alpha", alpha)?;
     let bd = planes(b);
@@ -189,7 +186,7 @@ pub fn blend<T: Scalar>(a: &Array4<T>, b: &Array4<T>, alpha: f64) -> Result<Arra
 
 /// The content-style trade-off `alpha * adain(c, s) + (1 - alpha) * c` (alpha 1: full style,
 /// alpha 0: the content feature unchanged).
-pub fn adain_alpha<T: Scalar>(
+pub fn adain_alpha<T: Real>(
     content: &Array4<T>,
     style: &ChannelStats<T>,
     alpha: f64,
@@ -200,7 +197,7 @@ pub fn adain_alpha<T: Scalar>(
 /// The statistics of a weighted style mixture: `mean = sum_i w_i mean_i`, `std = sum_i w_i std_i`.
 /// Because `T_s` is affine in the statistics, `sum_i w_i T_{s_i}(y) = T_mix(y)` exactly, so a
 /// mixture is one transform (and can be folded into a decoder like a single style).
-pub fn mix_stats<T: Scalar>(styles: &[(&ChannelStats<T>, f64)]) -> Result<ChannelStats<T>> {
+pub fn mix_stats<T: Real>(styles: &[(&ChannelStats<T>, f64)]) -> Result<ChannelStats<T>> {
     let Some((first, _)) = styles.first() else {
         return Err(StyleError::Invalid {
             what: "style mixture",
@@ -226,7 +223,7 @@ pub fn mix_stats<T: Scalar>(styles: &[(&ChannelStats<T>, f64)]) -> Result<Channe
 /// Interpolation between styles: `sum_i w_i adain(c, s_i)`, computed as one transform with
 /// [`mix_stats`]. The weights are used as given (the usual choice sums to one; that is left to
 /// the caller).
-pub fn adain_mix<T: Scalar>(
+pub fn adain_mix<T: Real>(
     content: &Array4<T>,
     styles: &[(&ChannelStats<T>, f64)],
 ) -> Result<Array4<T>> {

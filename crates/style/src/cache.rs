@@ -10,10 +10,10 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
+use base::Real;
 use ndarray::Array4;
 
 use crate::error::{Result, StyleError};
-use crate::scalar::Scalar;
 use crate::stats::{channel_stats, ChannelStats};
 
 /// The statistics of one style image at every encoder level, relu1_1 .. relu_k_1.
@@ -22,7 +22,7 @@ pub struct StyleFeatureStats<T> {
     pub levels: Vec<ChannelStats<T>>,
 }
 
-impl<T: Scalar> StyleFeatureStats<T> {
+impl<T: Real> StyleFeatureStats<T> {
     /// Statistics of every level of an encoded style image.
     pub fn from_features(features: &[Array4<T>]) -> Result<Self> {
         if features.is_empty() {
@@ -70,7 +70,7 @@ impl StyleKey {
     /// A key from the image's pixels (`[N, 3, H, W]`, any layout) and an encoder tag. Pixels are
     /// hashed as the bit patterns of their exact `f64` values, so an `f32` image and its `f64`
     /// copy share a key.
-    pub fn from_image<T: Scalar>(encoder: &str, image: &Array4<T>) -> StyleKey {
+    pub fn from_image<T: Real>(encoder: &str, image: &Array4<T>) -> StyleKey {
         let d = image.dim();
         let shape = [d.0, d.1, d.2, d.3];
         let h = fnv1a(
@@ -122,7 +122,7 @@ impl<T> Default for CacheInner<T> {
     }
 }
 
-impl<T: Scalar> StyleCache<T> {
+impl<T: Real> StyleCache<T> {
     /// An empty cache.
     pub fn new() -> Self {
         StyleCache {

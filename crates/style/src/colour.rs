@@ -15,10 +15,10 @@
 //! grey style image well defined. Covariances use the `1/(m-1)` normaliser; the choice cancels
 //! in `A`. The result is not clamped to [0, 1].
 
+use base::Real;
 use ndarray::Array4;
 
 use crate::error::{Result, StyleError};
-use crate::scalar::Scalar;
 use crate::stats::dims;
 
 /// The ridge added to both covariances.
@@ -27,7 +27,7 @@ pub const COLOUR_EPS: f64 = 1e-5;
 type Mat3 = [[f64; 3]; 3];
 
 /// Mean and covariance of the RGB pixels of sample `n` of an `[N, 3, H, W]` image.
-fn rgb_moments<T: Scalar>(img: &Array4<T>, n: usize) -> ([f64; 3], Mat3) {
+fn rgb_moments<T: Real>(img: &Array4<T>, n: usize) -> ([f64; 3], Mat3) {
     let (_, _, h, w) = dims(img);
     let m = (h * w) as f64;
     let mut mu = [0.0f64; 3];
@@ -124,12 +124,12 @@ fn matmul(a: &Mat3, b: &Mat3) -> Mat3 {
 /// The style image with its colour statistics matched to the content image's (see the module
 /// documentation), using the ridge [`COLOUR_EPS`]. Both images are `[N, 3, H, W]` RGB; a content
 /// with `N = 1` serves every style sample, otherwise the batches must agree.
-pub fn preserve_colour<T: Scalar>(style: &Array4<T>, content: &Array4<T>) -> Result<Array4<T>> {
+pub fn preserve_colour<T: Real>(style: &Array4<T>, content: &Array4<T>) -> Result<Array4<T>> {
     preserve_colour_with_eps(style, content, COLOUR_EPS)
 }
 
 /// [`preserve_colour`] with an explicit ridge `eps >= 0`.
-pub fn preserve_colour_with_eps<T: Scalar>(
+pub fn preserve_colour_with_eps<T: Real>(
     style: &Array4<T>,
     content: &Array4<T>,
     eps: f64,

@@ -14,15 +14,15 @@
 //! The folded decoder renders normalised features directly, skipping the separate pass over the
 //! (wide) feature map. A style mixture ([`crate::adain::mix_stats`]) folds the same way.
 
+use base::Real;
 use nets::Decoder;
 
 use crate::error::{Result, StyleError};
-use crate::scalar::Scalar;
 use crate::stats::ChannelStats;
 
 /// The decoder with `T_s` folded into its first convolution: `fold(g, s)(y) = g(T_s(y))`.
 /// The statistics must be a single style (`N = 1`) with the decoder's input width.
-pub fn fold_style_transform<T: Scalar>(
+pub fn fold_style_transform<T: Real>(
     decoder: &Decoder<T>,
     style: &ChannelStats<T>,
 ) -> Result<Decoder<T>> {

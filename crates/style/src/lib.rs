@@ -13,8 +13,12 @@
 //! * [`fold`]: a style's transform folded into the decoder's first convolution.
 //! * [`stylize`]: feed-forward stylization of images.
 //!
-//! Everything is generic over [`Scalar`] (`f32` in production, `f64` in gradient checks) and works
-//! on `ndarray::Array4` feature maps in NCHW layout.
+//! Everything is generic over the workspace's numeric trait [`base::Real`] (`f32` in production,
+//! `f64` in gradient checks against central differences and the float64 oracle; the very same type
+//! runs through the encoder, decoder and lifter of `nets`) and works on `ndarray::Array4` feature
+//! maps in NCHW layout. Reductions (means, variances, loss sums) always accumulate in `f64`,
+//! sequentially in a fixed order, so `f32` results are correctly rounded sums and identical for any
+//! number of threads.
 
 pub mod adain;
 pub mod cache;
@@ -23,7 +27,6 @@ pub mod error;
 pub mod fold;
 pub mod loss;
 pub mod objective;
-pub mod scalar;
 pub mod spatial;
 pub mod stats;
 pub mod stylize;
@@ -43,7 +46,6 @@ pub use loss::{
 pub use objective::{
     align_target, decoder_training_loss, stage3_loss, DecoderLoss, Stage3Loss, Stage3Weights,
 };
-pub use scalar::Scalar;
 pub use spatial::{adain_spatial, adain_spatial_backward, Region};
 pub use stats::{
     channel_stats, channel_stats_backward, masked_channel_stats, masked_channel_stats_backward,

@@ -14,10 +14,10 @@
 //! statistics with `N = 1` broadcast over a batch, and `K` then counts the broadcast elements,
 //! as PyTorch does. Sums run sequentially in `f64`.
 
+use base::Real;
 use ndarray::{Array2, Array4};
 
 use crate::error::{check_shape, Result, StyleError};
-use crate::scalar::Scalar;
 use crate::stats::{channel_stats, channel_stats_backward, dims, map_planes, planes, ChannelStats};
 
 /// Which penalty the alignment loss uses.
@@ -30,7 +30,7 @@ pub enum AlignLoss {
     L1,
 }
 
-fn zip_sum<T: Scalar>(a: &[T], b: &[T], f: impl Fn(f64) -> f64) -> f64 {
+fn zip_sum<T: Real>(a: &[T], b: &[T], f: impl Fn(f64) -> f64) -> f64 {
     a.iter()
         .zip(b)
         .map(|(&x, &y)| f(x.to_f64_exact() - y.to_f64_exact()))
@@ -38,21 +38,21 @@ fn zip_sum<T: Scalar>(a: &[T], b: &[T], f: impl Fn(f64) -> f64) -> f64 {
 }
 
 /// Mean squared error over all elements.
-pub fn mse<T: Scalar>(a: &Array4<T>, b: &Array4<T>) -> Result<T> {
+pub fn mse<T: Real>(a: &Array4<T>, b: &Array4<T>) -> Result<T> {
     check_shape("mse operands", b.shape(), a.shape())?;
     let k = a.len() as f64;
     Ok(T::lit(zip_sum(&planes(a), &planes(b), |d| d * d) / k))
 }
 
 /// Gradient of `g * mse(a, b)` w.r.t. `a` (the gradient w.r.t. `b` is its negative).
-pub fn mse_backward<T: Scalar>(a: &Array4<T>, b: &Array4<T>, g: T) -> Result<Array4<T>> {
+pub fn mse_backward<T: Real>(a: &Array4<T>, b: &Array4<T>, g: T) -> Result<Array4<T>> {
     check_shape("mse operands", b.shape(), a.shape())?;
     let scale = 2.0 * g.to_f64_exact() / a.len() as f64;
     Ok(elementwise(a, b, |d| scale * d))
 }
 
 /// Mean absolute error over all elements.
-pub fn l1<T: Scalar>(a: &Array4<T>, b: &Array4<T>) -> Result<T> {
+pub fn l1<T: Real>(a: &Array4<T>, b: &Array4<T>) -> Result<T> {
     check_shape("l1 operands", b.shape(), a.shape())?;
     let k = a.len() as f64;
     Ok(T::lit(zip_sum(&planes(a), &planes(b), f64::abs) / k))
@@ -60,7 +60,7 @@ pub fn l1<T: Scalar>(a: &Array4<T>, b: &Array4<T>) -> Result<T> {
 
 /// Gradient of `g * l1(a, b)` w.r.t. `a` (the gradient w.r.t. `b` is its negative). Where
 /// `a == b` the subgradient 0 is used, as in PyTorch.
-pub fn l1_backward<T: Scalar>(a: &Array4<T>, b: &Array4<T>, g: T) -> Result<Array4<T>> {
+pub fn l1_backward<T: Real>(a: &Array4<T>, b: &Array4<T>, g: T) -> Result<Array4<T>> {
     check_shape("l1 operands", b.shape(), a.shape())?;
     let scale = g.to_f64_exact() / a.len() as f64;
     Ok(elementwise(a, b, |d| {
@@ -74,11 +74,7 @@ pub fn l1_backward<T: Scalar>(a: &Array4<T>, b: &Array4<T>, g: T) -> Result<Arra
     }))
 }
 
-fn elementwise<T: Scalar>(
-    a: &Array4<T>,
-    b: &Array4<T>,
-    f: impl Fn(f64) -> f64 + Sync,
-) -> Array4<T> {
+fn elementwise<T: Real>(a: &Array4<T>, b: &Array4<T>, f: impl Fn(f64) -> f64 + Sync) -> Array4<T> {
     let bd = planes(b);
     let (_, c, h, w) = dims(a);
     let hw = h * w;
@@ -91,12 +87,12 @@ fn elementwise<T: Scalar>(
 }
 
 /// Content loss: `mse(generated, target)`.
-pub fn content_loss<T: Scalar>(generated: &Array4<T>, target: &Array4<T>) -> Result<T> {
+pub fn content_loss<T: Real>(generated: &Array4<T>, target: &Array4<T>) -> Result<T> {
     mse(generated, target)
 }
 
 /// Gradient of `g * content_loss` w.r.t. the generated features (the target's is its negative).
-pub fn content_loss_backward<T: Scalar>(
+pub fn content_loss_backward<T: Real>(
     generated: &Array4<T>,
     target: &Array4<T>,
     g: T,
@@ -105,7 +101,7 @@ pub fn content_loss_backward<T: Scalar>(
 }
 
 /// Alignment loss between the lifted feature map and the normalised encoder feature.
-pub fn align_loss<T: Scalar>(lifted: &Array4<T>, target: &Array4<T>, kind: AlignLoss) -> Result<T> {
+pub fn align_loss<T: Real>(lifted: &Array4<T>, target: &Array4<T>, kind: AlignLoss) -> Result<T> {
     match kind {
         AlignLoss::Mse => mse(lifted, target),
         AlignLoss::L1 => l1(lifted, target),
@@ -113,7 +109,7 @@ pub fn align_loss<T: Scalar>(lifted: &Array4<T>, target: &Array4<T>, kind: Align
 }
 
 /// Gradient of `g * align_loss` w.r.t. the lifted feature map.
-pub fn align_loss_backward<T: Scalar>(
+pub fn align_loss_backward<T: Real>(
     lifted: &Array4<T>,
     target: &Array4<T>,
     kind: AlignLoss,
@@ -127,7 +123,7 @@ pub fn align_loss_backward<T: Scalar>(
 
 /// `(sum of squared differences, K)` between generated `[N, C]` statistics and style statistics
 /// broadcast over the batch.
-fn stats_sq<T: Scalar>(
+fn stats_sq<T: Real>(
     gen: &Array2<T>,
     style: &ChannelStats<T>,
     pick: fn(&ChannelStats<T>) -> &Array2<T>,
@@ -141,7 +137,7 @@ fn stats_sq<T: Scalar>(
     acc
 }
 
-fn check_levels<T: Scalar>(generated: &[Array4<T>], style: &[ChannelStats<T>]) -> Result<()> {
+fn check_levels<T: Real>(generated: &[Array4<T>], style: &[ChannelStats<T>]) -> Result<()> {
     if generated.is_empty() || generated.len() != style.len() {
         return Err(StyleError::Invalid {
             what: "style loss",
@@ -161,7 +157,7 @@ fn check_levels<T: Scalar>(generated: &[Array4<T>], style: &[ChannelStats<T>]) -
 
 /// Style loss: the sum over levels of `mse(mean(G_l), mean_s) + mse(std(G_l), std_s)`, with the
 /// style's statistics given per level (computed once per style image).
-pub fn style_loss<T: Scalar>(generated: &[Array4<T>], style: &[ChannelStats<T>]) -> Result<T> {
+pub fn style_loss<T: Real>(generated: &[Array4<T>], style: &[ChannelStats<T>]) -> Result<T> {
     check_levels(generated, style)?;
     let mut total = 0.0f64;
     for (g, s) in generated.iter().zip(style) {
@@ -173,7 +169,7 @@ pub fn style_loss<T: Scalar>(generated: &[Array4<T>], style: &[ChannelStats<T>])
 }
 
 /// Gradient of `g * style_loss` w.r.t. every generated feature level.
-pub fn style_loss_backward<T: Scalar>(
+pub fn style_loss_backward<T: Real>(
     generated: &[Array4<T>],
     style: &[ChannelStats<T>],
     g: T,

@@ -25,6 +25,7 @@
 //!
 //! Sums of loss terms are formed in `f64` and rounded once.
 
+use base::Real;
 use ndarray::{Array4, ArrayView4};
 use nets::{ConvGrad, Decoder, Encoder, Lifter};
 
@@ -35,11 +36,10 @@ use crate::loss::{
     align_loss, align_loss_backward, content_loss, mse_backward, style_loss, style_loss_backward,
     AlignLoss,
 };
-use crate::scalar::Scalar;
 
 /// The result of [`decoder_training_loss`].
 #[derive(Clone, Debug)]
-pub struct DecoderLoss<T: Scalar> {
+pub struct DecoderLoss<T: Real> {
     /// The decoded image `g(t)`.
     pub image: Array4<T>,
     pub loss_content: T,
@@ -53,7 +53,7 @@ pub struct DecoderLoss<T: Scalar> {
     pub grad_params: Vec<ConvGrad<T>>,
 }
 
-fn check_levels<T: Scalar>(encoder: &Encoder<T>, style: &StyleFeatureStats<T>) -> Result<()> {
+fn check_levels<T: Real>(encoder: &Encoder<T>, style: &StyleFeatureStats<T>) -> Result<()> {
     if encoder.depth() != style.levels.len() {
         return Err(StyleError::Invalid {
             what: "style statistics",
@@ -69,7 +69,7 @@ fn check_levels<T: Scalar>(encoder: &Encoder<T>, style: &StyleFeatureStats<T>) -
 
 /// Encodes `image`, evaluates `lambda_c * content(phi_k, content_target) + lambda_s * style(phi, S)`
 /// and returns `(features, content, style, dL/dimage, dL/dcontent_target)`.
-fn perceptual<T: Scalar>(
+fn perceptual<T: Real>(
     encoder: &Encoder<T>,
     image: &Array4<T>,
     content_target: &Array4<T>,
@@ -94,7 +94,7 @@ fn perceptual<T: Scalar>(
 /// The decoder training loss `content(phi_k(g(t)), target) + w_s * style(phi(g(t)), S)` and its
 /// gradients with respect to the decoder input `t` and the decoder parameters (see the module
 /// documentation). The encoder must be the one the style statistics were computed with.
-pub fn decoder_training_loss<T: Scalar>(
+pub fn decoder_training_loss<T: Real>(
     encoder: &Encoder<T>,
     decoder: &Decoder<T>,
     input: &Array4<T>,
@@ -141,7 +141,7 @@ impl Default for Stage3Weights {
 
 /// The result of [`stage3_loss`].
 #[derive(Clone, Debug)]
-pub struct Stage3Loss<T: Scalar> {
+pub struct Stage3Loss<T: Real> {
     /// `relu(W r + b)`.
     pub lifted: Array4<T>,
     /// `T(lifted) = std_s * lifted + mean_s`.
@@ -160,10 +160,7 @@ pub struct Stage3Loss<T: Scalar> {
 }
 
 /// The alignment target: the content view's `relu_k_1` feature, instance-normalised.
-pub fn align_target<T: Scalar>(
-    encoder: &Encoder<T>,
-    content_image: &Array4<T>,
-) -> Result<Array4<T>> {
+pub fn align_target<T: Real>(encoder: &Encoder<T>, content_image: &Array4<T>) -> Result<Array4<T>> {
     let feats = encoder.forward(content_image.view())?;
     instance_normalize(feats.last().expect("encoder depth >= 1"))
 }
@@ -172,7 +169,7 @@ pub fn align_target<T: Scalar>(
 /// is `[N, F, H, W]`; `align_target` is `[N, C, H, W]` with `C` the lifter's output width, which
 /// must equal the decoder's input width and the encoder's deepest width (fullres networks keep
 /// `H x W` throughout).
-pub fn stage3_loss<T: Scalar>(
+pub fn stage3_loss<T: Real>(
     lifter: &Lifter<T>,
     decoder: &Decoder<T>,
     encoder: &Encoder<T>,

@@ -13,11 +13,11 @@
 //! which is AdaIN applied to the content pixels of the region alone (the approach of the original
 //! AdaIN paper's spatial control). Regions must not overlap and must hold at least two pixels.
 
+use base::Real;
 use ndarray::{Array4, ArrayView2};
 
 use crate::adain::normalize_backward_impl;
 use crate::error::{check_shape, Result, StyleError};
-use crate::scalar::Scalar;
 use crate::stats::{dims, map_planes, masked_channel_stats, planes, ChannelStats};
 
 /// One region of spatial control: a mask at feature resolution and the style to give it.
@@ -28,7 +28,7 @@ pub struct Region<'a, T> {
 }
 
 /// For every pixel, the index of its region (`None` outside all). Checks shapes and overlaps.
-fn region_index<T: Scalar>(
+fn region_index<T: Real>(
     content: &Array4<T>,
     regions: &[Region<'_, T>],
 ) -> Result<Vec<Option<usize>>> {
@@ -59,10 +59,7 @@ fn region_index<T: Scalar>(
 }
 
 /// Region-wise AdaIN (see the module documentation).
-pub fn adain_spatial<T: Scalar>(
-    content: &Array4<T>,
-    regions: &[Region<'_, T>],
-) -> Result<Array4<T>> {
+pub fn adain_spatial<T: Real>(content: &Array4<T>, regions: &[Region<'_, T>]) -> Result<Array4<T>> {
     let owner = region_index(content, regions)?;
     let local: Vec<ChannelStats<T>> = regions
         .iter()
@@ -85,7 +82,7 @@ pub fn adain_spatial<T: Scalar>(
 }
 
 /// Backward of [`adain_spatial`] with respect to the content (the styles are constants).
-pub fn adain_spatial_backward<T: Scalar>(
+pub fn adain_spatial_backward<T: Real>(
     content: &Array4<T>,
     regions: &[Region<'_, T>],
     grad: &Array4<T>,

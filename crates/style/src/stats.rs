@@ -18,11 +18,11 @@
 //! Both passes treat the `N*C` planes independently and in parallel; each plane is reduced
 //! sequentially in `f64`, so the result does not depend on the thread count.
 
+use base::Real;
 use ndarray::{Array2, Array4, ArrayView2};
 use rayon::prelude::*;
 
 use crate::error::{check_shape, Result, StyleError};
-use crate::scalar::Scalar;
 
 /// The constant added to the variance before the square root.
 pub const STATS_EPS: f64 = 1e-5;
@@ -36,7 +36,7 @@ pub struct ChannelStats<T> {
     pub std: Array2<T>,
 }
 
-impl<T: Scalar> ChannelStats<T> {
+impl<T: Real> ChannelStats<T> {
     /// Statistics from `[N, C]` means and standard deviations.
     pub fn new(mean: Array2<T>, std: Array2<T>) -> Result<Self> {
         check_shape("channel stats std", std.shape(), mean.shape())?;
@@ -62,7 +62,7 @@ impl<T: Scalar> ChannelStats<T> {
     }
 
     /// The statistics converted to another scalar type.
-    pub fn cast<U: Scalar>(&self) -> ChannelStats<U> {
+    pub fn cast<U: Real>(&self) -> ChannelStats<U> {
         ChannelStats {
             mean: self.mean.mapv(|v| U::lit(v.to_f64_exact())),
             std: self.std.mapv(|v| U::lit(v.to_f64_exact())),
@@ -99,7 +99,7 @@ pub(crate) fn dims<T>(x: &Array4<T>) -> (usize, usize, usize, usize) {
 }
 
 /// The feature map's data in standard (row-major NCHW) order, copied only if needed.
-pub(crate) fn planes<T: Scalar>(x: &Array4<T>) -> std::borrow::Cow<'_, [T]> {
+pub(crate) fn planes<T: Real>(x: &Array4<T>) -> std::borrow::Cow<'_, [T]> {
     match x.as_slice() {
         Some(s) => std::borrow::Cow::Borrowed(s),
         None => std::borrow::Cow::Owned(x.iter().copied().collect()),
@@ -113,7 +113,7 @@ fn flat_mask(mask: ArrayView2<bool>, h: usize, w: usize) -> Result<Vec<bool>> {
 }
 
 /// `(mean, std)` of one plane in `f64`, over the masked pixels (all when `mask` is `None`).
-pub(crate) fn plane_mean_std<T: Scalar>(plane: &[T], mask: Option<&[bool]>) -> (f64, f64) {
+pub(crate) fn plane_mean_std<T: Real>(plane: &[T], mask: Option<&[bool]>) -> (f64, f64) {
     let inside = |i: usize| mask.is_none_or(|m| m[i]);
     let mut sum = 0.0f64;
     let mut m = 0usize;
@@ -135,7 +135,7 @@ pub(crate) fn plane_mean_std<T: Scalar>(plane: &[T], mask: Option<&[bool]>) -> (
     (mean, (var + STATS_EPS).sqrt())
 }
 
-fn stats_impl<T: Scalar>(x: &Array4<T>, mask: Option<&[bool]>) -> Result<ChannelStats<T>> {
+fn stats_impl<T: Real>(x: &Array4<T>, mask: Option<&[bool]>) -> Result<ChannelStats<T>> {
     let (n, c, h, w) = dims(x);
     let count = mask.map_or(h * w, |m| m.iter().filter(|&&b| b).count());
     if count < 2 {
@@ -159,13 +159,13 @@ fn stats_impl<T: Scalar>(x: &Array4<T>, mask: Option<&[bool]>) -> Result<Channel
 }
 
 /// Per-channel mean and std over all `H*W` pixels of `x` (`[N, C, H, W]`).
-pub fn channel_stats<T: Scalar>(x: &Array4<T>) -> Result<ChannelStats<T>> {
+pub fn channel_stats<T: Real>(x: &Array4<T>) -> Result<ChannelStats<T>> {
     stats_impl(x, None)
 }
 
 /// Per-channel mean and std over the pixels where `mask` (`[H, W]`, shared by every sample and
 /// channel) is true. At least two pixels must be selected.
-pub fn masked_channel_stats<T: Scalar>(
+pub fn masked_channel_stats<T: Real>(
     x: &Array4<T>,
     mask: ArrayView2<bool>,
 ) -> Result<ChannelStats<T>> {
@@ -174,7 +174,7 @@ pub fn masked_channel_stats<T: Scalar>(
     stats_impl(x, Some(&m))
 }
 
-fn stats_backward_impl<T: Scalar>(
+fn stats_backward_impl<T: Real>(
     x: &Array4<T>,
     mask: Option<&[bool]>,
     stats: &ChannelStats<T>,
@@ -216,7 +216,7 @@ fn stats_backward_impl<T: Scalar>(
 
 /// Backward of [`channel_stats`]: the gradient w.r.t. `x` given `stats = channel_stats(x)` and
 /// the cotangents `grad.mean = dL/dmean`, `grad.std = dL/dstd` (each `[N, C]`).
-pub fn channel_stats_backward<T: Scalar>(
+pub fn channel_stats_backward<T: Real>(
     x: &Array4<T>,
     stats: &ChannelStats<T>,
     grad: &ChannelStats<T>,
@@ -225,7 +225,7 @@ pub fn channel_stats_backward<T: Scalar>(
 }
 
 /// Backward of [`masked_channel_stats`]; pixels outside the mask receive zero gradient.
-pub fn masked_channel_stats_backward<T: Scalar>(
+pub fn masked_channel_stats_backward<T: Real>(
     x: &Array4<T>,
     mask: ArrayView2<bool>,
     stats: &ChannelStats<T>,
@@ -256,7 +256,7 @@ pub fn resize_mask_nearest(mask: ArrayView2<bool>, h: usize, w: usize) -> Result
 /// returns the output map (same shape as `x`).
 pub(crate) fn map_planes<T, F>(x: &Array4<T>, f: F) -> Array4<T>
 where
-    T: Scalar,
+    T: Real,
     F: Fn(usize, usize, &[T], &mut [T]) + Sync,
 {
     let (n, c, h, w) = dims(x);

@@ -5,6 +5,7 @@
 //! a content-style trade-off; [`stylize_image`] can first match the style image's colours to the
 //! content ([`crate::colour`]).
 
+use base::Real;
 use ndarray::Array4;
 use nets::{Decoder, Encoder};
 
@@ -12,18 +13,17 @@ use crate::adain::adain_alpha;
 use crate::cache::{StyleCache, StyleFeatureStats, StyleKey};
 use crate::colour::preserve_colour;
 use crate::error::Result;
-use crate::scalar::Scalar;
 use crate::stats::ChannelStats;
 
 /// The per-level statistics of a style image (`[N, 3, H, W]`, RGB in `[0, 1]`) under `encoder`.
-pub fn encode_style<T: Scalar>(
+pub fn encode_style<T: Real>(
     encoder: &Encoder<T>,
     style_image: &Array4<T>,
 ) -> Result<StyleFeatureStats<T>> {
     StyleFeatureStats::from_features(&encoder.forward(style_image.view())?)
 }
 
-impl<T: Scalar> StyleCache<T> {
+impl<T: Real> StyleCache<T> {
     /// The statistics of `style_image` under `encoder`, encoded on first use. `encoder_tag` must
     /// name the encoder (weights and resolution variant) unambiguously.
     pub fn get_or_encode(
@@ -38,7 +38,7 @@ impl<T: Scalar> StyleCache<T> {
 }
 
 /// Decodes `alpha * adain(phi_k(content), style) + (1 - alpha) * phi_k(content)`.
-pub fn stylize<T: Scalar>(
+pub fn stylize<T: Real>(
     encoder: &Encoder<T>,
     decoder: &Decoder<T>,
     content_image: &Array4<T>,
@@ -52,7 +52,7 @@ pub fn stylize<T: Scalar>(
 
 /// Stylizes `content_image` with `style_image`, optionally preserving the content's colours
 /// (the style image is colour-matched to the content before it is encoded).
-pub fn stylize_image<T: Scalar>(
+pub fn stylize_image<T: Real>(
     encoder: &Encoder<T>,
     decoder: &Decoder<T>,
     content_image: &Array4<T>,

@@ -16,6 +16,7 @@ mod common;
 
 use common::pattern;
 
+use base::Real;
 use common::*;
 use ndarray::Array4;
 use nets::Resolution;
@@ -24,7 +25,7 @@ use style::*;
 const TOL_F32: f64 = 1e-4;
 const TOL_F64: f64 = 1e-9;
 
-fn adain_and_decoder_loss<T: Scalar>(report: &mut Report) {
+fn adain_and_decoder_loss<T: Real>(report: &mut Report) {
     let fx = nets_fixture();
     for (variant, res) in [
         ("standard", Resolution::Standard),
@@ -97,7 +98,7 @@ fn adain_and_decoder_loss<T: Scalar>(report: &mut Report) {
     }
 }
 
-fn stage3<T: Scalar>(report: &mut Report) {
+fn stage3<T: Real>(report: &mut Report) {
     let fx = nets_fixture();
     let (enc, dec) = networks::<T>(&fx, Resolution::Fullres);
     let lift = lifter::<T>(&fx);

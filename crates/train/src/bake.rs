@@ -50,9 +50,8 @@
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use gaussian::camera_path::{interpolate_pair, orbit_from};
+use gaussian::camera_path::{interpolate_pair, look_at_point, mean_up, orbit_from};
 use gaussian::{Camera, FeatureGaussians};
-use glam::{DMat3, DVec3};
 use indicatif::ProgressBar;
 
 use crate::progress::progress_bar;
@@ -234,26 +233,6 @@ fn even_indices(len: usize, count: usize) -> Vec<usize> {
         .collect()
 }
 
-/// The point nearest to every camera's optical axis in the least-squares sense, or `None` when
-/// the axes are (nearly) parallel.
-fn look_at_point(cameras: &[Camera]) -> Option<DVec3> {
-    let mut a = DMat3::ZERO;
-    let mut b = DVec3::ZERO;
-    for c in cameras {
-        let d = c.view_direction().normalize();
-        let p = DMat3::IDENTITY - DMat3::from_cols(d * d.x, d * d.y, d * d.z);
-        a += p;
-        b += p * c.center();
-    }
-    // The smallest eigenvalue of a sum of projectors vanishes for parallel axes; compare the
-    // determinant with the cube of the trace (scale-free).
-    let tr = a.x_axis.x + a.y_axis.y + a.z_axis.z;
-    if a.determinant().abs() <= 1e-9 * tr * tr * tr {
-        return None;
-    }
-    Some(a.inverse() * b)
-}
-
 /// The target and held-out cameras for `cameras` (the bundle's) under `config`
 /// (see the module documentation).
 pub fn bake_cameras(cameras: &[Camera], config: &BakeConfig) -> Result<BakeCameras, TrainError> {
@@ -333,10 +312,11 @@ pub fn bake_cameras(cameras: &[Camera], config: &BakeConfig) -> Result<BakeCamer
             )
         })?;
         // Image "up" is the camera's -y axis; average it over the cameras.
-        let up: DVec3 = scaled
-            .iter()
-            .map(|c| c.rotation().transpose() * DVec3::NEG_Y)
-            .sum();
+        let up = mean_up(&scaled).ok_or_else(|| {
+            TrainError::Config(
+                "orbit cameras need an image-up direction, but the cameras' cancel out".into(),
+            )
+        })?;
         let path = orbit_from(&scaled[0], center, config.orbit_views, up)
             .map_err(|e| TrainError::Config(format!("orbit cameras: {e}")))?;
         orbit = path

@@ -301,7 +301,7 @@ impl SceneBundle {
         let info_path = dir.join(INFO_FILE);
         let json = serde_json::to_vec_pretty(&self.info)
             .map_err(|e| bundle_err(&info_path, e.to_string()))?;
-        gaussian::ply::write_atomic(&info_path, &json).map_err(|source| TrainError::Io {
+        base::write_atomic(&info_path, &json).map_err(|source| TrainError::Io {
             path: info_path.clone(),
             source,
         })

@@ -15,7 +15,7 @@
 //! name in the same directory and renamed into place.
 
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use gaussian::FeatureGaussians;
 use safetensors::{Dtype, SafeTensors};
@@ -60,39 +60,6 @@ fn f32_tensor(name: &str, shape: Vec<usize>, v: &[f32]) -> Tensor {
         shape,
         bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
     }
-}
-
-/// Writes `bytes` to `path` atomically: a temporary file in the same directory, then a rename.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TrainError> {
-    let io = |source| TrainError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let dir = path.parent().filter(|p| !p.as_os_str().is_empty());
-    if let Some(d) = dir {
-        std::fs::create_dir_all(d).map_err(io)?;
-    }
-    let file_name = path
-        .file_name()
-        .ok_or_else(|| io(std::io::Error::other("not a file path")))?;
-    let mut tmp_name = std::ffi::OsString::from(".");
-    tmp_name.push(file_name);
-    tmp_name.push(format!(".tmp{}", std::process::id()));
-    let tmp: PathBuf = match dir {
-        Some(d) => d.join(tmp_name),
-        None => PathBuf::from(tmp_name),
-    };
-    let result = (|| {
-        use std::io::Write;
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result.map_err(io)
 }
 
 impl GeometryCheckpoint {
@@ -190,7 +157,7 @@ impl GeometryCheckpoint {
     /// Writes the checkpoint atomically.
     pub fn save(&self, path: &Path) -> Result<(), TrainError> {
         let bytes = self.to_bytes()?;
-        write_atomic(path, &bytes)
+        base::write_atomic(path, &bytes).map_err(|e| TrainError::io(path, e))
     }
 
     /// Reads a checkpoint written by [`GeometryCheckpoint::save`].

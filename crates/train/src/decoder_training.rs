@@ -51,7 +51,6 @@ use style::{adain_with_stats, decoder_training_loss, encode_style, StyleFeatureS
 
 use crate::adam::{Adam, AdamConfig, ParamState};
 use crate::bundle::{weights_fingerprint, Variant};
-use crate::checkpoint::write_atomic;
 use crate::error::TrainError;
 use crate::image_folder::{stack, ImageSet};
 use crate::progress::{progress_bar, say, TEMPLATE};
@@ -489,7 +488,7 @@ impl DecoderTrainer {
 
     /// Writes a checkpoint atomically.
     pub fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
-        write_atomic(path, &self.checkpoint_bytes()?)
+        base::write_atomic(path, &self.checkpoint_bytes()?).map_err(|e| TrainError::io(path, e))
     }
 
     /// Writes the encoder and the trained decoder as canonical weights ([`NetWeights`]),
@@ -738,7 +737,7 @@ pub fn init_decoder(encoder: &Encoder<f32>, seed: u64) -> Result<Decoder<f32>, T
 }
 
 /// Safetensors state files of the style stages: tensors plus string metadata, written with
-/// [`write_atomic`]. Floating-point metadata uses Rust's shortest round-trip form.
+/// [`base::write_atomic`]. Floating-point metadata uses Rust's shortest round-trip form.
 pub(crate) struct StateWriter {
     tensors: Vec<(String, Dtype, Vec<usize>, Vec<u8>)>,
     meta: HashMap<String, String>,

@@ -1,6 +1,6 @@
 //! Errors of the training crate.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Everything that can go wrong while training, checkpointing or resuming.
 #[derive(Debug, thiserror::Error)]
@@ -36,4 +36,14 @@ pub enum TrainError {
     /// A stop request ended a step that leaves nothing usable behind.
     #[error("interrupted while {0}")]
     Interrupted(String),
+}
+
+impl TrainError {
+    /// The [`TrainError::Io`] error of `path`.
+    pub fn io(path: &Path, source: std::io::Error) -> TrainError {
+        TrainError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
 }

@@ -58,7 +58,7 @@ use raster::{render, render_backward, Channels, RenderOptions};
 use serde::{Deserialize, Serialize};
 use style::{
     align_loss, align_loss_backward, channel_stats, encode_style, instance_normalize, stage3_loss,
-    Scalar, Stage3Weights, StyleFeatureStats,
+    Stage3Weights, StyleFeatureStats,
 };
 
 use crate::adam::{Adam, AdamConfig};
@@ -66,7 +66,6 @@ use crate::bundle::{
     feature_size, weights_fingerprint, BundleInfo, CameraRecord, SceneBundle, Variant,
     BUNDLE_FORMAT,
 };
-use crate::checkpoint::write_atomic;
 use crate::decoder_training::{
     conv_default_init, mix, StateReader, StateWriter, INIT_STREAM, STEP_STREAM,
 };
@@ -236,7 +235,7 @@ impl CropWindow {
 
 /// The frozen networks and fixed settings of the 3D stylization loss.
 #[derive(Clone, Copy, Debug)]
-pub struct Stage3Setup<'a, T: Scalar> {
+pub struct Stage3Setup<'a, T: Real> {
     pub lifter: &'a Lifter<T>,
     pub decoder: &'a Decoder<T>,
     pub encoder: &'a Encoder<T>,
@@ -260,7 +259,7 @@ pub struct Stage3Sample<'a, T> {
 
 /// The loss terms of one sample and the gradients of the total.
 #[derive(Clone, Debug)]
-pub struct Stage3Gradients<T: Scalar> {
+pub struct Stage3Gradients<T: Real> {
     pub loss_align: f64,
     pub loss_content: f64,
     pub loss_style: f64,
@@ -283,7 +282,7 @@ fn style_err(e: style::StyleError) -> TrainError {
 /// Rasterizes the scene's features for `sample`, evaluates the 3D stylization loss on the
 /// sample's window and returns the loss terms with the gradients with respect to the
 /// per-Gaussian features and the lifter (steps 2-4 of the module documentation).
-pub fn stage3_gradients<T: Real + Scalar>(
+pub fn stage3_gradients<T: Real>(
     scene: &FeatureGaussians<T>,
     setup: &Stage3Setup<'_, T>,
     sample: &Stage3Sample<'_, T>,
@@ -335,10 +334,10 @@ pub fn stage3_gradients<T: Real + Scalar>(
     let (terms, grad_r, grad_lifter) = if w.lambda_content == 0.0 && w.lambda_style == 0.0 {
         let (lifted, tape) = setup.lifter.forward_with_tape(r.view()).map_err(net_err)?;
         let la = align_loss(&lifted, &target, w.align).map_err(style_err)?;
-        let g = align_loss_backward(&lifted, &target, w.align, <T as Scalar>::lit(1.0))
+        let g = align_loss_backward(&lifted, &target, w.align, <T as Real>::lit(1.0))
             .map_err(style_err)?;
         let grads = setup.lifter.backward(&tape, g.view()).map_err(net_err)?;
-        let la = Scalar::to_f64_exact(la);
+        let la = Real::to_f64_exact(la);
         ([la, 0.0, 0.0, la], grads.input, grads.params)
     } else {
         let out = stage3_loss(
@@ -353,10 +352,10 @@ pub fn stage3_gradients<T: Real + Scalar>(
         .map_err(style_err)?;
         (
             [
-                Scalar::to_f64_exact(out.loss_align),
-                Scalar::to_f64_exact(out.loss_content),
-                Scalar::to_f64_exact(out.loss_style),
-                Scalar::to_f64_exact(out.loss),
+                Real::to_f64_exact(out.loss_align),
+                Real::to_f64_exact(out.loss_content),
+                Real::to_f64_exact(out.loss_style),
+                Real::to_f64_exact(out.loss),
             ],
             out.grad_raster_features,
             out.grad_lifter,
@@ -927,7 +926,7 @@ impl FeatureTrainer {
 
     /// Writes a checkpoint atomically.
     pub fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
-        write_atomic(path, &self.checkpoint_bytes()?)
+        base::write_atomic(path, &self.checkpoint_bytes()?).map_err(|e| TrainError::io(path, e))
     }
 
     /// Trains up to `config.iterations`. With `out_dir`, a checkpoint

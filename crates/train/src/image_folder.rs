@@ -41,10 +41,7 @@ pub fn is_image_path(path: &Path) -> bool {
 }
 
 fn io_err(path: &Path, source: std::io::Error) -> TrainError {
-    TrainError::Io {
-        path: path.to_path_buf(),
-        source,
-    }
+    TrainError::io(path, source)
 }
 
 /// The image files of one folder, sorted by path, descending into sub-folders if `recursive`.

@@ -16,6 +16,7 @@
 //! within f32 rounding of zero can legitimately take a step of opposite sign (Adam normalises each
 //! element by its own magnitude), which is a property of f32 gradients and not of the optimiser.
 
+use base::Real;
 use dsgs_testkit::{max_rel_err, Fixture};
 use ndarray::{Array1, Array4};
 use nets::{ConvLayer, Decoder, Encoder, Resolution, StateDict, TensorF32};
@@ -26,15 +27,12 @@ fn fixture() -> Fixture {
     Fixture::shared("oracle/fixtures/nets.safetensors")
 }
 
-fn arr4<T: style::Scalar>(fx: &Fixture, name: &str) -> Array4<T> {
+fn arr4<T: Real>(fx: &Fixture, name: &str) -> Array4<T> {
     let t = fx.get(name);
     let s = &t.shape;
     Array4::from_shape_vec(
         (s[0], s[1], s[2], s[3]),
-        t.data
-            .iter()
-            .map(|&v| <T as style::Scalar>::lit(v))
-            .collect(),
+        t.data.iter().map(|&v| T::lit(v)).collect(),
     )
     .expect("shape")
 }
@@ -56,7 +54,7 @@ fn state_dict(fx: &Fixture, prefix: &str) -> StateDict {
 }
 
 /// Replaces the layers' parameters by the fixture's `{prefix}{source}.{weight,bias}` in `T`.
-fn set_weights<'a, T: style::Scalar>(
+fn set_weights<'a, T: Real>(
     layers: impl Iterator<Item = &'a mut ConvLayer<T>>,
     fx: &Fixture,
     prefix: &str,
@@ -64,14 +62,12 @@ fn set_weights<'a, T: style::Scalar>(
     for l in layers {
         l.weight = arr4(fx, &format!("{prefix}{}.weight", l.source));
         let b = fx.get(&format!("{prefix}{}.bias", l.source));
-        l.bias = Array1::from_iter(b.data.iter().map(|&v| <T as style::Scalar>::lit(v)));
+        l.bias = Array1::from_iter(b.data.iter().map(|&v| T::lit(v)));
     }
 }
 
-fn as_f64<T: style::Scalar>(v: &[T]) -> Vec<f64> {
-    v.iter()
-        .map(|&x| <T as style::Scalar>::to_f64_exact(x))
-        .collect()
+fn as_f64<T: Real>(v: &[T]) -> Vec<f64> {
+    v.iter().map(|&x| T::to_f64_exact(x)).collect()
 }
 
 struct Errors {
@@ -80,7 +76,7 @@ struct Errors {
     updates: f64,
 }
 
-fn three_adam_steps<T: style::Scalar + gaussian::Real>() -> Errors {
+fn three_adam_steps<T: Real>() -> Errors {
     let fx = fixture();
     let enc: Encoder<f32> = Encoder::from_state_dict(&state_dict(&fx, "vgg.")).unwrap();
     let mut enc = enc
@@ -117,10 +113,7 @@ fn three_adam_steps<T: style::Scalar + gaussian::Real>() -> Errors {
     for step in 0..3 {
         let out = decoder_training_loss(&enc, &dec, &t, &t, &s, 10.0).unwrap();
         let expected_loss = fx.get(&format!("adam.loss{step}")).scalar();
-        let e = max_rel_err(
-            &[<T as style::Scalar>::to_f64_exact(out.loss)],
-            &[expected_loss],
-        );
+        let e = max_rel_err(&[T::to_f64_exact(out.loss)], &[expected_loss]);
         errs.loss = errs.loss.max(e);
 
         let mut p = 0;

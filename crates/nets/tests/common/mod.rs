@@ -1,9 +1,10 @@
 //! Shared helpers of the `nets` integration tests: fixture tensors as arrays and state dicts.
 #![allow(dead_code)]
 
+use base::Real;
 use dsgs_testkit::{Fixture, Tensor};
 use ndarray::{Array4, ArrayView4, Dimension};
-use nets::{ConvLayer, Scalar, StateDict, TensorF32};
+use nets::{ConvLayer, StateDict, TensorF32};
 
 /// The oracle fixture of the networks.
 pub fn nets_fixture() -> Fixture {
@@ -11,12 +12,12 @@ pub fn nets_fixture() -> Fixture {
 }
 
 /// A 4-D fixture tensor in precision `T`.
-pub fn arr4<T: Scalar>(t: &Tensor) -> Array4<T> {
+pub fn arr4<T: Real>(t: &Tensor) -> Array4<T> {
     assert_eq!(t.shape.len(), 4, "not a 4-D tensor: {:?}", t.shape);
     let s = &t.shape;
     Array4::from_shape_vec(
         (s[0], s[1], s[2], s[3]),
-        t.data.iter().map(|&v| T::from_f64(v)).collect(),
+        t.data.iter().map(|&v| T::lit(v)).collect(),
     )
     .expect("shape")
 }
@@ -55,12 +56,12 @@ pub fn exact_weights<'a>(
 }
 
 /// Data as `f64` in row-major order.
-pub fn to_f64<T: Scalar, D: Dimension>(a: &ndarray::Array<T, D>) -> Vec<f64> {
-    a.iter().map(|v| v.to_f64()).collect()
+pub fn to_f64<T: Real, D: Dimension>(a: &ndarray::Array<T, D>) -> Vec<f64> {
+    a.iter().map(|v| v.to_f64_exact()).collect()
 }
 
 /// `max_rel_err` of an array against a fixture tensor, after checking the shape.
-pub fn rel_err<T: Scalar, D: Dimension>(a: &ndarray::Array<T, D>, e: &Tensor) -> f64 {
+pub fn rel_err<T: Real, D: Dimension>(a: &ndarray::Array<T, D>, e: &Tensor) -> f64 {
     assert_eq!(a.shape(), e.shape.as_slice(), "shape mismatch");
     dsgs_testkit::max_rel_err(&to_f64(a), &e.data)
 }

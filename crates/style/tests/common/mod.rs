@@ -4,17 +4,17 @@
 
 pub mod pattern;
 
+use base::Real;
 use dsgs_testkit::{max_rel_err, Fixture, Tensor};
 use ndarray::{Array1, Array4, Dimension};
 use nets::{ConvLayer, Decoder, Encoder, Lifter, Resolution, StateDict, TensorF32};
-use style::Scalar;
 
 pub fn nets_fixture() -> Fixture {
     Fixture::shared("oracle/fixtures/nets.safetensors")
 }
 
 /// A 4-D fixture tensor in precision `T`.
-pub fn arr4<T: Scalar>(t: &Tensor) -> Array4<T> {
+pub fn arr4<T: Real>(t: &Tensor) -> Array4<T> {
     let s = &t.shape;
     assert_eq!(s.len(), 4, "not a 4-D tensor: {s:?}");
     Array4::from_shape_vec(
@@ -43,7 +43,7 @@ pub fn state_dict(fx: &Fixture, prefix: &str) -> StateDict {
 
 /// Replaces every layer's parameters by the fixture's values `{prefix}{source}.{weight,bias}` in
 /// precision `T` (for `f64`, the exact oracle weights rather than their `f32` rounding).
-fn set_weights<'a, T: Scalar>(
+fn set_weights<'a, T: Real>(
     layers: impl Iterator<Item = &'a mut ConvLayer<T>>,
     fx: &Fixture,
     prefix: &str,
@@ -58,7 +58,7 @@ fn set_weights<'a, T: Scalar>(
 }
 
 /// The oracle's encoder (to relu4_1) and decoder, in precision `T` and the given variant.
-pub fn networks<T: Scalar>(fx: &Fixture, resolution: Resolution) -> (Encoder<T>, Decoder<T>) {
+pub fn networks<T: Real>(fx: &Fixture, resolution: Resolution) -> (Encoder<T>, Decoder<T>) {
     let enc: Encoder<f32> = Encoder::from_state_dict(&state_dict(fx, "vgg.")).expect("encoder");
     let mut enc = enc
         .with_depth(4)
@@ -73,7 +73,7 @@ pub fn networks<T: Scalar>(fx: &Fixture, resolution: Resolution) -> (Encoder<T>,
 }
 
 /// The oracle's lifter in precision `T`.
-pub fn lifter<T: Scalar>(fx: &Fixture) -> Lifter<T> {
+pub fn lifter<T: Real>(fx: &Fixture) -> Lifter<T> {
     Lifter::new(
         arr4(fx.get("lifter.weight")),
         Array1::from_iter(fx.get("lifter.bias").data.iter().map(|&v| T::lit(v))),
@@ -82,14 +82,14 @@ pub fn lifter<T: Scalar>(fx: &Fixture) -> Lifter<T> {
 }
 
 /// `max_rel_err` of an array against a fixture tensor, after checking the shape.
-pub fn rel_err<T: Scalar, D: Dimension>(a: &ndarray::Array<T, D>, e: &Tensor) -> f64 {
+pub fn rel_err<T: Real, D: Dimension>(a: &ndarray::Array<T, D>, e: &Tensor) -> f64 {
     assert_eq!(a.shape(), e.shape.as_slice(), "shape mismatch");
     let v: Vec<f64> = a.iter().map(|x| x.to_f64_exact()).collect();
     max_rel_err(&v, &e.data)
 }
 
 /// `max_rel_err` of an array against a reference array of the same shape.
-pub fn rel_err_arr<T: Scalar, D: Dimension>(
+pub fn rel_err_arr<T: Real, D: Dimension>(
     a: &ndarray::Array<T, D>,
     e: &ndarray::Array<f64, D>,
 ) -> f64 {
@@ -100,7 +100,7 @@ pub fn rel_err_arr<T: Scalar, D: Dimension>(
 }
 
 /// Relative error of a scalar.
-pub fn rel_err_scalar<T: Scalar>(a: T, e: &Tensor) -> f64 {
+pub fn rel_err_scalar<T: Real>(a: T, e: &Tensor) -> f64 {
     max_rel_err(&[a.to_f64_exact()], &[e.scalar()])
 }
 

@@ -10,13 +10,13 @@
 //! with any recorded pattern, using the public convolution kernels of `nets`.
 #![allow(dead_code)]
 
+use base::Real;
 use ndarray::{Array1, Array4};
 use nets::conv::{
     conv1x1, conv1x1_backward_input, conv1x1_backward_params, conv3x3_reflect,
     conv3x3_reflect_backward_input, conv3x3_reflect_backward_params,
 };
 use nets::{ConvLayer, Decoder, Encoder, Lifter, Resolution};
-use style::Scalar;
 
 /// Weight and bias gradients of one conv.
 pub type ParamGrad = (Array4<f64>, Array1<f64>);
@@ -26,7 +26,7 @@ pub type Flip = (usize, (usize, usize, usize, usize), f64);
 
 /// One conv of a chain: the layer, whether a ReLU follows, whether its (activated) result is an
 /// output of the chain.
-pub struct Step<'a, T: Scalar> {
+pub struct Step<'a, T: Real> {
     pub layer: &'a ConvLayer<T>,
     pub relu: bool,
     pub output: bool,
@@ -34,7 +34,7 @@ pub struct Step<'a, T: Scalar> {
 
 /// The steps of a fullres encoder: conv0 (1x1, no ReLU), then 3x3 conv + ReLU, with the first
 /// conv of each level (`relu{k}_1`) an output.
-pub fn encoder_steps<T: Scalar>(enc: &Encoder<T>) -> Vec<Step<'_, T>> {
+pub fn encoder_steps<T: Real>(enc: &Encoder<T>) -> Vec<Step<'_, T>> {
     assert_eq!(enc.resolution(), Resolution::Fullres);
     let mut firsts = vec![1usize];
     for n in enc.convs_per_level() {
@@ -52,7 +52,7 @@ pub fn encoder_steps<T: Scalar>(enc: &Encoder<T>) -> Vec<Step<'_, T>> {
 
 /// The steps of a fullres decoder: 3x3 conv + ReLU, the last conv without (unless the weights
 /// say so), its result the output.
-pub fn decoder_steps<T: Scalar>(dec: &Decoder<T>) -> Vec<Step<'_, T>> {
+pub fn decoder_steps<T: Real>(dec: &Decoder<T>) -> Vec<Step<'_, T>> {
     assert_eq!(dec.resolution(), Resolution::Fullres);
     let n = dec.layers().count();
     dec.layers()
@@ -66,7 +66,7 @@ pub fn decoder_steps<T: Scalar>(dec: &Decoder<T>) -> Vec<Step<'_, T>> {
 }
 
 /// The lifter as a one-step chain.
-pub fn lifter_steps<T: Scalar>(l: &Lifter<T>) -> Vec<Step<'_, T>> {
+pub fn lifter_steps<T: Real>(l: &Lifter<T>) -> Vec<Step<'_, T>> {
     vec![Step {
         layer: l.layer(),
         relu: true,
@@ -75,14 +75,14 @@ pub fn lifter_steps<T: Scalar>(l: &Lifter<T>) -> Vec<Step<'_, T>> {
 }
 
 /// A forward pass: the outputs, every conv's input, and the ReLU pattern (`true` = active).
-pub struct Forward<T: Scalar> {
+pub struct Forward<T: Real> {
     pub outputs: Vec<Array4<T>>,
     pub inputs: Vec<Array4<T>>,
     pub pattern: Vec<Option<Array4<bool>>>,
     pub pre: Vec<Array4<T>>,
 }
 
-pub fn forward<T: Scalar>(steps: &[Step<'_, T>], x: &Array4<T>) -> Forward<T> {
+pub fn forward<T: Real>(steps: &[Step<'_, T>], x: &Array4<T>) -> Forward<T> {
     let mut f = Forward {
         outputs: vec![],
         inputs: vec![],
@@ -99,9 +99,9 @@ pub fn forward<T: Scalar>(steps: &[Step<'_, T>], x: &Array4<T>) -> Forward<T> {
         };
         f.inputs.push(x);
         let (act, pat) = if s.relu {
-            let pat = pre.mapv(|v| v > T::ZERO);
+            let pat = pre.mapv(|v| v > T::zero());
             (
-                pre.mapv(|v| if v > T::ZERO { v } else { T::ZERO }),
+                pre.mapv(|v| if v > T::zero() { v } else { T::zero() }),
                 Some(pat),
             )
         } else {
@@ -165,7 +165,7 @@ pub fn backward(
 }
 
 /// Units whose activity differs between two patterns: `(step, index, pre-activation in a)`.
-pub fn flips<T: Scalar>(a: &Forward<f64>, b: &Forward<T>) -> Vec<Flip> {
+pub fn flips<T: Real>(a: &Forward<f64>, b: &Forward<T>) -> Vec<Flip> {
     let mut out = Vec::new();
     for (i, (pa, pb)) in a.pattern.iter().zip(&b.pattern).enumerate() {
         if let (Some(pa), Some(pb)) = (pa, pb) {

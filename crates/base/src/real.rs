@@ -1,7 +1,10 @@
-//! The floating-point scalar that geometry and rasterization kernels are generic over.
+//! The floating-point scalar every kernel of the workspace is generic over: projection,
+//! rasterization, the networks, the feature-space losses and the training loops.
 //!
 //! Kernels run in `f64` when they are checked against the float64 oracle and against central
-//! differences, and in `f32` for production rendering and training. Scene storage is `f32`.
+//! differences, and in `f32` for production rendering and training; the very same code runs in
+//! both. Scene storage is `f32`. The trait is implemented for `f32` and `f64` only (it is
+//! sealed), so code may rely on one of the two being the type at hand.
 //!
 //! [`exp_f32`] is an exponential built from a fixed sequence of IEEE-754 operations (no fused
 //! multiply-add, no table, no library call), so scalar code and vector code that apply it lane by
@@ -11,11 +14,19 @@ use std::fmt::{Debug, Display};
 use std::iter::Sum;
 use std::ops::{AddAssign, DivAssign, MulAssign, SubAssign};
 
+use ndarray::ScalarOperand;
 use num_traits::{Float, FromPrimitive, ToPrimitive};
 
-/// A real scalar type: implemented for `f32` and `f64`.
+mod sealed {
+    pub trait Sealed {}
+    impl Sealed for f32 {}
+    impl Sealed for f64 {}
+}
+
+/// A real scalar type: `f32` or `f64`.
 pub trait Real:
-    Float
+    sealed::Sealed
+    + Float
     + FromPrimitive
     + ToPrimitive
     + Default
@@ -26,6 +37,7 @@ pub trait Real:
     + SubAssign
     + MulAssign
     + DivAssign
+    + ScalarOperand
     + Send
     + Sync
     + 'static

@@ -375,9 +375,15 @@ fn io_errors_name_the_file() {
     assert!(matches!(err.kind, PlyErrorKind::Io(_)));
     assert!(err.to_string().contains("none.ply"));
     let g = load_ply(fixture("ply/tiny_be_deg0_feat2.ply")).unwrap();
-    let err = save_ply(missing, &g).unwrap_err();
+    // A directory that cannot be created (a regular file is in the way), whoever runs the test.
+    let file = std::env::temp_dir().join(format!("dsgs-ply-blocker-{}", std::process::id()));
+    std::fs::write(&file, b"not a directory").unwrap();
+    let blocked = file.join("none.ply");
+    let err = save_ply(&blocked, &g).unwrap_err();
+    std::fs::remove_file(&file).unwrap();
+    assert!(matches!(err.kind, PlyErrorKind::Io(_)));
     assert!(
-        err.to_string().starts_with("/nonexistent-dir/none.ply"),
+        err.to_string().starts_with(&blocked.display().to_string()),
         "{err}"
     );
 }

@@ -5,16 +5,17 @@ use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{bail, Context, Result};
+use clap::builder::{PossibleValuesParser, TypedValueParser};
 use clap::{Args, Parser, Subcommand};
-use dsgs::bake::{BakeOverrides, BakeSettings};
-use dsgs::cameras::{CameraRequest, CameraSource, KnownCameras};
-use dsgs::consistency::WarpOptions;
-use dsgs::fit_features::{FeatureOverrides, FitFeaturesSettings};
-use dsgs::fit_geometry::{FitSettings, GeometryOverrides};
-use dsgs::pretrain_decoder::{DecoderOverrides, NetworkFiles, PretrainSettings};
-use dsgs::render::{DepthStyle, RenderKind, SceneInput};
 use glam::DVec3;
 use indicatif::{ProgressBar, ProgressStyle};
+use pipeline::bake::{BakeOverrides, BakeSettings};
+use pipeline::cameras::{CameraRequest, CameraSource, KnownCameras};
+use pipeline::consistency::WarpOptions;
+use pipeline::fit_features::{FeatureOverrides, FitFeaturesSettings};
+use pipeline::fit_geometry::{FitSettings, GeometryOverrides};
+use pipeline::pretrain_decoder::{DecoderOverrides, NetworkFiles, PretrainSettings};
+use pipeline::render::{DepthStyle, RenderKind, SceneInput};
 use train::Variant;
 
 /// Zero-shot 3D style transfer on Gaussian splatting (DS-StyleGaussian), exact and CPU-only.
@@ -111,6 +112,14 @@ enum WeightsCommand {
         /// The weights file.
         path: PathBuf,
     },
+}
+
+/// A parser accepting exactly `names`, listed in `--help` and in the error for any other value.
+fn one_of<T>(names: &'static [&'static str]) -> impl TypedValueParser<Value = T>
+where
+    T: std::str::FromStr<Err = String> + Clone + Send + Sync + 'static,
+{
+    PossibleValuesParser::new(names).try_map(|s| s.parse::<T>())
 }
 
 fn vector3(s: &str) -> Result<DVec3, String> {
@@ -324,7 +333,7 @@ struct BakeArgs {
     #[arg(long, default_value_t = 1.0)]
     alpha: f64,
     /// Longest side of the style images after loading.
-    #[arg(long, default_value_t = dsgs::stylize::DEFAULT_STYLE_SIDE)]
+    #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE)]
     style_size: u32,
     /// Network variant (default: the bundle's).
     #[arg(long)]
@@ -374,7 +383,7 @@ struct BakeArgs {
 struct CameraArgs {
     /// Camera source: the dataset's or bundle's cameras, the held-out ones, a path through
     /// them, or an orbit.
-    #[arg(long, value_enum, default_value = "orbit")]
+    #[arg(long, default_value = "orbit", value_parser = one_of::<CameraSource>(CameraSource::NAMES))]
     cameras: CameraSource,
     /// Number of frames (path and orbit), or at most this many cameras (dataset and test).
     #[arg(long)]
@@ -425,10 +434,10 @@ struct RenderArgs {
     #[command(flatten)]
     cameras: CameraArgs,
     /// What to draw.
-    #[arg(long, value_enum, default_value = "color")]
+    #[arg(long, default_value = "color", value_parser = one_of::<RenderKind>(RenderKind::NAMES))]
     what: RenderKind,
     /// How depth is drawn.
-    #[arg(long, value_enum, default_value = "colour")]
+    #[arg(long, default_value = "colour", value_parser = one_of::<DepthStyle>(DepthStyle::NAMES))]
     depth_style: DepthStyle,
     /// Output directory (frame_XXXX.png).
     #[arg(short, long)]
@@ -450,7 +459,7 @@ struct StyleArgs {
     #[arg(long)]
     preserve_colour: bool,
     /// Longest side of the style images after loading.
-    #[arg(long, default_value_t = dsgs::stylize::DEFAULT_STYLE_SIDE)]
+    #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE)]
     style_size: u32,
     /// Network variant (default: the bundle's).
     #[arg(long)]
@@ -526,7 +535,7 @@ struct EvalStyleArgs {
     #[arg(long)]
     preserve_colour: bool,
     /// Longest side of the style images after loading.
-    #[arg(long, default_value_t = dsgs::stylize::DEFAULT_STYLE_SIDE)]
+    #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE)]
     style_size: u32,
     /// Network variant (default: the bundle's).
     #[arg(long)]
@@ -618,13 +627,13 @@ fn run(cli: Cli) -> Result<()> {
             decoder,
             output,
         }) => {
-            let w = dsgs::weights::import(encoder.as_deref(), decoder.as_deref())?;
+            let w = pipeline::weights::import(encoder.as_deref(), decoder.as_deref())?;
             w.save(&output)
                 .with_context(|| format!("writing {}", output.display()))?;
-            print!("{}", dsgs::weights::describe(&output)?);
+            print!("{}", pipeline::weights::describe(&output)?);
         }
         Command::Weights(WeightsCommand::Info { path }) => {
-            print!("{}", dsgs::weights::describe(&path)?);
+            print!("{}", pipeline::weights::describe(&path)?);
         }
         Command::FitGeometry(a) => fit_geometry(a)?,
         Command::PretrainDecoder(a) => pretrain_decoder(a)?,
@@ -659,7 +668,7 @@ fn fit_geometry(a: FitGeometryArgs) -> Result<()> {
             no_progress: a.no_progress,
         },
     };
-    let r = dsgs::fit_geometry::run(&settings, stop_flag())?;
+    let r = pipeline::fit_geometry::run(&settings, stop_flag())?;
     println!(
         "{} training and {} test views at {}x{}, {} initial Gaussians",
         r.train_views, r.test_views, r.width, r.height, r.initial_gaussians
@@ -711,7 +720,7 @@ fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
             no_progress: a.no_progress,
         },
     };
-    let r = dsgs::pretrain_decoder::run(&settings, stop_flag())?;
+    let r = pipeline::pretrain_decoder::run(&settings, stop_flag())?;
     println!(
         "{} content and {} style images, {} networks, crops of {} px",
         r.content_images,
@@ -793,7 +802,7 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
             no_progress: a.no_progress,
         },
     };
-    let r = dsgs::fit_features::run(&settings, stop_flag())?;
+    let r = pipeline::fit_features::run(&settings, stop_flag())?;
     println!(
         "{} Gaussians, {} training views, {} style images, {}-d features, {} networks",
         r.gaussians,
@@ -841,7 +850,7 @@ fn bake(a: BakeArgs) -> Result<()> {
         },
         output: a.output,
     };
-    let out = dsgs::bake::run(&settings)?;
+    let out = pipeline::bake::run(&settings)?;
     let s = &out.summary;
     let db = |p: Option<f64>| p.map_or_else(|| "-".to_string(), |v| format!("{v:.3} dB"));
     println!(
@@ -871,10 +880,10 @@ fn bake(a: BakeArgs) -> Result<()> {
 fn render(a: RenderArgs) -> Result<()> {
     let scene = SceneInput::open(&a.scene)?;
     let known = a.cameras.known(scene.known_cameras())?;
-    let cams = dsgs::cameras::select(&a.cameras.request(), &known, scene.gaussians())?;
+    let cams = pipeline::cameras::select(&a.cameras.request(), &known, scene.gaussians())?;
     let bar = progress(cams.len(), "render");
     let written =
-        dsgs::render::render_views(&scene, &cams, a.what, a.depth_style, &a.output, || {
+        pipeline::render::render_views(&scene, &cams, a.what, a.depth_style, &a.output, || {
             bar.inc(1)
         })?;
     bar.finish_and_clear();
@@ -887,12 +896,12 @@ fn bundle_with(
     variant: Option<Variant>,
     decoder: Option<&Path>,
 ) -> Result<train::SceneBundle> {
-    dsgs::stylize::load_bundle(dir, variant, decoder)
+    pipeline::stylize::load_bundle(dir, variant, decoder)
 }
 
 fn demo(a: DemoArgs) -> Result<()> {
-    let settings = dsgs::demo::DemoSettings {
-        styles: dsgs::demo::styles_or_default(&a.shared, &a.styles),
+    let settings = pipeline::demo::DemoSettings {
+        styles: pipeline::demo::styles_or_default(&a.shared, &a.styles),
         shared: a.shared,
         out_dir: a.output.clone(),
         weights: a.weights,
@@ -911,12 +920,12 @@ fn demo(a: DemoArgs) -> Result<()> {
     } else {
         progress(2 * views, "stylize")
     };
-    let r = dsgs::demo::run(&settings, stop_flag(), |stage| {
+    let r = pipeline::demo::run(&settings, stop_flag(), |stage| {
         bar.set_message(stage.to_string());
         bar.inc(1)
     })?;
     bar.finish_and_clear();
-    print!("{}", dsgs::eval::table(&r.eval));
+    print!("{}", pipeline::eval::table(&r.eval));
     if let Some(p) = r.geometry_psnr {
         println!("geometry: held-out PSNR {p:.2} dB");
     }
@@ -940,8 +949,8 @@ fn stylize(a: StylizeArgs) -> Result<()> {
         &bundle,
         &a.bundle.display().to_string(),
     ))?;
-    let cams = dsgs::cameras::select(&a.cameras.request(), &known, &bundle.scene)?;
-    let settings = dsgs::stylize::StylizeSettings {
+    let cams = pipeline::cameras::select(&a.cameras.request(), &known, &bundle.scene)?;
+    let settings = pipeline::stylize::StylizeSettings {
         styles: a.style.styles,
         weights: a.style.weights,
         alpha: a.style.alpha,
@@ -959,7 +968,7 @@ fn stylize(a: StylizeArgs) -> Result<()> {
         settings.styles.len()
     };
     let bar = progress(cams.len() * (1 + outputs), "stylize");
-    let out = dsgs::stylize::run(&bundle, &cams, &settings, |stage| {
+    let out = pipeline::stylize::run(&bundle, &cams, &settings, |stage| {
         bar.set_message(stage.to_string());
         bar.inc(1)
     })?;
@@ -995,9 +1004,9 @@ fn eval(a: EvalArgs) -> Result<()> {
             .context("--frames-dir needs the geometry: --scene PLY_OR_BUNDLE")?;
         let scene = SceneInput::open(scene_path)?;
         let known = a.cameras.known(scene.known_cameras())?;
-        let cams = dsgs::cameras::select(&a.cameras.request(), &known, scene.gaussians())?;
+        let cams = pipeline::cameras::select(&a.cameras.request(), &known, scene.gaussians())?;
         let bar = progress(cams.len(), "eval");
-        let r = dsgs::eval::evaluate_frames(&scene, &cams, frames_dir, &warp, || bar.inc(1))?;
+        let r = pipeline::eval::evaluate_frames(&scene, &cams, frames_dir, &warp, || bar.inc(1))?;
         bar.finish_and_clear();
         r
     } else {
@@ -1012,8 +1021,8 @@ fn eval(a: EvalArgs) -> Result<()> {
             &bundle,
             &dir.display().to_string(),
         ))?;
-        let cams = dsgs::cameras::select(&a.cameras.request(), &known, &bundle.scene)?;
-        let settings = dsgs::eval::EvalSettings {
+        let cams = pipeline::cameras::select(&a.cameras.request(), &known, &bundle.scene)?;
+        let settings = pipeline::eval::EvalSettings {
             styles: a.style.styles,
             weights: a.style.weights,
             alpha: a.style.alpha,
@@ -1027,7 +1036,7 @@ fn eval(a: EvalArgs) -> Result<()> {
             settings.styles.len()
         };
         let bar = progress(cams.len() * (1 + outputs), "eval");
-        let r = dsgs::eval::evaluate_bundle(
+        let r = pipeline::eval::evaluate_bundle(
             &bundle,
             &dir.display().to_string(),
             &cams,
@@ -1037,9 +1046,9 @@ fn eval(a: EvalArgs) -> Result<()> {
         bar.finish_and_clear();
         r
     };
-    print!("{}", dsgs::eval::table(&report));
+    print!("{}", pipeline::eval::table(&report));
     if let Some(p) = &a.output {
-        dsgs::eval::write_report(p, &report)?;
+        pipeline::eval::write_report(p, &report)?;
         println!("report written to {}", p.display());
     }
     Ok(())

@@ -139,11 +139,11 @@ fn timed_decode_equals_the_bundle_decode() {
     let cam = bundle.cameras()[3];
     let feats = bundle.render_features(&cam).unwrap();
     let style =
-        dsgs::image_io::load_style_image(&shared_path("data/styles/mondrian.jpg"), 64).unwrap();
+        pipeline::image_io::load_style_image(&shared_path("data/styles/mondrian.jpg"), 64).unwrap();
     let stats =
-        style::encode_style(&bundle.encoder, &dsgs::image_io::nchw_from_rgb(&style)).unwrap();
+        style::encode_style(&bundle.encoder, &pipeline::image_io::nchw_from_rgb(&style)).unwrap();
     let target = bundle.target_stats(stats.deepest(), 0.7).unwrap();
     let expect = bundle.decode(&feats, &target, 64, 64).unwrap();
-    let (got, _, _) = dsgs::stylize::decode_view(&bundle, &feats, &target, 64, 64).unwrap();
+    let (got, _, _) = pipeline::stylize::decode_view(&bundle, &feats, &target, 64, 64).unwrap();
     assert_eq!(got, expect);
 }

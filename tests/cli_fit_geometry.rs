@@ -182,7 +182,7 @@ fn bad_fit_geometry_input_is_refused_with_a_message() {
 
 #[test]
 fn a_stopped_run_writes_a_checkpoint_that_resumes() {
-    use dsgs::fit_geometry::{run, FitSettings, GeometryOverrides};
+    use pipeline::fit_geometry::{run, FitSettings, GeometryOverrides};
     use std::sync::atomic::AtomicBool;
 
     let dir = scratch("fit-geometry-stop");

@@ -19,11 +19,11 @@
 
 mod common;
 
-use dsgs::consistency::{sequence_consistency, DepthView, WarpOptions};
-use dsgs::image_io::RgbImage;
-use dsgs::render::render_colour;
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
 use glam::{DMat3, DVec3};
+use pipeline::consistency::{sequence_consistency, DepthView, WarpOptions};
+use pipeline::image_io::RgbImage;
+use pipeline::render::render_colour;
 
 const Z: f64 = 3.0;
 const SH_C0: f32 = 0.282_094_8;

@@ -6,12 +6,12 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use dsgs::cameras::{select, CameraRequest, CameraSource, KnownCameras};
 use dsgs_testkit::shared_path;
 use gaussian::ply::load_ply;
 use gaussian::FeatureGaussians;
 use ndarray::{Array1, Array4};
 use nets::{Decoder, Encoder, Lifter};
+use pipeline::cameras::{select, CameraRequest, CameraSource, KnownCameras};
 use train::bundle::{weights_fingerprint, BUNDLE_FORMAT};
 use train::{BundleInfo, CameraRecord, SceneBundle, Variant};
 
@@ -64,7 +64,7 @@ impl Lcg {
 /// The `n` Gaussians of trained_9080.ply nearest to the per-axis median of the means.
 pub fn trained_subset(n: usize) -> FeatureGaussians<f32> {
     let full = load_ply(shared_path("data/gaussians/trained_9080.ply")).unwrap();
-    let c = dsgs::cameras::median_centre(&full);
+    let c = pipeline::cameras::median_centre(&full);
     let mut idx: Vec<usize> = (0..full.len()).collect();
     let d = |i: usize| {
         let m = full.means[i];

@@ -331,7 +331,7 @@ impl Pca {
 }
 
 /// What `dsgs render` draws.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum RenderKind {
     Color,
     Depth,
@@ -340,13 +340,69 @@ pub enum RenderKind {
 }
 
 /// How depth is shown.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum DepthStyle {
     /// A colour map from dark blue (near) through cyan and yellow to dark red (far).
     #[default]
     Colour,
     /// Grey levels, near bright.
     Grey,
+}
+
+impl RenderKind {
+    /// Every value, by its command-line name.
+    pub const NAMES: &'static [&'static str] = &["color", "depth", "alpha", "features-pca"];
+
+    /// The command-line name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            RenderKind::Color => "color",
+            RenderKind::Depth => "depth",
+            RenderKind::Alpha => "alpha",
+            RenderKind::FeaturesPca => "features-pca",
+        }
+    }
+}
+
+impl std::str::FromStr for RenderKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "color" => Ok(RenderKind::Color),
+            "depth" => Ok(RenderKind::Depth),
+            "alpha" => Ok(RenderKind::Alpha),
+            "features-pca" => Ok(RenderKind::FeaturesPca),
+            _ => Err(format!(
+                "unknown render kind `{s}` (expected one of: color, depth, alpha, features-pca)"
+            )),
+        }
+    }
+}
+
+impl DepthStyle {
+    /// Every value, by its command-line name.
+    pub const NAMES: &'static [&'static str] = &["colour", "grey"];
+
+    /// The command-line name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DepthStyle::Colour => "colour",
+            DepthStyle::Grey => "grey",
+        }
+    }
+}
+
+impl std::str::FromStr for DepthStyle {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "colour" => Ok(DepthStyle::Colour),
+            "grey" => Ok(DepthStyle::Grey),
+            _ => Err(format!(
+                "unknown depth style `{s}` (expected one of: colour, grey)"
+            )),
+        }
+    }
 }
 
 /// The depth range of a view: 1st and 99th percentiles over pixels with alpha above 0.5.

@@ -33,7 +33,7 @@ pub const DEFAULT_FRAMES: usize = 30;
 pub const DEFAULT_SIDE: u32 = 256;
 
 /// Which cameras to render from.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum CameraSource {
     /// Every camera of the dataset or bundle.
@@ -44,6 +44,36 @@ pub enum CameraSource {
     Path,
     /// An orbit around the scene.
     Orbit,
+}
+
+impl CameraSource {
+    /// Every value, by its command-line name.
+    pub const NAMES: &'static [&'static str] = &["dataset", "test", "path", "orbit"];
+
+    /// The command-line name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            CameraSource::Dataset => "dataset",
+            CameraSource::Test => "test",
+            CameraSource::Path => "path",
+            CameraSource::Orbit => "orbit",
+        }
+    }
+}
+
+impl std::str::FromStr for CameraSource {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "dataset" => Ok(CameraSource::Dataset),
+            "test" => Ok(CameraSource::Test),
+            "path" => Ok(CameraSource::Path),
+            "orbit" => Ok(CameraSource::Orbit),
+            _ => Err(format!(
+                "unknown camera source `{s}` (expected one of: dataset, test, path, orbit)"
+            )),
+        }
+    }
 }
 
 /// Cameras known for a scene (from a dataset or a bundle), with held-out flags and names.

@@ -38,8 +38,6 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Instant;
 
 use ndarray::{Array1, Array4};
 use nets::{Decoder, Encoder, NetWeights, StateDict, TensorF32};
@@ -51,15 +49,16 @@ use style::{adain_with_stats, decoder_training_loss, encode_style, StyleFeatureS
 
 use crate::adam::{Adam, AdamConfig, ParamState};
 use crate::bundle::{weights_fingerprint, Variant};
+use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
+use crate::event::{Event, Metric, Sink, Stage};
 use crate::error::TrainError;
 use crate::image_folder::{stack, ImageSet};
-use crate::progress::{progress_bar, say, TEMPLATE};
 
 /// The `format` metadata of a decoder-training checkpoint.
 pub const DECODER_CHECKPOINT_FORMAT: &str = "dsgs-decoder-checkpoint-v1";
 
 /// File names inside a decoder-training output folder.
-pub const DECODER_CHECKPOINT_FILE: &str = "checkpoint.safetensors";
+pub const DECODER_CHECKPOINT_FILE: &str = crate::driver::CHECKPOINT_FILE;
 pub const DECODER_WEIGHTS_FILE: &str = "decoder.safetensors";
 
 /// Settings of a decoder training run. The defaults are the AdaIN paper's, scaled down for a CPU
@@ -91,10 +90,8 @@ pub struct DecoderTrainConfig {
     pub eval_interval: u64,
     /// Iterations between checkpoints (0: none).
     pub checkpoint_interval: u64,
-    /// Print a plain progress line to standard error every this many iterations (0: never).
+    /// Iterations between log lines (0: none).
     pub log_interval: u64,
-    /// Show a progress bar.
-    pub progress: bool,
     /// Adam hyper-parameters (PyTorch defaults, as the AdaIN code uses).
     pub adam: AdamConfig,
 }
@@ -115,7 +112,6 @@ impl Default for DecoderTrainConfig {
             eval_interval: 1000,
             checkpoint_interval: 1000,
             log_interval: 0,
-            progress: true,
             adam: AdamConfig::default(),
         }
     }
@@ -185,15 +181,24 @@ pub struct DecoderEvaluation {
 /// The result of [`DecoderTrainer::train`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct DecoderTrainSummary {
-    /// Completed iterations when training stopped.
-    pub step: u64,
-    /// Whether the stop flag ended the run early.
-    pub interrupted: bool,
+    /// How the run ended; its output is the final weights, when training completed with an
+    /// output folder.
+    pub run: RunOutcome,
     pub evaluations: Vec<DecoderEvaluation>,
-    /// Wall time of the iterations run by this call, in seconds.
-    pub seconds: f64,
-    /// Where the final weights were written (when training completed with an output folder).
-    pub weights: Option<PathBuf>,
+}
+
+impl DecoderEvaluation {
+    /// The evaluation as event metrics.
+    pub fn metrics(&self) -> Vec<Metric> {
+        [
+            ("loss", self.loss),
+            ("content", self.loss_content),
+            ("style", self.loss_style),
+            ("pairs", self.pairs as f64),
+        ]
+        .map(|(name, value)| Metric { name, value })
+        .to_vec()
+    }
 }
 
 /// A fixed evaluation pair: the centred content crop and the style's statistics.
@@ -511,105 +516,99 @@ impl DecoderTrainer {
         })
     }
 
-    /// Trains up to `config.iterations`. With `out_dir`, a checkpoint
-    /// (`out_dir/checkpoint.safetensors`, replaced each time) is written every
-    /// `checkpoint_interval` iterations and when the stop flag ends the run, and the final
-    /// weights (`out_dir/decoder.safetensors`, encoder and decoder) when it completes.
-    /// Evaluations run before the first iteration of a fresh run (the starting point of the
-    /// held-out curve), every `eval_interval` iterations and at the end.
-    pub fn train(
-        &mut self,
-        out_dir: Option<&Path>,
-        stop: Option<&AtomicBool>,
-    ) -> Result<DecoderTrainSummary, TrainError> {
-        let start = Instant::now();
-        let first = self.step;
-        let total = self.config.iterations;
-        let bar = progress_bar(self.config.progress, total, self.step, TEMPLATE);
-        let mut evaluations = Vec::new();
-        let mut interrupted = false;
-        // Evaluates, logs and records the held-out loss at the current step.
-        let evaluate = |t: &Self, evaluations: &mut Vec<DecoderEvaluation>| {
-            if let Some(ev) = t.evaluate()? {
-                say(
-                    &bar,
-                    format!(
-                        "[ITER {}] held-out: loss {:.5} content {:.5} style {:.5} ({} pairs)",
-                        t.step, ev.loss, ev.loss_content, ev.loss_style, ev.pairs
-                    ),
-                );
-                evaluations.push(ev);
-            }
-            Ok::<(), TrainError>(())
+    /// Trains up to `config.iterations` through the [driver](crate::driver). With an output
+    /// folder, the checkpoint is `out_dir/checkpoint.safetensors` and the final weights
+    /// `out_dir/decoder.safetensors` (encoder and decoder). Evaluations run before the first
+    /// iteration of a fresh run (the starting point of the held-out curve), every
+    /// `eval_interval` iterations and at the end.
+    pub fn train(&mut self, run: &Run) -> Result<DecoderTrainSummary, TrainError> {
+        let cadence = Cadence {
+            checkpoint_interval: self.config.checkpoint_interval,
+            log_interval: self.config.log_interval,
         };
-        if self.step == 0 && total > 0 {
-            evaluate(self, &mut evaluations)?;
-        }
-        while self.step < total {
-            if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
-                interrupted = true;
-                break;
-            }
-            let r = self.train_step()?;
-            let it = r.step;
-            let e = self.ema.unwrap_or_default();
-            bar.set_message(format!(
-                "loss {:.4}  content {:.4}  style {:.4}  lr {:.2e}",
-                e[0], e[1], e[2], r.lr
-            ));
-            bar.set_position(it);
-            if self.config.log_interval > 0 && it % self.config.log_interval == 0 {
-                let secs = start.elapsed().as_secs_f64();
-                say(&bar, format!(
-                    "[ITER {it}] loss {:.5} content {:.5} style {:.5} lr {:.3e} | {:.3} it/s, {:.0} s",
-                    e[0],
-                    e[1],
-                    e[2],
-                    r.lr,
-                    (it - first) as f64 / secs,
-                    secs
-                ));
-            }
-            let eval_now = (self.config.eval_interval > 0 && it % self.config.eval_interval == 0)
-                || it == total;
-            if eval_now {
-                evaluate(self, &mut evaluations)?;
-            }
-            if let Some(dir) = out_dir {
-                let k = self.config.checkpoint_interval;
-                if k > 0 && it % k == 0 && it < total {
-                    self.save_checkpoint(&dir.join(DECODER_CHECKPOINT_FILE))?;
-                }
-            }
-        }
-        bar.finish();
-        let mut weights = None;
-        if let Some(dir) = out_dir {
-            if interrupted {
-                let p = dir.join(DECODER_CHECKPOINT_FILE);
-                self.save_checkpoint(&p)?;
-                say(
-                    &bar,
-                    format!(
-                        "stopped at iteration {}; checkpoint {}",
-                        self.step,
-                        p.display()
-                    ),
-                );
-            } else {
-                let p = dir.join(DECODER_WEIGHTS_FILE);
-                self.save_weights(&p)?;
-                say(&bar, format!("saved the decoder to {}", p.display()));
-                weights = Some(p);
-            }
-        }
+        let mut l = DecoderLoop {
+            t: self,
+            evaluations: Vec::new(),
+            lr: 0.0,
+        };
+        let run = drive(&mut l, cadence, run)?;
         Ok(DecoderTrainSummary {
-            step: self.step,
-            interrupted,
-            evaluations,
-            seconds: start.elapsed().as_secs_f64(),
-            weights,
+            run,
+            evaluations: l.evaluations,
         })
+    }
+}
+
+/// A decoder run as the driver sees it, collecting this call's evaluations.
+struct DecoderLoop<'t> {
+    t: &'t mut DecoderTrainer,
+    evaluations: Vec<DecoderEvaluation>,
+    /// The learning rate of the last iteration.
+    lr: f64,
+}
+
+impl DecoderLoop<'_> {
+    /// Evaluates, reports and records the held-out loss at the current step.
+    fn evaluate(&mut self, sink: &dyn Sink) -> Result<(), TrainError> {
+        if let Some(e) = self.t.evaluate()? {
+            sink.emit(Event::Evaluation {
+                stage: Stage::Decoder,
+                step: e.step,
+                metrics: e.metrics(),
+            });
+            self.evaluations.push(e);
+        }
+        Ok(())
+    }
+}
+
+impl TrainingLoop for DecoderLoop<'_> {
+    const STAGE: Stage = Stage::Decoder;
+
+    fn step(&self) -> u64 {
+        self.t.step
+    }
+
+    fn iterations(&self) -> u64 {
+        self.t.config.iterations
+    }
+
+    fn advance(&mut self) -> Result<(), TrainError> {
+        self.lr = self.t.train_step()?.lr;
+        Ok(())
+    }
+
+    fn status(&self) -> String {
+        let e = self.t.ema.unwrap_or_default();
+        format!(
+            "loss {:.5} content {:.5} style {:.5} lr {:.3e}",
+            e[0], e[1], e[2], self.lr
+        )
+    }
+
+    fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
+        self.t.save_checkpoint(path)
+    }
+
+    fn start(&mut self, sink: &dyn Sink) -> Result<(), TrainError> {
+        if self.t.step == 0 && self.t.config.iterations > 0 {
+            self.evaluate(sink)?;
+        }
+        Ok(())
+    }
+
+    fn after_step(&mut self, _out_dir: Option<&Path>, sink: &dyn Sink) -> Result<(), TrainError> {
+        let (it, k, total) = (self.t.step, self.t.config.eval_interval, self.t.config.iterations);
+        if (k > 0 && it.is_multiple_of(k)) || it == total {
+            self.evaluate(sink)?;
+        }
+        Ok(())
+    }
+
+    fn finish(&mut self, out_dir: &Path) -> Result<Option<(&'static str, PathBuf)>, TrainError> {
+        let p = out_dir.join(DECODER_WEIGHTS_FILE);
+        self.t.save_weights(&p)?;
+        Ok(Some(("decoder", p)))
     }
 }
 

@@ -44,8 +44,6 @@
 //! geometry and encoder they belong to by fingerprints, which resuming checks.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Instant;
 
 use gaussian::dataset::Dataset;
 use gaussian::{Camera, FeatureGaussians, Real};
@@ -69,16 +67,17 @@ use crate::bundle::{
 use crate::decoder_training::{
     conv_default_init, mix, StateReader, StateWriter, INIT_STREAM, STEP_STREAM,
 };
+use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
+use crate::event::Stage;
 use crate::error::TrainError;
 use crate::geometry::{load_views, View};
 use crate::image_folder::{to_tensor, ImageSet};
-use crate::progress::{progress_bar, say, TEMPLATE};
 
 /// The `format` metadata of a feature-training checkpoint.
 pub const FEATURE_CHECKPOINT_FORMAT: &str = "dsgs-feature-checkpoint-v1";
 
 /// Names inside a feature-training output folder: the checkpoint file and the bundle folder.
-pub const FEATURE_CHECKPOINT_FILE: &str = "checkpoint.safetensors";
+pub const FEATURE_CHECKPOINT_FILE: &str = crate::driver::CHECKPOINT_FILE;
 pub const BUNDLE_DIR: &str = "bundle";
 
 /// Settings of a feature training run.
@@ -124,10 +123,8 @@ pub struct FeatureTrainConfig {
     pub seed: u64,
     /// Iterations between checkpoints (0: none).
     pub checkpoint_interval: u64,
-    /// Print a plain progress line to standard error every this many iterations (0: never).
+    /// Iterations between log lines (0: none).
     pub log_interval: u64,
-    /// Show a progress bar.
-    pub progress: bool,
     /// Adam hyper-parameters (PyTorch defaults).
     pub adam: AdamConfig,
 }
@@ -149,7 +146,6 @@ impl Default for FeatureTrainConfig {
             seed: 0,
             checkpoint_interval: 500,
             log_interval: 0,
-            progress: true,
             adam: AdamConfig::default(),
         }
     }
@@ -453,14 +449,9 @@ pub struct FeatureEvaluation {
 /// The result of [`FeatureTrainer::train`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct FeatureTrainSummary {
-    /// Completed iterations when training stopped.
-    pub step: u64,
-    /// Whether the stop flag ended the run early.
-    pub interrupted: bool,
-    /// Wall time of the iterations run by this call, in seconds.
-    pub seconds: f64,
-    /// Where the bundle was written (when training completed with an output folder).
-    pub bundle: Option<PathBuf>,
+    /// How the run ended; its output is the scene bundle, when training completed with an
+    /// output folder.
+    pub run: RunOutcome,
     /// Running averages of the total, align, content and style losses at the end.
     pub running_losses: Option<[f64; 4]>,
 }
@@ -929,79 +920,52 @@ impl FeatureTrainer {
         base::write_atomic(path, &self.checkpoint_bytes()?).map_err(|e| TrainError::io(path, e))
     }
 
-    /// Trains up to `config.iterations`. With `out_dir`, a checkpoint
-    /// (`out_dir/checkpoint.safetensors`, replaced each time) is written every
-    /// `checkpoint_interval` iterations and when the stop flag ends the run, and the bundle
-    /// (`out_dir/bundle/`) when it completes.
-    pub fn train(
-        &mut self,
-        out_dir: Option<&Path>,
-        stop: Option<&AtomicBool>,
-    ) -> Result<FeatureTrainSummary, TrainError> {
-        let start = Instant::now();
-        let first = self.step;
-        let total = self.config.iterations;
-        let bar = progress_bar(self.config.progress, total, self.step, TEMPLATE);
-        let mut interrupted = false;
-        while self.step < total {
-            if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
-                interrupted = true;
-                break;
-            }
-            let r = self.train_step()?;
-            let it = r.step;
-            let e = self.ema.unwrap_or_default();
-            bar.set_message(format!(
-                "align {:.4}  content {:.4}  style {:.4}",
-                e[1], e[2], e[3]
-            ));
-            bar.set_position(it);
-            if self.config.log_interval > 0 && it % self.config.log_interval == 0 {
-                let secs = start.elapsed().as_secs_f64();
-                say(&bar, format!(
-                    "[ITER {it}] loss {:.5} align {:.5} content {:.5} style {:.5} | {:.3} it/s, {:.0} s",
-                    e[0],
-                    e[1],
-                    e[2],
-                    e[3],
-                    (it - first) as f64 / secs,
-                    secs
-                ));
-            }
-            if let Some(dir) = out_dir {
-                let k = self.config.checkpoint_interval;
-                if k > 0 && it % k == 0 && it < total {
-                    self.save_checkpoint(&dir.join(FEATURE_CHECKPOINT_FILE))?;
-                }
-            }
-        }
-        bar.finish();
-        let mut bundle = None;
-        if let Some(dir) = out_dir {
-            if interrupted {
-                let p = dir.join(FEATURE_CHECKPOINT_FILE);
-                self.save_checkpoint(&p)?;
-                say(
-                    &bar,
-                    format!(
-                        "stopped at iteration {}; checkpoint {}",
-                        self.step,
-                        p.display()
-                    ),
-                );
-            } else {
-                let p = dir.join(BUNDLE_DIR);
-                self.save_bundle(&p)?;
-                say(&bar, format!("saved the scene bundle to {}", p.display()));
-                bundle = Some(p);
-            }
-        }
+    /// Trains up to `config.iterations` through the [driver](crate::driver). With an output
+    /// folder, the checkpoint is `out_dir/checkpoint.safetensors` and the scene bundle
+    /// `out_dir/bundle/`.
+    pub fn train(&mut self, run: &Run) -> Result<FeatureTrainSummary, TrainError> {
+        let cadence = Cadence {
+            checkpoint_interval: self.config.checkpoint_interval,
+            log_interval: self.config.log_interval,
+        };
+        let run = drive(self, cadence, run)?;
         Ok(FeatureTrainSummary {
-            step: self.step,
-            interrupted,
-            seconds: start.elapsed().as_secs_f64(),
-            bundle,
+            run,
             running_losses: self.ema,
         })
+    }
+}
+
+impl TrainingLoop for FeatureTrainer {
+    const STAGE: Stage = Stage::Features;
+
+    fn step(&self) -> u64 {
+        self.step
+    }
+
+    fn iterations(&self) -> u64 {
+        self.config.iterations
+    }
+
+    fn advance(&mut self) -> Result<(), TrainError> {
+        self.train_step().map(|_| ())
+    }
+
+    fn status(&self) -> String {
+        let e = self.ema.unwrap_or_default();
+        format!(
+            "loss {:.5} align {:.5} content {:.5} style {:.5}",
+            e[0], e[1], e[2], e[3]
+        )
+    }
+
+    fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
+        FeatureTrainer::save_checkpoint(self, path)
+    }
+
+    fn finish(&mut self, out_dir: &Path) -> Result<Option<(&'static str, PathBuf)>, TrainError> {
+        let p = out_dir.join(BUNDLE_DIR);
+        self.save_bundle(&p)?;
+        Ok(Some(("bundle", p)))
     }
 }

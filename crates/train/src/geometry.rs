@@ -20,10 +20,7 @@
 //! run would. Every kernel is deterministic for any thread count.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::time::Instant;
 
-use crate::progress::{progress_bar, say, TEMPLATE};
 use gaussian::dataset::Dataset;
 use gaussian::{Camera, FeatureGaussians};
 use rand::rngs::StdRng;
@@ -33,6 +30,8 @@ use serde::{Deserialize, Serialize};
 use crate::adam::AdamConfig;
 use crate::checkpoint::GeometryCheckpoint;
 use crate::density::{DensifyConfig, DensifyReport};
+use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop, DEFAULT_CHECKPOINT_INTERVAL};
+use crate::event::{Event, Metric, Sink, Stage};
 use crate::error::TrainError;
 use crate::init::{gaussians_from_points, random_points_in_box, PointCloud};
 use crate::loss::{photometric_loss_with_grad, psnr, LossTerms};
@@ -68,12 +67,13 @@ pub struct GeometryConfig {
     pub test_iterations: Vec<u64>,
     /// Iterations after which the scene is written as a `.ply`.
     pub save_iterations: Vec<u64>,
-    /// Iterations after which a resumable checkpoint is written.
+    /// Iterations after which a resumable checkpoint is kept as `chkpnt_I.safetensors` (the
+    /// 3DGS name).
     pub checkpoint_iterations: Vec<u64>,
-    /// Show a progress bar.
-    pub progress: bool,
-    /// Print a plain progress line to standard error every this many iterations (0: never);
-    /// useful when the output is a log file.
+    /// Iterations between the periodic checkpoints `checkpoint.safetensors` (replaced each time;
+    /// 0: only when the run is stopped).
+    pub checkpoint_interval: u64,
+    /// Iterations between log lines (0: none); useful when the output is a log file.
     pub log_interval: u64,
 }
 
@@ -97,7 +97,7 @@ impl Default for GeometryConfig {
             test_iterations: vec![7000, 30_000],
             save_iterations: vec![7000, 30_000],
             checkpoint_iterations: Vec::new(),
-            progress: true,
+            checkpoint_interval: DEFAULT_CHECKPOINT_INTERVAL,
             log_interval: 0,
         }
     }
@@ -213,16 +213,27 @@ pub struct Evaluation {
     pub gaussians: usize,
 }
 
+impl Evaluation {
+    /// The evaluation as event metrics.
+    pub fn metrics(&self) -> Vec<Metric> {
+        [
+            ("psnr", self.psnr),
+            ("ssim", self.ssim),
+            ("l1", self.l1),
+            ("views", self.views as f64),
+            ("gaussians", self.gaussians as f64),
+        ]
+        .map(|(name, value)| Metric { name, value })
+        .to_vec()
+    }
+}
+
 /// The result of [`GeometryTrainer::train`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrainSummary {
-    /// Completed iterations when training stopped.
-    pub step: u64,
-    /// Whether the stop flag ended the run early.
-    pub interrupted: bool,
+    /// How the run ended (iterations, time, interruption, stop checkpoint).
+    pub run: RunOutcome,
     pub evaluations: Vec<Evaluation>,
-    /// Wall time of the iterations run by this call, in seconds.
-    pub seconds: f64,
     pub gaussians: usize,
 }
 
@@ -495,81 +506,25 @@ impl GeometryTrainer {
         }))
     }
 
-    /// Trains up to `config.iterations`, evaluating, saving `.ply` files
-    /// (`out_dir/point_cloud/iteration_I/point_cloud.ply`, the 3DGS layout) and checkpoints
-    /// (`out_dir/chkpnt_I.safetensors`) at the configured iterations. When `stop` becomes true the
-    /// run ends after the current iteration (the caller may then write a checkpoint).
-    pub fn train(
-        &mut self,
-        out_dir: Option<&Path>,
-        stop: Option<&AtomicBool>,
-    ) -> Result<TrainSummary, TrainError> {
-        let start = Instant::now();
-        let first = self.step;
-        let bar = progress_bar(
-            self.config.progress,
-            self.config.iterations,
-            self.step,
-            TEMPLATE,
-        );
-        let mut evaluations = Vec::new();
-        let mut interrupted = false;
-        while self.step < self.config.iterations {
-            if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
-                interrupted = true;
-                break;
-            }
-            let r = self.train_step()?;
-            let it = r.step;
-            if it % 10 == 0 || it == self.config.iterations {
-                bar.set_message(format!(
-                    "loss {:.5}  psnr {:.2}  N {}",
-                    self.ema_loss, self.ema_psnr, r.gaussians
-                ));
-                bar.set_position(it);
-            }
-            if self.config.log_interval > 0 && it % self.config.log_interval == 0 {
-                let secs = start.elapsed().as_secs_f64();
-                eprintln!(
-                    "[ITER {it}] loss {:.5} psnr {:.2} N {} | {:.2} it/s since start, {:.0} s",
-                    self.ema_loss,
-                    self.ema_psnr,
-                    r.gaussians,
-                    (it - first) as f64 / secs,
-                    secs
-                );
-            }
-            if self.config.test_iterations.contains(&it) {
-                if let Some(e) = self.evaluate()? {
-                    say(
-                        &bar,
-                        format!(
-                        "[ITER {it}] test: PSNR {:.3} SSIM {:.4} L1 {:.5} ({} views, {} Gaussians)",
-                        e.psnr, e.ssim, e.l1, e.views, e.gaussians
-                    ),
-                    );
-                    evaluations.push(e);
-                }
-            }
-            if let Some(dir) = out_dir {
-                if self.config.save_iterations.contains(&it) {
-                    let p = ply_path(dir, it);
-                    self.save_ply(&p)?;
-                    say(&bar, format!("[ITER {it}] saved {}", p.display()));
-                }
-                if self.config.checkpoint_iterations.contains(&it) {
-                    let p = checkpoint_path(dir, it);
-                    self.save_checkpoint(&p)?;
-                    say(&bar, format!("[ITER {it}] checkpoint {}", p.display()));
-                }
-            }
-        }
-        bar.finish();
+    /// Trains up to `config.iterations` through the [driver](crate::driver). With an output
+    /// folder, writes `.ply` scenes (`out_dir/point_cloud/iteration_I/point_cloud.ply`) at the
+    /// save iterations, kept checkpoints (`out_dir/chkpnt_I.safetensors`) at the checkpoint
+    /// iterations and the periodic and stop checkpoint `out_dir/checkpoint.safetensors`; held-out
+    /// views are evaluated at the test iterations.
+    pub fn train(&mut self, run: &Run) -> Result<TrainSummary, TrainError> {
+        let cadence = Cadence {
+            checkpoint_interval: self.config.checkpoint_interval,
+            log_interval: self.config.log_interval,
+        };
+        let mut l = GeometryLoop {
+            t: self,
+            evaluations: Vec::new(),
+            gaussians: 0,
+        };
+        let run = drive(&mut l, cadence, run)?;
         Ok(TrainSummary {
-            step: self.step,
-            interrupted,
-            evaluations,
-            seconds: start.elapsed().as_secs_f64(),
+            run,
+            evaluations: l.evaluations,
             gaussians: self.model.len(),
         })
     }
@@ -577,6 +532,75 @@ impl GeometryTrainer {
     /// The running averages of loss and training PSNR shown by the progress bar.
     pub fn running_averages(&self) -> (f64, f64) {
         (self.ema_loss, self.ema_psnr)
+    }
+}
+
+/// A geometry run as the driver sees it, collecting this call's evaluations.
+struct GeometryLoop<'t> {
+    t: &'t mut GeometryTrainer,
+    evaluations: Vec<Evaluation>,
+    gaussians: usize,
+}
+
+impl TrainingLoop for GeometryLoop<'_> {
+    const STAGE: Stage = Stage::Geometry;
+
+    fn step(&self) -> u64 {
+        self.t.step
+    }
+
+    fn iterations(&self) -> u64 {
+        self.t.config.iterations
+    }
+
+    fn advance(&mut self) -> Result<(), TrainError> {
+        self.gaussians = self.t.train_step()?.gaussians;
+        Ok(())
+    }
+
+    fn status(&self) -> String {
+        format!(
+            "loss {:.5} psnr {:.2} N {}",
+            self.t.ema_loss, self.t.ema_psnr, self.gaussians
+        )
+    }
+
+    fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
+        self.t.save_checkpoint(path)
+    }
+
+    fn after_step(&mut self, out_dir: Option<&Path>, sink: &dyn Sink) -> Result<(), TrainError> {
+        let it = self.t.step;
+        if self.t.config.test_iterations.contains(&it) {
+            if let Some(e) = self.t.evaluate()? {
+                sink.emit(Event::Evaluation {
+                    stage: Stage::Geometry,
+                    step: it,
+                    metrics: e.metrics(),
+                });
+                self.evaluations.push(e);
+            }
+        }
+        let Some(dir) = out_dir else { return Ok(()) };
+        if self.t.config.save_iterations.contains(&it) {
+            let path = ply_path(dir, it);
+            self.t.save_ply(&path)?;
+            sink.emit(Event::OutputWritten {
+                stage: Stage::Geometry,
+                what: "scene",
+                path,
+            });
+        }
+        if self.t.config.checkpoint_iterations.contains(&it) {
+            let path = checkpoint_path(dir, it);
+            self.t.save_checkpoint(&path)?;
+            sink.emit(Event::CheckpointWritten {
+                stage: Stage::Geometry,
+                step: it,
+                path,
+            });
+        }
+        Ok(())
     }
 }
 

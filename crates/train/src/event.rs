@@ -1,0 +1,121 @@
+//! Typed events: how the training loops and the pipeline above them report, instead of printing.
+//!
+//! A stage begins with [`Event::StageStarted`], reports [`Event::Progress`] after each unit of
+//! work (an iteration, a rendered view), occasional [`Event::Log`] lines, held-out
+//! [`Event::Evaluation`]s, the files it writes ([`Event::CheckpointWritten`],
+//! [`Event::OutputWritten`]) and ends with [`Event::StageFinished`]. The caller provides the
+//! [`Sink`] the events go to: a terminal front end turns them into progress bars and log lines, a
+//! viewer into messages, a test into a list; [`Quiet`] drops them.
+//!
+//! Events only describe what happened: no decision of a loop depends on whether or how they are
+//! shown, so the results of a run are the same with any sink.
+
+use std::path::PathBuf;
+
+/// A stage of the pipeline.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Stage {
+    /// Fitting 3D Gaussians to posed images.
+    Geometry,
+    /// Pre-training the AdaIN decoder on images.
+    Decoder,
+    /// Fitting per-Gaussian features on frozen geometry.
+    Features,
+    /// Rendering the stylized views a bake fits to.
+    BakeTargets,
+    /// Fitting SH colours to the stylized views.
+    Bake,
+    /// Rendering views of a scene.
+    Render,
+    /// Stylizing views of a scene bundle.
+    Stylize,
+    /// Measuring multi-view consistency.
+    Evaluate,
+}
+
+impl Stage {
+    /// A short lowercase name, for progress bars and logs.
+    pub fn name(self) -> &'static str {
+        match self {
+            Stage::Geometry => "geometry",
+            Stage::Decoder => "decoder",
+            Stage::Features => "features",
+            Stage::BakeTargets => "targets",
+            Stage::Bake => "bake",
+            Stage::Render => "render",
+            Stage::Stylize => "stylize",
+            Stage::Evaluate => "eval",
+        }
+    }
+}
+
+/// One named value of an evaluation.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Metric {
+    pub name: &'static str,
+    pub value: f64,
+}
+
+/// What a stage reports.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Event {
+    /// `stage` begins: `total` units of work (iterations or views), of which `done` are already
+    /// complete (a resumed run).
+    StageStarted { stage: Stage, total: u64, done: u64 },
+    /// `done` units of `stage` are complete; `status` sums up its running averages (may be
+    /// empty).
+    Progress {
+        stage: Stage,
+        done: u64,
+        status: String,
+    },
+    /// A line for the log: a periodic summary of a training run, or a note.
+    Log { stage: Stage, message: String },
+    /// Something the user should know that does not stop the run (e.g. a skipped dataset image).
+    Warning(String),
+    /// A held-out evaluation of `stage` after `step` iterations.
+    Evaluation {
+        stage: Stage,
+        step: u64,
+        metrics: Vec<Metric>,
+    },
+    /// A resumable checkpoint of `stage` after `step` iterations was written to `path`.
+    CheckpointWritten {
+        stage: Stage,
+        step: u64,
+        path: PathBuf,
+    },
+    /// A result of `stage` (`what`: "scene", "decoder", "bundle", ...) was written to `path`.
+    OutputWritten {
+        stage: Stage,
+        what: &'static str,
+        path: PathBuf,
+    },
+    /// `stage` ended after `done` units, `seconds` after it started; `interrupted` when a stop
+    /// request ended it early.
+    StageFinished {
+        stage: Stage,
+        done: u64,
+        seconds: f64,
+        interrupted: bool,
+    },
+}
+
+/// Where events go. Implemented by every `Fn(Event) + Sync` closure.
+pub trait Sink: Sync {
+    fn emit(&self, event: Event);
+}
+
+impl<F: Fn(Event) + Sync> Sink for F {
+    fn emit(&self, event: Event) {
+        self(event)
+    }
+}
+
+/// A sink that drops every event.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Quiet;
+
+impl Sink for Quiet {
+    fn emit(&self, _: Event) {}
+}

@@ -420,7 +420,7 @@ impl CameraArgs {
 
     fn known(&self, scene: KnownCameras) -> Result<KnownCameras> {
         match &self.dataset {
-            Some(d) => KnownCameras::from_dir(d),
+            Some(d) => Ok(KnownCameras::from_dir(d)?),
             None => Ok(scene),
         }
     }
@@ -896,7 +896,7 @@ fn bundle_with(
     variant: Option<Variant>,
     decoder: Option<&Path>,
 ) -> Result<train::SceneBundle> {
-    pipeline::stylize::load_bundle(dir, variant, decoder)
+    Ok(pipeline::stylize::load_bundle(dir, variant, decoder)?)
 }
 
 fn demo(a: DemoArgs) -> Result<()> {

@@ -14,7 +14,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context, Result};
+use crate::error::{bail, Context, Result};
 use base::write_atomic;
 use gaussian::ply::save_ply;
 use serde::Serialize;

@@ -20,7 +20,7 @@
 //! aspect ratio); `scale` scales them ([`gaussian::Camera::scaled`]); without any, the cameras
 //! keep their size, and cameras made from nothing are 256 x 256.
 
-use anyhow::{bail, Context, Result};
+use crate::error::{bail, Context, Error, Result};
 use gaussian::camera_path::{interpolate, look_at_point, mean_up, orbit, orbit_from};
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
 use glam::DVec3;
@@ -217,16 +217,16 @@ fn resize_all(cameras: Vec<Camera>, req: &CameraRequest) -> Result<Vec<Camera>> 
         .collect())
 }
 
-fn no_cameras(known: &KnownCameras, what: &str) -> anyhow::Error {
+fn no_cameras(known: &KnownCameras, what: &str) -> Error {
     let origin = if known.origin.is_empty() {
         "the scene".to_string()
     } else {
         known.origin.clone()
     };
-    anyhow::anyhow!(
+    Error::Message(format!(
         "{origin} has no cameras for `--cameras {what}`; give --dataset DIR with the scene's \
          cameras, or use `--cameras orbit`"
-    )
+    ))
 }
 
 /// The cameras of a request. `scene` places orbits when no cameras are known.

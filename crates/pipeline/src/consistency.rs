@@ -37,7 +37,7 @@
 //! offset 7). The RMSE is pooled over the masked pixels of all pairs; the perceptual distance is
 //! the mean over pairs that have a valid position.
 
-use anyhow::{bail, Result};
+use crate::error::{bail, Result};
 use gaussian::Camera;
 use glam::DVec3;
 use ndarray::Array4;

@@ -23,7 +23,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use crate::error::{bail, Context, Result};
 use train::{FeatureTrainConfig, Variant};
 
 use crate::cameras::{CameraRequest, CameraSource, KnownCameras};

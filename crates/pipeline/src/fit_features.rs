@@ -16,7 +16,7 @@
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 
-use anyhow::{Context, Result};
+use crate::error::{Context, Result};
 use gaussian::dataset::{Dataset, LoadOptions};
 use gaussian::ply::load_ply;
 use serde::{Deserialize, Serialize};

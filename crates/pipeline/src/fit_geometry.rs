@@ -16,7 +16,7 @@
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 
-use anyhow::{bail, Context, Result};
+use crate::error::{bail, Context, Result};
 use gaussian::dataset::{Dataset, LoadOptions, Resolution};
 use serde::{Deserialize, Serialize};
 use train::checkpoint::GeometryCheckpoint;

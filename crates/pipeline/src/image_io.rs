@@ -7,7 +7,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context, Result};
+use crate::error::{bail, Context, Result};
 use base::write_atomic;
 use gaussian::dataset::images::{load_rgb, resize};
 pub use gaussian::dataset::RgbImage;

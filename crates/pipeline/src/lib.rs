@@ -18,12 +18,16 @@
 //!   report (`dsgs eval`).
 //! * [`demo`]: the whole pipeline on the lego scene at low resolution (`dsgs demo`).
 //! * [`image_io`]: PNG, GIF, contact sheets, MP4 through `ffmpeg`.
+//! * [`error`]: the crate's [`Error`] (a message, a message explaining an underlying error, or
+//!   an error of a crate below) and the [`Context`](error::Context) extension that adds the
+//!   explaining text.
 
 pub mod bake;
 pub mod cameras;
 pub mod config;
 pub mod consistency;
 pub mod demo;
+pub mod error;
 pub mod eval;
 pub mod fit_features;
 pub mod fit_geometry;
@@ -32,3 +36,5 @@ pub mod pretrain_decoder;
 pub mod render;
 pub mod stylize;
 pub mod weights;
+
+pub use error::{Error, Result};

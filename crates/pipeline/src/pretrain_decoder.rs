@@ -19,7 +19,7 @@
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 
-use anyhow::{bail, Context, Result};
+use crate::error::{bail, Context, Result};
 use nets::{Decoder, Encoder};
 use train::decoder_training::{init_decoder, DecoderEvaluation, DECODER_CHECKPOINT_FILE};
 use train::{DecoderTrainConfig, DecoderTrainer, ImageSet, Variant};

@@ -15,7 +15,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context, Result};
+use crate::error::{bail, Context, Result};
 use gaussian::ply::load_ply;
 use gaussian::{Camera, FeatureGaussians};
 use raster::{render, Channels, RenderOptions};

@@ -8,7 +8,7 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use anyhow::{bail, Context, Result};
+use crate::error::{bail, Context, Result};
 use nets::checkpoint::load_checkpoint;
 use nets::{Decoder, Encoder, Lifter, NetWeights};
 

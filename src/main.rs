@@ -8,7 +8,6 @@ use anyhow::{bail, Context, Result};
 use clap::builder::{PossibleValuesParser, TypedValueParser};
 use clap::{Args, Parser, Subcommand};
 use glam::DVec3;
-use indicatif::{ProgressBar, ProgressStyle};
 use pipeline::bake::{BakeOverrides, BakeSettings};
 use pipeline::cameras::{CameraRequest, CameraSource, KnownCameras};
 use pipeline::consistency::WarpOptions;
@@ -16,7 +15,11 @@ use pipeline::fit_features::{FeatureOverrides, FitFeaturesSettings};
 use pipeline::fit_geometry::{FitSettings, GeometryOverrides};
 use pipeline::pretrain_decoder::{DecoderOverrides, NetworkFiles, PretrainSettings};
 use pipeline::render::{DepthStyle, RenderKind, SceneInput};
+use pipeline::{Control, RunOutcome};
+use terminal::Terminal;
 use train::Variant;
+
+mod terminal;
 
 /// Zero-shot 3D style transfer on Gaussian splatting (DS-StyleGaussian), exact and CPU-only.
 #[derive(Parser)]
@@ -48,6 +51,23 @@ enum Command {
     /// Run the whole pipeline on the lego scene at low resolution: geometry, features, a
     /// stylized orbit with four unseen styles, its evaluation, a contact sheet and GIFs.
     Demo(DemoArgs),
+}
+
+/// How a training command runs: resume, checkpoints, logs and bars.
+#[derive(Args)]
+struct RunArgs {
+    /// Continue from the checkpoint of a stopped run (the path it printed).
+    #[arg(long)]
+    resume: Option<PathBuf>,
+    /// Iterations between checkpoints [default: 500; 0: only when stopped].
+    #[arg(long)]
+    checkpoint_every: Option<u64>,
+    /// Print a progress line every N iterations (for logs).
+    #[arg(long)]
+    log_every: Option<u64>,
+    /// No progress bars.
+    #[arg(long)]
+    no_progress: bool,
 }
 
 #[derive(Args)]
@@ -168,9 +188,6 @@ struct FitGeometryArgs {
     /// Iterations at which to write a resumable checkpoint (comma-separated).
     #[arg(long, value_delimiter = ',')]
     checkpoint_iterations: Option<Vec<u64>>,
-    /// Continue from a checkpoint (chkpnt_N.safetensors).
-    #[arg(long)]
-    resume: Option<PathBuf>,
     /// Train on every image (no held-out split).
     #[arg(long)]
     no_eval: bool,
@@ -180,12 +197,8 @@ struct FitGeometryArgs {
     /// Maximum SH degree (0..=3).
     #[arg(long)]
     sh_degree: Option<usize>,
-    /// Print a progress line every N iterations (for logs).
-    #[arg(long)]
-    log_every: Option<u64>,
-    /// No progress bar.
-    #[arg(long)]
-    no_progress: bool,
+    #[command(flatten)]
+    run: RunArgs,
 }
 
 #[derive(Args)]
@@ -239,15 +252,8 @@ struct PretrainDecoderArgs {
     /// Seed of every random choice.
     #[arg(long)]
     seed: Option<u64>,
-    /// Continue from a checkpoint (OUT/checkpoint.safetensors).
-    #[arg(long)]
-    resume: Option<PathBuf>,
-    /// Print a progress line every N iterations (for logs).
-    #[arg(long)]
-    log_every: Option<u64>,
-    /// No progress bar.
-    #[arg(long)]
-    no_progress: bool,
+    #[command(flatten)]
+    run: RunArgs,
     /// Output directory.
     #[arg(short, long)]
     output: PathBuf,
@@ -305,15 +311,8 @@ struct FitFeaturesArgs {
     /// Train on every image (no held-out split).
     #[arg(long)]
     no_eval: bool,
-    /// Continue from a checkpoint (OUT/checkpoint.safetensors).
-    #[arg(long)]
-    resume: Option<PathBuf>,
-    /// Print a progress line every N iterations (for logs).
-    #[arg(long)]
-    log_every: Option<u64>,
-    /// No progress bar.
-    #[arg(long)]
-    no_progress: bool,
+    #[command(flatten)]
+    run: RunArgs,
     /// Output directory (the bundle goes to OUT/bundle).
     #[arg(short, long)]
     output: PathBuf,
@@ -368,12 +367,8 @@ struct BakeArgs {
     /// Seed of the view order.
     #[arg(long)]
     seed: Option<u64>,
-    /// Print a progress line every N iterations (for logs).
-    #[arg(long)]
-    log_every: Option<u64>,
-    /// No progress bars.
-    #[arg(long)]
-    no_progress: bool,
+    #[command(flatten)]
+    run: RunArgs,
     /// Output .ply (a JSON report is written beside it).
     #[arg(short, long)]
     output: PathBuf,
@@ -442,6 +437,9 @@ struct RenderArgs {
     /// Output directory (frame_XXXX.png).
     #[arg(short, long)]
     output: PathBuf,
+    /// No progress bar.
+    #[arg(long)]
+    no_progress: bool,
 }
 
 #[derive(Args)]
@@ -492,6 +490,9 @@ struct StylizeArgs {
     /// Views (columns) in the contact sheet.
     #[arg(long, default_value_t = 4)]
     sheet_views: usize,
+    /// No progress bar.
+    #[arg(long)]
+    no_progress: bool,
 }
 
 #[derive(Args)]
@@ -518,6 +519,9 @@ struct EvalArgs {
     /// Write the report as JSON.
     #[arg(short, long)]
     output: Option<PathBuf>,
+    /// No progress bar.
+    #[arg(long)]
+    no_progress: bool,
 }
 
 #[derive(Args)]
@@ -548,21 +552,19 @@ struct EvalStyleArgs {
 fn main() -> ExitCode {
     match run(Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
-        Err(e) => match e.downcast_ref::<Interrupted>() {
-            Some(stop) => {
-                eprintln!("{stop}");
-                ExitCode::from(INTERRUPTED_EXIT)
-            }
-            None => {
-                eprintln!("error: {e:#}");
-                ExitCode::FAILURE
-            }
-        },
+        Err(e) if is_interrupted(&e) => {
+            eprintln!("{e}");
+            ExitCode::from(INTERRUPTED_EXIT)
+        }
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
     }
 }
 
-/// Exit status of a training run stopped by SIGINT, SIGTERM or SIGHUP after writing its
-/// checkpoint (128 + SIGINT, the shell convention for an interrupted command).
+/// Exit status of a run that a stop request (SIGINT, SIGTERM or SIGHUP) ended early (128 +
+/// SIGINT, the shell convention for an interrupted command).
 const INTERRUPTED_EXIT: u8 = 130;
 
 /// A training run that a signal stopped after writing its checkpoint: not an error, but not a
@@ -578,13 +580,14 @@ impl std::fmt::Display for Interrupted {
 
 impl std::error::Error for Interrupted {}
 
-/// The [`Interrupted`] outcome of a run stopped at `step` with its checkpoint at `checkpoint`.
-fn interrupted(step: u64, checkpoint: &Path) -> anyhow::Error {
-    Interrupted(format!(
-        "stopped early at iteration {step}; resume with --resume {}",
-        checkpoint.display()
-    ))
-    .into()
+/// Whether a stop request ended the command: a stopped training run, or a stage that stopped
+/// with nothing to resume from.
+fn is_interrupted(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        c.is::<Interrupted>()
+            || matches!(c.downcast_ref(), Some(pipeline::Error::Interrupted(_)))
+            || matches!(c.downcast_ref(), Some(train::TrainError::Interrupted(_)))
+    })
 }
 
 /// The stop flag of the training commands, set by the first Ctrl-C, SIGTERM or SIGHUP: the run
@@ -595,7 +598,7 @@ fn stop_flag() -> Option<&'static AtomicBool> {
     let installed = ctrlc::set_handler(|| {
         if STOP.swap(true, Ordering::SeqCst) {
             eprintln!("\ninterrupted again: exiting without a checkpoint");
-            std::process::exit(130);
+            std::process::exit(INTERRUPTED_EXIT.into());
         }
         eprintln!("\nstop requested: stopping after this iteration and writing a checkpoint (Ctrl-C again to exit at once)");
     });
@@ -608,16 +611,41 @@ fn stop_flag() -> Option<&'static AtomicBool> {
     }
 }
 
-fn progress(len: usize, what: &str) -> ProgressBar {
-    let b = ProgressBar::new(len as u64);
-    b.set_style(
-        ProgressStyle::with_template(
-            "{msg:>10} {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}]",
-        )
-        .expect("valid template"),
+/// Runs `f` with a terminal front end (bars unless `no_progress`) and the stop flag.
+fn with_control<T>(no_progress: bool, f: impl FnOnce(&Control) -> Result<T>) -> Result<T> {
+    let terminal = Terminal::new(!no_progress);
+    f(&Control {
+        sink: &terminal,
+        stop: stop_flag(),
+    })
+}
+
+/// The closing lines of a training run: iterations and rate, the checkpoint and the output. A
+/// run a stop request ended becomes the [`Interrupted`] outcome, which says how to resume.
+fn finish(run: &RunOutcome, checkpoint: Option<&Path>) -> Result<()> {
+    let done = run.step - run.first_step;
+    print!(
+        "{done} iterations in {:.1} s ({:.2} it/s)",
+        run.seconds,
+        run.rate()
     );
-    b.set_message(what.to_string());
-    b
+    match checkpoint.or(run.stop_checkpoint.as_deref()) {
+        Some(p) => println!("; checkpoint {}", p.display()),
+        None => println!(),
+    }
+    if let Some((what, p)) = &run.output {
+        println!("{what} written to {}", p.display());
+    }
+    match (&run.stop_checkpoint, run.interrupted) {
+        (Some(p), true) => Err(Interrupted(format!(
+            "stopped early at iteration {}; resume with --resume {}",
+            run.step,
+            p.display()
+        ))
+        .into()),
+        (None, true) => Err(Interrupted(format!("stopped early at iteration {}", run.step)).into()),
+        _ => Ok(()),
+    }
 }
 
 fn run(cli: Cli) -> Result<()> {
@@ -652,7 +680,7 @@ fn fit_geometry(a: FitGeometryArgs) -> Result<()> {
         dataset: a.dataset,
         out_dir: a.output,
         config: a.config,
-        resume: a.resume,
+        resume: a.run.resume,
         overrides: GeometryOverrides {
             iterations: a.iterations,
             downscale: a.downscale,
@@ -664,11 +692,13 @@ fn fit_geometry(a: FitGeometryArgs) -> Result<()> {
             checkpoint_iterations: a.checkpoint_iterations,
             seed: a.seed,
             sh_degree: a.sh_degree,
-            log_every: a.log_every,
-            no_progress: a.no_progress,
+            log_every: a.run.log_every,
+            checkpoint_every: a.run.checkpoint_every,
         },
     };
-    let r = pipeline::fit_geometry::run(&settings, stop_flag())?;
+    let r = with_control(a.run.no_progress, |c| {
+        Ok(pipeline::fit_geometry::run(&settings, c)?)
+    })?;
     println!(
         "{} training and {} test views at {}x{}, {} initial Gaussians",
         r.train_views, r.test_views, r.width, r.height, r.initial_gaussians
@@ -679,18 +709,12 @@ fn fit_geometry(a: FitGeometryArgs) -> Result<()> {
             e.step, e.psnr, e.ssim, e.l1, e.gaussians
         );
     }
-    let done = r.step - r.first_step;
     println!(
-        "{done} iterations in {:.1} s ({:.2} it/s), {} Gaussians; scene written to {}",
-        r.seconds,
-        done as f64 / r.seconds.max(1e-9),
+        "{} Gaussians; scene written to {}",
         r.gaussians,
         r.ply.display()
     );
-    match &r.stop_checkpoint {
-        Some(p) => Err(interrupted(r.step, p)),
-        None => Ok(()),
-    }
+    finish(&r.run, None)
 }
 
 fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
@@ -706,7 +730,7 @@ fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
         from_scratch: a.from_scratch,
         out_dir: a.output,
         config: a.config,
-        resume: a.resume,
+        resume: a.run.resume,
         overrides: DecoderOverrides {
             iterations: a.iterations,
             batch_size: a.batch_size,
@@ -716,11 +740,13 @@ fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
             lr: a.lr,
             seed: a.seed,
             variant: a.variant,
-            log_every: a.log_every,
-            no_progress: a.no_progress,
+            log_every: a.run.log_every,
+            checkpoint_every: a.run.checkpoint_every,
         },
     };
-    let r = pipeline::pretrain_decoder::run(&settings, stop_flag())?;
+    let r = with_control(a.run.no_progress, |c| {
+        Ok(pipeline::pretrain_decoder::run(&settings, c)?)
+    })?;
     println!(
         "{} content and {} style images, {} networks, crops of {} px",
         r.content_images,
@@ -734,44 +760,7 @@ fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
             e.step, e.loss, e.loss_content, e.loss_style, e.pairs
         );
     }
-    let end = RunEnd {
-        first_step: r.first_step,
-        step: r.step,
-        seconds: r.seconds,
-        interrupted: r.interrupted,
-        checkpoint: &r.checkpoint,
-    };
-    end.finish(r.weights.as_deref().map(|p| ("decoder", p)))
-}
-
-/// How a resumable training run ended, for its closing lines.
-struct RunEnd<'a> {
-    first_step: u64,
-    step: u64,
-    seconds: f64,
-    interrupted: bool,
-    checkpoint: &'a Path,
-}
-
-impl RunEnd<'_> {
-    /// Prints the iteration rate and checkpoint and the `written` output (what, where); a run
-    /// stopped by a signal becomes the [`Interrupted`] outcome, which says how to resume.
-    fn finish(&self, written: Option<(&str, &Path)>) -> Result<()> {
-        let done = self.step - self.first_step;
-        println!(
-            "{done} iterations in {:.1} s ({:.2} it/s); checkpoint {}",
-            self.seconds,
-            done as f64 / self.seconds.max(1e-9),
-            self.checkpoint.display()
-        );
-        if let Some((what, p)) = written {
-            println!("{what} written to {}", p.display());
-        }
-        if self.interrupted {
-            return Err(interrupted(self.step, self.checkpoint));
-        }
-        Ok(())
-    }
+    finish(&r.run, Some(&r.checkpoint))
 }
 
 fn fit_features(a: FitFeaturesArgs) -> Result<()> {
@@ -786,7 +775,7 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
         },
         out_dir: a.output,
         config: a.config,
-        resume: a.resume,
+        resume: a.run.resume,
         overrides: FeatureOverrides {
             iterations: a.iterations,
             feature_dim: a.feature_dim,
@@ -798,11 +787,13 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
             variant: a.variant,
             white: a.white,
             no_eval: a.no_eval,
-            log_every: a.log_every,
-            no_progress: a.no_progress,
+            log_every: a.run.log_every,
+            checkpoint_every: a.run.checkpoint_every,
         },
     };
-    let r = pipeline::fit_features::run(&settings, stop_flag())?;
+    let r = with_control(a.run.no_progress, |c| {
+        Ok(pipeline::fit_features::run(&settings, c)?)
+    })?;
     println!(
         "{} Gaussians, {} training views, {} style images, {}-d features, {} networks",
         r.gaussians,
@@ -816,14 +807,7 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
             "running loss {total:.5} (align {align:.5}, content {content:.5}, style {style:.5})"
         );
     }
-    let end = RunEnd {
-        first_step: r.first_step,
-        step: r.step,
-        seconds: r.seconds,
-        interrupted: r.interrupted,
-        checkpoint: &r.checkpoint,
-    };
-    end.finish(r.bundle.as_deref().map(|p| ("scene bundle", p)))
+    finish(&r.run, Some(&r.checkpoint))
 }
 
 fn bake(a: BakeArgs) -> Result<()> {
@@ -845,48 +829,48 @@ fn bake(a: BakeArgs) -> Result<()> {
             held_out: a.held_out,
             resolution_scale: a.resolution_scale,
             seed: a.seed,
-            log_every: a.log_every,
-            no_progress: a.no_progress,
+            log_every: a.run.log_every,
+            checkpoint_every: a.run.checkpoint_every,
         },
         output: a.output,
+        resume: a.run.resume,
     };
-    let out = pipeline::bake::run(&settings)?;
+    let out = with_control(a.run.no_progress, |c| {
+        Ok(pipeline::bake::run(&settings, c)?)
+    })?;
     let s = &out.summary;
-    let db = |p: Option<f64>| p.map_or_else(|| "-".to_string(), |v| format!("{v:.3} dB"));
     println!(
-        "{} training and {} held-out target views, {} iterations",
-        s.train_views, s.held_out_views, s.iterations
+        "{} training and {} held-out target views, targets in {:.1} s",
+        s.train_views, s.held_out_views, s.target_seconds
     );
-    println!(
-        "training PSNR: baked {:.3} dB, unbaked {:.3} dB",
-        s.train_psnr, s.unbaked_train_psnr
-    );
-    println!(
-        "held-out PSNR: baked {}, unbaked {}",
-        db(s.held_out_psnr),
-        db(s.unbaked_held_out_psnr)
-    );
-    println!(
-        "targets {:.1} s, optimisation {:.1} s; {} Gaussians written to {}, report {}",
-        s.target_seconds,
-        s.optimise_seconds,
-        s.gaussians,
-        out.ply.display(),
-        out.report.display()
-    );
-    Ok(())
+    if let Some((ply, report)) = &out.written {
+        let db = |p: Option<f64>| p.map_or_else(|| "-".to_string(), |v| format!("{v:.3} dB"));
+        println!(
+            "training PSNR: baked {:.3} dB, unbaked {:.3} dB",
+            s.train_psnr, s.unbaked_train_psnr
+        );
+        println!(
+            "held-out PSNR: baked {}, unbaked {}",
+            db(s.held_out_psnr),
+            db(s.unbaked_held_out_psnr)
+        );
+        println!(
+            "{} Gaussians written to {}, report {}",
+            s.gaussians,
+            ply.display(),
+            report.display()
+        );
+    }
+    finish(&out.run, None)
 }
 
 fn render(a: RenderArgs) -> Result<()> {
     let scene = SceneInput::open(&a.scene)?;
     let known = a.cameras.known(scene.known_cameras())?;
     let cams = pipeline::cameras::select(&a.cameras.request(), &known, scene.gaussians())?;
-    let bar = progress(cams.len(), "render");
+    let terminal = Terminal::new(!a.no_progress);
     let written =
-        pipeline::render::render_views(&scene, &cams, a.what, a.depth_style, &a.output, || {
-            bar.inc(1)
-        })?;
-    bar.finish_and_clear();
+        pipeline::render::render_views(&scene, &cams, a.what, a.depth_style, &a.output, &terminal)?;
     println!("{} images written to {}", written.len(), a.output.display());
     Ok(())
 }
@@ -912,19 +896,8 @@ fn demo(a: DemoArgs) -> Result<()> {
         align_warmup: a.align_warmup,
         feature_iterations: a.feature_iterations,
         frames: a.frames,
-        progress: !a.no_progress,
     };
-    let views = a.frames * (1 + settings.styles.len());
-    let bar = if a.no_progress {
-        ProgressBar::hidden()
-    } else {
-        progress(2 * views, "stylize")
-    };
-    let r = pipeline::demo::run(&settings, stop_flag(), |stage| {
-        bar.set_message(stage.to_string());
-        bar.inc(1)
-    })?;
-    bar.finish_and_clear();
+    let r = with_control(a.no_progress, |c| Ok(pipeline::demo::run(&settings, c)?))?;
     print!("{}", pipeline::eval::table(&r.eval));
     if let Some(p) = r.geometry_psnr {
         println!("geometry: held-out PSNR {p:.2} dB");
@@ -962,17 +935,8 @@ fn stylize(a: StylizeArgs) -> Result<()> {
         fps: a.fps,
         sheet_views: a.sheet_views,
     };
-    let outputs = if settings.weights.is_some() {
-        1
-    } else {
-        settings.styles.len()
-    };
-    let bar = progress(cams.len() * (1 + outputs), "stylize");
-    let out = pipeline::stylize::run(&bundle, &cams, &settings, |stage| {
-        bar.set_message(stage.to_string());
-        bar.inc(1)
-    })?;
-    bar.finish_and_clear();
+    let terminal = Terminal::new(!a.no_progress);
+    let out = pipeline::stylize::run(&bundle, &cams, &settings, &terminal)?;
     for (name, frames) in &out.outputs {
         println!(
             "{name}: {} frames in {}",
@@ -996,6 +960,7 @@ fn eval(a: EvalArgs) -> Result<()> {
         alpha_threshold: a.alpha_threshold,
         depth_tolerance: a.depth_tolerance,
     };
+    let terminal = Terminal::new(!a.no_progress);
     let report = if let Some(frames_dir) = &a.frames_dir {
         let scene_path = a
             .scene
@@ -1005,10 +970,7 @@ fn eval(a: EvalArgs) -> Result<()> {
         let scene = SceneInput::open(scene_path)?;
         let known = a.cameras.known(scene.known_cameras())?;
         let cams = pipeline::cameras::select(&a.cameras.request(), &known, scene.gaussians())?;
-        let bar = progress(cams.len(), "eval");
-        let r = pipeline::eval::evaluate_frames(&scene, &cams, frames_dir, &warp, || bar.inc(1))?;
-        bar.finish_and_clear();
-        r
+        pipeline::eval::evaluate_frames(&scene, &cams, frames_dir, &warp, &terminal)?
     } else {
         let Some(dir) = &a.bundle else {
             bail!("give a scene bundle to evaluate (or --frames-dir DIR --scene SCENE)");
@@ -1030,21 +992,8 @@ fn eval(a: EvalArgs) -> Result<()> {
             style_side: a.style.style_size,
             warp,
         };
-        let outputs = if settings.weights.is_some() {
-            1
-        } else {
-            settings.styles.len()
-        };
-        let bar = progress(cams.len() * (1 + outputs), "eval");
-        let r = pipeline::eval::evaluate_bundle(
-            &bundle,
-            &dir.display().to_string(),
-            &cams,
-            &settings,
-            || bar.inc(1),
-        )?;
-        bar.finish_and_clear();
-        r
+        let name = dir.display().to_string();
+        pipeline::eval::evaluate_bundle(&bundle, &name, &cams, &settings, &terminal)?
     };
     print!("{}", pipeline::eval::table(&report));
     if let Some(p) = &a.output {

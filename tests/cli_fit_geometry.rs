@@ -202,11 +202,16 @@ fn a_stopped_run_writes_a_checkpoint_that_resumes() {
         },
     };
     // The stop flag is already raised: the run ends before its first iteration.
-    let r = run(&settings, Some(&AtomicBool::new(true))).unwrap();
-    assert!(r.interrupted);
-    assert_eq!(r.step, 0);
-    let ck = out_dir.join("chkpnt_0.safetensors");
-    assert_eq!(r.stop_checkpoint.as_deref(), Some(ck.as_path()));
+    let stop = AtomicBool::new(true);
+    let control = pipeline::Control {
+        sink: &pipeline::Quiet,
+        stop: Some(&stop),
+    };
+    let r = run(&settings, &control).unwrap();
+    assert!(r.run.interrupted);
+    assert_eq!(r.run.step, 0);
+    let ck = out_dir.join("checkpoint.safetensors");
+    assert_eq!(r.run.stop_checkpoint.as_deref(), Some(ck.as_path()));
     assert!(ck.is_file() && out_dir.join("point_cloud.ply").is_file());
     // Resuming without --config takes the run's saved config.toml (12 iterations).
     let out = ok(dsgs()

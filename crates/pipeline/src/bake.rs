@@ -11,6 +11,10 @@
 //! ([`BakeOverrides`]). Outputs: the `.ply` (written atomically) and, beside it, a JSON report
 //! with the same stem ([`report_path`]): the inputs, the effective configuration, the PSNR of the
 //! baked and of the unbaked scene against the training and held-out targets, and the times.
+//!
+//! The optimisation checkpoints into a folder beside the `.ply` ([`checkpoint_dir`]:
+//! `baked.ply` -> `baked.checkpoint/checkpoint.safetensors`) periodically and when stopped; a
+//! stopped bake writes no `.ply` and continues exactly with `--resume` and the same inputs.
 
 use std::path::{Path, PathBuf};
 
@@ -20,8 +24,9 @@ use gaussian::ply::save_ply;
 use serde::Serialize;
 use train::{BakeConfig, BakeReport, Variant};
 
-use crate::config;
 use crate::stylize::{load_bundle, load_styles, style_targets};
+use crate::{config, Control};
+use train::RunOutcome;
 
 /// Command-line values that override the configuration.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -36,7 +41,7 @@ pub struct BakeOverrides {
     pub resolution_scale: Option<f64>,
     pub seed: Option<u64>,
     pub log_every: Option<u64>,
-    pub no_progress: bool,
+    pub checkpoint_every: Option<u64>,
 }
 
 impl BakeOverrides {
@@ -69,8 +74,8 @@ impl BakeOverrides {
         if let Some(v) = self.log_every {
             c.log_interval = v;
         }
-        if self.no_progress {
-            c.progress = false;
+        if let Some(k) = self.checkpoint_every {
+            c.checkpoint_interval = k;
         }
     }
 }
@@ -92,6 +97,8 @@ pub struct BakeSettings {
     pub overrides: BakeOverrides,
     /// The output `.ply`.
     pub output: PathBuf,
+    /// Continue from this checkpoint of a stopped bake of the same inputs.
+    pub resume: Option<PathBuf>,
 }
 
 /// The JSON report written beside the baked scene.
@@ -115,12 +122,14 @@ pub struct BakeSummary {
     pub config: BakeConfig,
 }
 
-/// What a bake wrote.
+/// What a bake did and wrote.
 #[derive(Clone, Debug)]
 pub struct BakeOutput {
     pub summary: BakeSummary,
-    pub ply: PathBuf,
-    pub report: PathBuf,
+    /// How the optimisation ended (with the stop checkpoint when it was stopped).
+    pub run: RunOutcome,
+    /// The `.ply` and its report, written when the bake completed.
+    pub written: Option<(PathBuf, PathBuf)>,
 }
 
 /// The report beside `ply`: the same path with the extension `json`.
@@ -128,8 +137,16 @@ pub fn report_path(ply: &Path) -> PathBuf {
     ply.with_extension("json")
 }
 
-/// Runs the bake and writes the `.ply` and its report.
-pub fn run(settings: &BakeSettings) -> Result<BakeOutput> {
+/// The folder of a bake's checkpoint: the output path with the extension `checkpoint`.
+pub fn checkpoint_dir(ply: &Path) -> PathBuf {
+    ply.with_extension("checkpoint")
+}
+
+/// Runs the bake, reporting to the control's sink, and writes the `.ply` and its report when it
+/// completes. A stop request during the optimisation ends it with a checkpoint
+/// ([`RunOutcome::stop_checkpoint`]) and writes nothing else; during the target rendering it
+/// fails with `train::TrainError::Interrupted`.
+pub fn run(settings: &BakeSettings, control: &Control) -> Result<BakeOutput> {
     let mut cfg: BakeConfig = config::load(settings.config.as_deref())?;
     settings.overrides.apply(&mut cfg);
     cfg.validate().context("checking the bake configuration")?;
@@ -159,17 +176,15 @@ pub fn run(settings: &BakeSettings) -> Result<BakeOutput> {
     let stats = bundle
         .target_stats(target.stats.deepest(), settings.alpha)
         .context("the style's target statistics")?;
-    let r: BakeReport = train::bake(&bundle, &stats, &cfg, None)
-        .with_context(|| format!("baking into the bundle {}", settings.bundle.display()))?;
-    if let Some(dir) = settings
-        .output
-        .parent()
-        .filter(|d| !d.as_os_str().is_empty())
-    {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
-    save_ply(&settings.output, &r.scene)
-        .with_context(|| format!("writing {}", settings.output.display()))?;
+    let ck_dir = checkpoint_dir(&settings.output);
+    let r: BakeReport = train::bake(
+        &bundle,
+        &stats,
+        &cfg,
+        settings.resume.as_deref(),
+        &control.run_in(&ck_dir),
+    )
+    .with_context(|| format!("baking into the bundle {}", settings.bundle.display()))?;
     let summary = BakeSummary {
         bundle: settings.bundle.display().to_string(),
         styles: settings
@@ -180,8 +195,8 @@ pub fn run(settings: &BakeSettings) -> Result<BakeOutput> {
         weights: settings.weights.clone(),
         alpha: settings.alpha,
         gaussians: r.scene.len(),
-        iterations: r.iterations,
-        interrupted: r.interrupted,
+        iterations: r.run.step,
+        interrupted: r.run.interrupted,
         train_views: r.train_views,
         held_out_views: r.held_out_views,
         train_psnr: r.train_psnr,
@@ -189,17 +204,33 @@ pub fn run(settings: &BakeSettings) -> Result<BakeOutput> {
         unbaked_train_psnr: r.unbaked_train_psnr,
         unbaked_held_out_psnr: r.unbaked_held_out_psnr,
         target_seconds: r.target_seconds,
-        optimise_seconds: r.optimise_seconds,
+        optimise_seconds: r.run.seconds,
         config: cfg,
     };
+    if r.run.interrupted {
+        return Ok(BakeOutput {
+            summary,
+            run: r.run,
+            written: None,
+        });
+    }
+    if let Some(dir) = settings
+        .output
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+    {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    save_ply(&settings.output, &r.scene)
+        .with_context(|| format!("writing {}", settings.output.display()))?;
     let report = report_path(&settings.output);
     let json = serde_json::to_string_pretty(&summary).context("serialising the bake report")?;
     write_atomic(&report, json.as_bytes())
         .with_context(|| format!("writing {}", report.display()))?;
     Ok(BakeOutput {
         summary,
-        ply: settings.output.clone(),
-        report,
+        run: r.run,
+        written: Some((settings.output.clone(), report)),
     })
 }
 

@@ -8,7 +8,8 @@
 //! A key the configuration does not know (a typo, a key of another command) is an error naming
 //! the file and the key, rather than being silently ignored: the file is read as a TOML table,
 //! deserialised, serialised back, and every key of the input missing from the round trip is
-//! reported.
+//! reported. Keys of earlier versions that no longer mean anything ([`RETIRED_KEYS`]) are
+//! accepted and dropped, so that the `config.toml` of an older run still resumes.
 
 use std::path::{Path, PathBuf};
 
@@ -19,10 +20,25 @@ use serde::Serialize;
 /// The name of the effective configuration written beside a command's outputs.
 pub const CONFIG_FILE: &str = "config.toml";
 
+/// Keys, at any level, that earlier versions wrote and that are now ignored: `progress` (whether
+/// to draw progress bars is the front end's choice, e.g. `--no-progress`).
+pub const RETIRED_KEYS: &[&str] = &["progress"];
+
+/// Removes the [`RETIRED_KEYS`] from `table` and its sub-tables.
+fn drop_retired(table: &mut toml::Table) {
+    table.retain(|k, _| !RETIRED_KEYS.contains(&k));
+    for (_, v) in table.iter_mut() {
+        if let toml::Value::Table(t) = v {
+            drop_retired(t);
+        }
+    }
+}
+
 /// Parses a configuration from TOML text; `origin` names the source in errors.
 pub fn parse<T: DeserializeOwned + Serialize>(text: &str, origin: &Path) -> Result<T> {
-    let table: toml::Table =
+    let mut table: toml::Table =
         toml::from_str(text).with_context(|| format!("{}: not a TOML file", origin.display()))?;
+    drop_retired(&mut table);
     let config: T = T::deserialize(toml::Value::Table(table.clone()))
         .with_context(|| format!("{}: not a valid configuration", origin.display()))?;
     let round_trip = toml::Value::try_from(&config)

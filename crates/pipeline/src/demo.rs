@@ -20,10 +20,10 @@
 //! else the `DSGS_SHARED` environment variable, else `../shared`.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
-use crate::error::{bail, Context, Result};
+use crate::error::{bail, Context, Error, Result};
+use crate::Control;
 use train::{FeatureTrainConfig, Variant};
 
 use crate::cameras::{CameraRequest, CameraSource, KnownCameras};
@@ -87,7 +87,6 @@ pub struct DemoSettings {
     pub styles: Vec<PathBuf>,
     /// Frames of the orbit.
     pub frames: usize,
-    pub progress: bool,
 }
 
 /// What a demo run produced.
@@ -152,21 +151,20 @@ fn timed<T>(f: impl FnOnce() -> Result<T>) -> Result<(T, f64)> {
     Ok((v, t.elapsed().as_secs_f64()))
 }
 
-/// The latest `chkpnt_N.safetensors` of a geometry run directory.
+/// The newest checkpoint of a geometry run directory: the kept `chkpnt_N.safetensors` or the
+/// periodic and stop `checkpoint.safetensors`, whichever was written last.
 fn latest_geometry_checkpoint(dir: &Path) -> Option<PathBuf> {
     let entries = std::fs::read_dir(dir).ok()?;
     entries
         .filter_map(|e| e.ok())
-        .filter_map(|e| {
-            let name = e.file_name().into_string().ok()?;
-            let n: u64 = name
-                .strip_prefix("chkpnt_")?
-                .strip_suffix(".safetensors")?
-                .parse()
-                .ok()?;
-            Some((n, e.path()))
+        .filter(|e| {
+            let name = e.file_name();
+            let name = name.to_string_lossy();
+            name == train::driver::CHECKPOINT_FILE
+                || (name.starts_with("chkpnt_") && name.ends_with(".safetensors"))
         })
-        .max_by_key(|(n, _)| *n)
+        .filter_map(|e| Some((e.metadata().ok()?.modified().ok()?, e.path())))
+        .max_by_key(|(t, _)| *t)
         .map(|(_, p)| p)
 }
 
@@ -189,8 +187,8 @@ pub fn geometry_config(s: &DemoSettings) -> FitGeometryConfig {
     g.densify.opacity_reset_interval = n + 1;
     g.test_iterations = vec![n];
     g.save_iterations = vec![n];
-    g.checkpoint_iterations = vec![n / 2, n];
-    g.progress = s.progress;
+    g.checkpoint_iterations = vec![n];
+    g.checkpoint_interval = (n / 4).max(1);
     g.log_interval = 0;
     c
 }
@@ -203,7 +201,6 @@ pub fn feature_config(s: &DemoSettings) -> FitFeaturesConfig {
             iterations: s.align_warmup + s.feature_iterations,
             align_warmup: s.align_warmup,
             variant: s.variant,
-            progress: s.progress,
             checkpoint_interval: ((s.align_warmup + s.feature_iterations) / 6).max(1),
             log_interval: 0,
             ..FeatureTrainConfig::default()
@@ -214,13 +211,10 @@ pub fn feature_config(s: &DemoSettings) -> FitFeaturesConfig {
     c
 }
 
-/// Runs the demo. `stop` ends a training stage early with a checkpoint (run the demo again to
-/// continue); `tick` is called per rendered or decoded view of the last two stages.
-pub fn run(
-    s: &DemoSettings,
-    stop: Option<&AtomicBool>,
-    mut tick: impl FnMut(&str),
-) -> Result<DemoReport> {
+/// Runs the demo. A stop request ends a training stage early with a checkpoint and fails with
+/// [`Error::Interrupted`] (run the demo again to continue); every stage reports to the control's
+/// sink.
+pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
     check_inputs(s)?;
     std::fs::create_dir_all(&s.out_dir)
         .with_context(|| format!("creating {}", s.out_dir.display()))?;
@@ -267,12 +261,12 @@ pub fn run(
             resume: latest_geometry_checkpoint(&geo_dir),
             overrides: GeometryOverrides::default(),
         };
-        let (r, t) = timed(|| crate::fit_geometry::run(&settings, stop))?;
-        if r.interrupted {
-            bail!(
+        let (r, t) = timed(|| crate::fit_geometry::run(&settings, control))?;
+        if r.run.interrupted {
+            return Err(Error::Interrupted(format!(
                 "stopped during the geometry stage at iteration {}; run the demo again to continue",
-                r.step
-            );
+                r.run.step
+            )));
         }
         geometry_psnr = r.evaluations.last().map(|e| e.psnr);
         seconds.push(("geometry", Some(t)));
@@ -302,12 +296,12 @@ pub fn run(
             resume: checkpoint.is_file().then_some(checkpoint),
             overrides: FeatureOverrides::default(),
         };
-        let (r, t) = timed(|| crate::fit_features::run(&settings, stop))?;
-        if r.interrupted {
-            bail!(
+        let (r, t) = timed(|| crate::fit_features::run(&settings, control))?;
+        if r.run.interrupted {
+            return Err(Error::Interrupted(format!(
                 "stopped during the feature stage at iteration {}; run the demo again to continue",
-                r.step
-            );
+                r.run.step
+            )));
         }
         seconds.push(("features", Some(t)));
     }
@@ -332,7 +326,7 @@ pub fn run(
         fps: 12.0,
         sheet_views: 6,
     };
-    let (stylized, t) = timed(|| stylize::run(&bundle, &cams, &settings, &mut tick))?;
+    let (stylized, t) = timed(|| stylize::run(&bundle, &cams, &settings, control.sink))?;
     seconds.push(("stylize", Some(t)));
 
     // 5. evaluate the same orbit
@@ -350,7 +344,7 @@ pub fn run(
             &bundle_dir.display().to_string(),
             &cams,
             &eval_settings,
-            || tick("eval"),
+            control.sink,
         )
     })?;
     let eval_json = s.out_dir.join("eval.json");
@@ -384,7 +378,6 @@ mod tests {
             feature_iterations: 300,
             styles: styles_or_default(shared, &[]),
             frames: 24,
-            progress: false,
         }
     }
 

@@ -18,6 +18,10 @@ pub enum Error {
     /// A problem the pipeline found itself (bad settings, missing files, mismatched inputs).
     #[error("{0}")]
     Message(String),
+    /// A stop request ended a run that cannot report a partial result; the message says how to
+    /// continue.
+    #[error("{0}")]
+    Interrupted(String),
     /// What was being done when `source` failed; displays only `context`.
     #[error("{context}")]
     Context {

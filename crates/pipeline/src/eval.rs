@@ -29,6 +29,7 @@ use crate::consistency::{sequence_consistency, DepthView, RangeMetrics, WarpOpti
 use crate::image_io::{self, nchw_from_rgb, RgbImage};
 use crate::render::{render_colour, ColourRender, SceneInput};
 use crate::stylize::{self, StageSeconds, COLOUR_VIEWS};
+use crate::{Sink, Stage, Tally};
 
 /// Offsets along the sequence of the short- and long-range comparisons.
 pub const SHORT_RANGE: usize = 1;
@@ -108,23 +109,29 @@ fn check_same_size(cameras: &[Camera]) -> Result<(u32, u32)> {
     Ok((k.width, k.height))
 }
 
-/// Renders and evaluates the stylized sequences of a bundle. `tick` is called once per
-/// rendered or decoded view.
+/// Renders and evaluates the stylized sequences of a bundle, reporting one
+/// [`Stage::Evaluate`] unit per rendered or decoded view to `sink`.
 pub fn evaluate_bundle(
     bundle: &SceneBundle,
     scene_name: &str,
     cameras: &[Camera],
     settings: &EvalSettings,
-    mut tick: impl FnMut(),
+    sink: &dyn Sink,
 ) -> Result<EvalReport> {
     let (width, height) = check_same_size(cameras)?;
     let styles = stylize::load_styles(&settings.styles, settings.style_side)?;
+    let outputs = if settings.weights.is_some() {
+        1
+    } else {
+        styles.len()
+    };
+    let mut tally = Tally::start(Stage::Evaluate, cameras.len() * (1 + outputs), sink);
     let mut colour = Vec::with_capacity(cameras.len());
     let mut features = Vec::with_capacity(cameras.len());
     for c in cameras {
         colour.push(render_colour(&bundle.scene, c, bundle.info.background)?);
         features.push(stylize::render_feature_view(bundle, c)?);
-        tick();
+        tally.tick("render");
     }
     let content = if settings.preserve_colour {
         let imgs: Vec<&RgbImage> = evenly_spaced(cameras.len(), COLOUR_VIEWS)
@@ -175,7 +182,7 @@ pub fn evaluate_bundle(
             content_sum +=
                 style::content_loss(f.last().expect("encoder depth >= 1"), colour_feat)? as f64;
             frames.push(img);
-            tick();
+            tally.tick("decode");
         }
         let (short, long) = ranges(&frames, &views, &settings.warp, Some(encoder))?;
         let n = frames.len() as f64;
@@ -188,6 +195,7 @@ pub fn evaluate_bundle(
         });
     }
     let n = decoded.max(1) as f64;
+    tally.finish();
     Ok(EvalReport {
         scene: scene_name.to_string(),
         variant: Some(bundle.info.variant.as_str().to_string()),
@@ -227,7 +235,7 @@ pub fn evaluate_frames(
     cameras: &[Camera],
     frames_dir: &Path,
     warp: &WarpOptions,
-    mut tick: impl FnMut(),
+    sink: &dyn Sink,
 ) -> Result<EvalReport> {
     let (width, height) = check_same_size(cameras)?;
     let files = frame_files(frames_dir)?;
@@ -239,6 +247,7 @@ pub fn evaluate_frames(
             cameras.len()
         );
     }
+    let mut tally = Tally::start(Stage::Evaluate, files.len(), sink);
     let mut frames = Vec::with_capacity(files.len());
     let mut geometry = Vec::with_capacity(files.len());
     for (f, c) in files.iter().zip(cameras) {
@@ -253,7 +262,7 @@ pub fn evaluate_frames(
         }
         frames.push(img);
         geometry.push(render_colour(scene.gaussians(), c, scene.background())?);
-        tick();
+        tally.tick("render");
     }
     let views = depth_views(cameras, &geometry);
     let encoder = match scene {
@@ -265,6 +274,7 @@ pub fn evaluate_frames(
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_else(|| "frames".into());
+    tally.finish();
     Ok(EvalReport {
         scene: scene.path().display().to_string(),
         variant: None,

@@ -14,7 +14,6 @@
 //! `OUT/checkpoint.safetensors`, written at the checkpoint interval and again at the end.
 
 use std::path::PathBuf;
-use std::sync::atomic::AtomicBool;
 
 use crate::error::{Context, Result};
 use gaussian::dataset::{Dataset, LoadOptions};
@@ -23,9 +22,10 @@ use serde::{Deserialize, Serialize};
 use train::features::{dataset_views, FEATURE_CHECKPOINT_FILE};
 use train::{FeatureInputs, FeatureTrainConfig, FeatureTrainer, GeometryConfig, Variant};
 
-use crate::config;
 use crate::fit_geometry::{DatasetConfig, FitGeometryConfig};
 use crate::pretrain_decoder::{open_images, NetworkFiles};
+use crate::{config, Control};
+use train::RunOutcome;
 
 /// The configuration of `dsgs fit-features`.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -68,7 +68,7 @@ pub struct FeatureOverrides {
     pub white: bool,
     pub no_eval: bool,
     pub log_every: Option<u64>,
-    pub no_progress: bool,
+    pub checkpoint_every: Option<u64>,
 }
 
 impl FeatureOverrides {
@@ -100,8 +100,8 @@ impl FeatureOverrides {
         if let Some(v) = self.log_every {
             f.log_interval = v;
         }
-        if self.no_progress {
-            f.progress = false;
+        if let Some(k) = self.checkpoint_every {
+            f.checkpoint_interval = k;
         }
         if let Some(v) = self.downscale {
             c.dataset.downscale = v;
@@ -139,14 +139,10 @@ pub struct FitFeaturesReport {
     pub gaussians: usize,
     pub train_views: usize,
     pub style_images: usize,
-    pub first_step: u64,
-    pub step: u64,
-    pub interrupted: bool,
-    pub seconds: f64,
+    /// How the run ended; its output is `OUT/bundle` when it completed.
+    pub run: RunOutcome,
     /// Running averages of the total, align, content and style losses at the end.
     pub running_losses: Option<[f64; 4]>,
-    /// `OUT/bundle` (when the run completed).
-    pub bundle: Option<PathBuf>,
     /// `OUT/checkpoint.safetensors`.
     pub checkpoint: PathBuf,
 }
@@ -165,7 +161,11 @@ pub fn effective_config(settings: &FitFeaturesSettings) -> Result<FitFeaturesCon
 }
 
 /// Reads every input of a run.
-fn inputs(settings: &FitFeaturesSettings, cfg: &FitFeaturesConfig) -> Result<FeatureInputs> {
+fn inputs(
+    settings: &FitFeaturesSettings,
+    cfg: &FitFeaturesConfig,
+    control: &Control,
+) -> Result<FeatureInputs> {
     let geometry = load_ply(&settings.geometry)
         .with_context(|| format!("reading the geometry {}", settings.geometry.display()))?;
     let styles = open_images(&settings.styles, false, "style")?;
@@ -175,7 +175,7 @@ fn inputs(settings: &FitFeaturesSettings, cfg: &FitFeaturesConfig) -> Result<Fea
     let dataset = Dataset::load(&settings.dataset, &options)
         .with_context(|| format!("loading the dataset {}", settings.dataset.display()))?;
     for w in &dataset.warnings {
-        eprintln!("warning: {w}");
+        control.warn(w.to_string());
     }
     let (views, cameras) = dataset_views(&dataset, cfg.dataset.eval)
         .with_context(|| format!("reading the views of {}", settings.dataset.display()))?;
@@ -211,11 +211,11 @@ fn inputs(settings: &FitFeaturesSettings, cfg: &FitFeaturesConfig) -> Result<Fea
     })
 }
 
-/// Trains the features. When `stop` becomes true the run ends after the current iteration and
-/// a checkpoint of it is written.
-pub fn run(settings: &FitFeaturesSettings, stop: Option<&AtomicBool>) -> Result<FitFeaturesReport> {
+/// Trains the features, reporting to the control's sink. A stop request ends the run after the
+/// current iteration with a checkpoint of it ([`RunOutcome::stop_checkpoint`]).
+pub fn run(settings: &FitFeaturesSettings, control: &Control) -> Result<FitFeaturesReport> {
     let cfg = effective_config(settings)?;
-    let inputs = inputs(settings, &cfg)?;
+    let inputs = inputs(settings, &cfg, control)?;
     let (gaussians, train_views) = (inputs.geometry.len(), inputs.views.len());
     config::save(&cfg, &settings.out_dir)?;
     let mut trainer = match &settings.resume {
@@ -224,10 +224,9 @@ pub fn run(settings: &FitFeaturesSettings, stop: Option<&AtomicBool>) -> Result<
         None => FeatureTrainer::new(cfg.features.clone(), inputs)
             .context("setting up feature training")?,
     };
-    let first_step = trainer.step();
-    let summary = trainer.train(Some(&settings.out_dir), stop)?;
+    let summary = trainer.train(&control.run_in(&settings.out_dir))?;
     let checkpoint = settings.out_dir.join(FEATURE_CHECKPOINT_FILE);
-    if !summary.interrupted {
+    if !summary.run.interrupted {
         trainer
             .save_checkpoint(&checkpoint)
             .with_context(|| format!("writing {}", checkpoint.display()))?;
@@ -237,12 +236,8 @@ pub fn run(settings: &FitFeaturesSettings, stop: Option<&AtomicBool>) -> Result<
         gaussians,
         train_views,
         style_images: trainer.counts().1,
-        first_step,
-        step: summary.step,
-        interrupted: summary.interrupted,
-        seconds: summary.seconds,
+        run: summary.run,
         running_losses: summary.running_losses,
-        bundle: summary.bundle,
         checkpoint,
     })
 }

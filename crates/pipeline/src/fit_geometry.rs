@@ -10,20 +10,21 @@
 //!
 //! Outputs: `OUT/point_cloud/iteration_N/point_cloud.ply` at the save iterations and at the last
 //! iteration run, `OUT/point_cloud.ply` (a copy of the last scene, not a link),
-//! `OUT/chkpnt_N.safetensors` at the checkpoint iterations, and a checkpoint of the last
-//! iteration when a run is stopped early.
+//! `OUT/chkpnt_N.safetensors` at the checkpoint iterations, and `OUT/checkpoint.safetensors`
+//! every `checkpoint_interval` iterations and when a run is stopped early (the training-loop
+//! driver's convention, `train::driver`).
 
 use std::path::PathBuf;
-use std::sync::atomic::AtomicBool;
 
 use crate::error::{bail, Context, Result};
 use gaussian::dataset::{Dataset, LoadOptions, Resolution};
 use serde::{Deserialize, Serialize};
 use train::checkpoint::GeometryCheckpoint;
-use train::geometry::{checkpoint_path, load_views, ply_path};
+use train::geometry::{load_views, ply_path};
 use train::{Evaluation, GeometryConfig, GeometryTrainer};
+use train::{RunOutcome, Stage};
 
-use crate::config;
+use crate::{config, Control};
 
 /// How the dataset is read.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -94,7 +95,7 @@ pub struct GeometryOverrides {
     pub seed: Option<u64>,
     pub sh_degree: Option<usize>,
     pub log_every: Option<u64>,
-    pub no_progress: bool,
+    pub checkpoint_every: Option<u64>,
 }
 
 impl GeometryOverrides {
@@ -136,8 +137,8 @@ impl GeometryOverrides {
         if self.white {
             g.background = [1.0; 3];
         }
-        if self.no_progress {
-            g.progress = false;
+        if let Some(k) = self.checkpoint_every {
+            g.checkpoint_interval = k;
         }
         if let Some(f) = self.downscale {
             c.dataset.downscale = f;
@@ -172,16 +173,12 @@ pub struct FitReport {
     pub width: u32,
     pub height: u32,
     pub initial_gaussians: usize,
-    pub first_step: u64,
-    pub step: u64,
+    /// How the run ended (iterations, time, interruption, the stop checkpoint).
+    pub run: RunOutcome,
     pub gaussians: usize,
-    pub seconds: f64,
-    pub interrupted: bool,
     pub evaluations: Vec<Evaluation>,
     /// `OUT/point_cloud.ply`.
     pub ply: PathBuf,
-    /// The checkpoint written when the run was stopped early.
-    pub stop_checkpoint: Option<PathBuf>,
 }
 
 /// The effective configuration of a run (base configuration plus overrides).
@@ -197,15 +194,16 @@ pub fn effective_config(settings: &FitSettings) -> Result<FitGeometryConfig> {
     Ok(c)
 }
 
-/// Runs the geometry stage. When `stop` becomes true the run ends after the current iteration
-/// and a checkpoint of it is written.
-pub fn run(settings: &FitSettings, stop: Option<&AtomicBool>) -> Result<FitReport> {
+/// Runs the geometry stage, reporting to the control's sink. A stop request ends the run after
+/// the current iteration with a checkpoint of it ([`RunOutcome::stop_checkpoint`]); the scene
+/// so far is written as for a finished run.
+pub fn run(settings: &FitSettings, control: &Control) -> Result<FitReport> {
     let cfg = effective_config(settings)?;
     let options = cfg.load_options()?;
     let dataset = Dataset::load(&settings.dataset, &options)
         .with_context(|| format!("loading the dataset {}", settings.dataset.display()))?;
     for w in &dataset.warnings {
-        eprintln!("warning: {w}");
+        control.warn(w.to_string());
     }
     config::save(&cfg, &settings.out_dir)?;
     let eval = cfg.dataset.eval;
@@ -232,23 +230,20 @@ pub fn run(settings: &FitSettings, stop: Option<&AtomicBool>) -> Result<FitRepor
     let k = trainer.train_views[0].camera.intrinsics;
     let first_step = trainer.step;
     let initial_gaussians = trainer.model.len();
-    eprintln!(
-        "{} training and {} held-out views at {}x{}; {} Gaussians at iteration {} of {}",
-        trainer.train_views.len(),
-        trainer.test_views.len(),
-        k.width,
-        k.height,
-        initial_gaussians,
-        first_step,
-        cfg.geometry.iterations
+    control.log(
+        Stage::Geometry,
+        format!(
+            "{} training and {} held-out views at {}x{}; {} Gaussians at iteration {} of {}",
+            trainer.train_views.len(),
+            trainer.test_views.len(),
+            k.width,
+            k.height,
+            initial_gaussians,
+            first_step,
+            cfg.geometry.iterations
+        ),
     );
-    let summary = trainer.train(Some(&settings.out_dir), stop)?;
-    let mut stop_checkpoint = None;
-    if summary.interrupted {
-        let p = checkpoint_path(&settings.out_dir, trainer.step);
-        trainer.save_checkpoint(&p)?;
-        stop_checkpoint = Some(p);
-    }
+    let summary = trainer.train(&control.run_in(&settings.out_dir))?;
     trainer.save_ply(&ply_path(&settings.out_dir, trainer.step))?;
     let ply = settings.out_dir.join("point_cloud.ply");
     trainer.save_ply(&ply)?;
@@ -258,14 +253,10 @@ pub fn run(settings: &FitSettings, stop: Option<&AtomicBool>) -> Result<FitRepor
         width: k.width,
         height: k.height,
         initial_gaussians,
-        first_step,
-        step: summary.step,
+        run: summary.run,
         gaussians: summary.gaussians,
-        seconds: summary.seconds,
-        interrupted: summary.interrupted,
         evaluations: summary.evaluations,
         ply,
-        stop_checkpoint,
         config: cfg,
     })
 }

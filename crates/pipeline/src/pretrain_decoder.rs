@@ -17,14 +17,14 @@
 //! finished run can be continued with more iterations.
 
 use std::path::PathBuf;
-use std::sync::atomic::AtomicBool;
 
 use crate::error::{bail, Context, Result};
 use nets::{Decoder, Encoder};
 use train::decoder_training::{init_decoder, DecoderEvaluation, DECODER_CHECKPOINT_FILE};
 use train::{DecoderTrainConfig, DecoderTrainer, ImageSet, Variant};
 
-use crate::config;
+use crate::{config, Control};
+use train::RunOutcome;
 
 /// Where the networks come from: a canonical file holding both, and/or separate files (either
 /// canonical or PyTorch checkpoints) that take precedence over it.
@@ -75,7 +75,7 @@ pub struct DecoderOverrides {
     pub seed: Option<u64>,
     pub variant: Option<Variant>,
     pub log_every: Option<u64>,
-    pub no_progress: bool,
+    pub checkpoint_every: Option<u64>,
 }
 
 impl DecoderOverrides {
@@ -108,8 +108,8 @@ impl DecoderOverrides {
         if let Some(v) = self.log_every {
             c.log_interval = v;
         }
-        if self.no_progress {
-            c.progress = false;
+        if let Some(k) = self.checkpoint_every {
+            c.checkpoint_interval = k;
         }
     }
 }
@@ -138,13 +138,9 @@ pub struct PretrainReport {
     pub config: DecoderTrainConfig,
     pub content_images: usize,
     pub style_images: usize,
-    pub first_step: u64,
-    pub step: u64,
-    pub interrupted: bool,
-    pub seconds: f64,
+    /// How the run ended; its output is `OUT/decoder.safetensors` when it completed.
+    pub run: RunOutcome,
     pub evaluations: Vec<DecoderEvaluation>,
-    /// `OUT/decoder.safetensors` (when the run completed).
-    pub weights: Option<PathBuf>,
     /// `OUT/checkpoint.safetensors`.
     pub checkpoint: PathBuf,
 }
@@ -173,9 +169,9 @@ pub fn open_images(sources: &[PathBuf], recursive: bool, role: &str) -> Result<I
         .with_context(|| format!("opening the {role} images ({list})"))
 }
 
-/// Trains the decoder. When `stop` becomes true the run ends after the current iteration and a
-/// checkpoint of it is written.
-pub fn run(settings: &PretrainSettings, stop: Option<&AtomicBool>) -> Result<PretrainReport> {
+/// Trains the decoder, reporting to the control's sink. A stop request ends the run after the
+/// current iteration with a checkpoint of it ([`RunOutcome::stop_checkpoint`]).
+pub fn run(settings: &PretrainSettings, control: &Control) -> Result<PretrainReport> {
     let cfg = effective_config(settings)?;
     let content = open_images(&settings.content, settings.recursive, "content")?;
     let styles = open_images(&settings.styles, settings.recursive, "style")?;
@@ -208,10 +204,9 @@ pub fn run(settings: &PretrainSettings, stop: Option<&AtomicBool>) -> Result<Pre
                 .with_context(|| format!("resuming from {}", ck.display()))?
         }
     };
-    let first_step = trainer.step();
-    let summary = trainer.train(Some(&settings.out_dir), stop)?;
+    let summary = trainer.train(&control.run_in(&settings.out_dir))?;
     let checkpoint = settings.out_dir.join(DECODER_CHECKPOINT_FILE);
-    if !summary.interrupted {
+    if !summary.run.interrupted {
         trainer
             .save_checkpoint(&checkpoint)
             .with_context(|| format!("writing {}", checkpoint.display()))?;
@@ -220,12 +215,8 @@ pub fn run(settings: &PretrainSettings, stop: Option<&AtomicBool>) -> Result<Pre
         config: cfg,
         content_images: n_content,
         style_images: n_style,
-        first_step,
-        step: summary.step,
-        interrupted: summary.interrupted,
-        seconds: summary.seconds,
+        run: summary.run,
         evaluations: summary.evaluations,
-        weights: summary.weights,
         checkpoint,
     })
 }
@@ -242,14 +233,14 @@ mod tests {
         DecoderOverrides {
             crop: Some(32),
             variant: Some(Variant::Fullres),
-            no_progress: true,
+            checkpoint_every: Some(7),
             ..Default::default()
         }
         .apply(&mut c);
         assert_eq!(c.iterations, 10);
         assert_eq!(c.crop, 32);
         assert_eq!(c.variant, Variant::Fullres);
-        assert!(!c.progress);
+        assert_eq!(c.checkpoint_interval, 7);
         assert_eq!(c.resize, DecoderTrainConfig::default().resize);
     }
 }

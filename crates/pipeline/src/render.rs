@@ -440,14 +440,14 @@ pub fn depth_image(r: &ColourRender, range: (f64, f64), style: DepthStyle) -> Rg
 }
 
 /// Renders `kind` for every camera into `out_dir/frame_XXXX.png`; returns the written paths.
-/// `progress` is called after each view.
+/// Reports one [`Stage::Render`](crate::Stage::Render) unit per view to `sink`.
 pub fn render_views(
     scene: &SceneInput,
     cameras: &[Camera],
     kind: RenderKind,
     depth_style: DepthStyle,
     out_dir: &Path,
-    mut progress: impl FnMut(),
+    sink: &dyn crate::Sink,
 ) -> Result<Vec<PathBuf>> {
     std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
     let g = scene.gaussians();
@@ -460,6 +460,7 @@ pub fn render_views(
     let mut depth_fixed = None;
     let mut pca: Option<Pca> = None;
     let mut written = Vec::new();
+    let mut tally = crate::Tally::start(crate::Stage::Render, cameras.len(), sink);
     for (i, cam) in cameras.iter().enumerate() {
         let (w, h) = (cam.intrinsics.width, cam.intrinsics.height);
         let img = match kind {
@@ -492,8 +493,9 @@ pub fn render_views(
         let path = out_dir.join(format!("frame_{i:04}.png"));
         crate::image_io::write_png(&path, &img)?;
         written.push(path);
-        progress();
+        tally.tick("");
     }
+    tally.finish();
     Ok(written)
 }
 

@@ -31,6 +31,7 @@ use train::{SceneBundle, Variant};
 use crate::cameras::evenly_spaced;
 use crate::image_io::{self, rgb_from_nchw, RgbImage};
 use crate::render::{render_colour, ColourRender};
+use crate::{Sink, Stage, Tally};
 
 /// Camera views whose colour renders make the content of colour preservation.
 pub const COLOUR_VIEWS: usize = 8;
@@ -304,13 +305,13 @@ pub fn colour_renders(
         .collect()
 }
 
-/// Runs `dsgs stylize` on a loaded bundle along `cameras`. `tick` is called once per rasterized
-/// view and once per decoded frame.
+/// Runs `dsgs stylize` on a loaded bundle along `cameras`, reporting one [`Stage::Stylize`]
+/// unit per rasterized view and per decoded frame to `sink`.
 pub fn run(
     bundle: &SceneBundle,
     cameras: &[Camera],
     settings: &StylizeSettings,
-    mut tick: impl FnMut(&str),
+    sink: &dyn Sink,
 ) -> Result<StylizeOutput> {
     if cameras.is_empty() {
         bail!("no cameras to render");
@@ -348,10 +349,11 @@ pub fn run(
         content.as_ref(),
     )?;
 
+    let mut tally = Tally::start(Stage::Stylize, cameras.len() * (1 + targets.len()), sink);
     let mut views = Vec::with_capacity(cameras.len());
     for c in cameras {
         views.push(render_feature_view(bundle, c)?);
-        tick("rasterize");
+        tally.tick("rasterize");
     }
     let mut out = StylizeOutput::default();
     // The sheet's first column shows each row's style (white for the colour row, black for a
@@ -393,7 +395,7 @@ pub fn run(
             if settings.gif {
                 gif_frames.push(img);
             }
-            tick("decode");
+            tally.tick("decode");
         }
         if settings.gif {
             let p = settings.out_dir.join(format!("{}.gif", target.name));
@@ -418,6 +420,7 @@ pub fn run(
         lift_transform: total.lift_transform / n,
         decode: total.decode / n,
     };
+    tally.finish();
     Ok(out)
 }
 

@@ -47,14 +47,11 @@
 //! deterministic for any thread count and the view order comes from the seed, so a bake is
 //! reproducible bit for bit.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::path::Path;
 use std::time::Instant;
 
 use gaussian::camera_path::{interpolate_pair, look_at_point, mean_up, orbit_from};
 use gaussian::{Camera, FeatureGaussians};
-use indicatif::ProgressBar;
-
-use crate::progress::progress_bar;
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
@@ -64,7 +61,10 @@ use style::ChannelStats;
 
 use crate::adam::{Adam, AdamConfig};
 use crate::bundle::SceneBundle;
+use crate::checkpoint::{Fnv1a, StateReader, StateWriter};
+use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 use crate::error::TrainError;
+use crate::event::{Event, Stage};
 use crate::geometry::View;
 use crate::loss::{photometric_loss_with_grad, psnr};
 use crate::model::{F_DC, F_REST, OPACITY, SCALING};
@@ -118,9 +118,9 @@ pub struct BakeConfig {
     pub render_batch: usize,
     /// Seed of the view order.
     pub seed: u64,
-    /// Show progress bars.
-    pub progress: bool,
-    /// Print a plain progress line to standard error every this many iterations (0: never).
+    /// Iterations between the periodic checkpoints of the optimisation (0: only when stopped).
+    pub checkpoint_interval: u64,
+    /// Iterations between log lines (0: none).
     pub log_interval: u64,
 }
 
@@ -149,7 +149,7 @@ impl Default for BakeConfig {
             resolution_scale: 1.0,
             render_batch: 4,
             seed: 0,
-            progress: true,
+            checkpoint_interval: crate::driver::DEFAULT_CHECKPOINT_INTERVAL,
             log_interval: 0,
         }
     }
@@ -389,20 +389,21 @@ pub fn stylized_view(
     Ok(rgb)
 }
 
-/// The stylized views of `cameras` ([`stylized_view`]), `batch` at a time in parallel. Returns
-/// `Ok(None)` when `stop` is raised (checked between batches).
+/// The stylized views of `cameras` ([`stylized_view`]), `batch` at a time in parallel, each
+/// batch reported as [`Event::Progress`] of [`Stage::BakeTargets`] counting from `done`.
+/// Returns `Ok(None)` when the run's stop flag is raised (checked between batches).
 pub fn render_targets(
     bundle: &SceneBundle,
     stats: &ChannelStats<f32>,
     cameras: &[NamedCamera],
     composite: bool,
     batch: usize,
-    stop: Option<&AtomicBool>,
-    bar: &ProgressBar,
+    run: &Run,
+    done: u64,
 ) -> Result<Option<Vec<View>>, TrainError> {
     let mut views = Vec::with_capacity(cameras.len());
     for chunk in cameras.chunks(batch.max(1)) {
-        if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
+        if run.stop_requested() {
             return Ok(None);
         }
         let images: Vec<Vec<f32>> = chunk
@@ -416,7 +417,11 @@ pub fn render_targets(
                 image,
             });
         }
-        bar.inc(chunk.len() as u64);
+        run.sink.emit(Event::Progress {
+            stage: Stage::BakeTargets,
+            done: done + views.len() as u64,
+            status: String::new(),
+        });
     }
     Ok(Some(views))
 }
@@ -466,8 +471,8 @@ pub fn evaluate_baked(
         &named,
         config.composite_background,
         config.render_batch,
-        None,
-        &ProgressBar::hidden(),
+        &Run::in_memory(),
+        0,
     )?
     .unwrap_or_default();
     mean_psnr(baked, baked.sh_degree, bundle.info.background, &views)
@@ -517,10 +522,9 @@ pub fn initial_baked_scene(
 pub struct BakeReport {
     /// The baked scene: `feature_dim = 0`, SH stored at degree 3 (official layout).
     pub scene: FeatureGaussians<f32>,
-    /// Completed optimisation iterations.
-    pub iterations: u64,
-    /// Whether the stop flag ended the optimisation early (`scene` is then the partial bake).
-    pub interrupted: bool,
+    /// How the optimisation ended: iterations, time, interruption (`scene` is then the partial
+    /// bake) and the stop checkpoint.
+    pub run: RunOutcome,
     /// Training and held-out target counts.
     pub train_views: usize,
     pub held_out_views: usize,
@@ -531,9 +535,8 @@ pub struct BakeReport {
     /// The same for the bundle's own colours (its SH at its degree), before baking.
     pub unbaked_train_psnr: f64,
     pub unbaked_held_out_psnr: Option<f64>,
-    /// Wall time of the target rendering and of the optimisation, in seconds.
+    /// Wall time of the target rendering, in seconds.
     pub target_seconds: f64,
-    pub optimise_seconds: f64,
 }
 
 /// Projects every value of `values` into `[initial - budget, initial + budget]`.
@@ -545,14 +548,18 @@ fn project_into_budget(values: &mut [f32], initial: &[f32], budget: f32) {
 }
 
 /// Bakes the style given by `stats` (from [`SceneBundle::target_stats`], or any statistics of
-/// the lifter's width) into the bundle's geometry (see the module documentation). When `stop` is
-/// raised the optimisation ends after the current iteration and the partial bake is reported;
-/// raised while the targets are rendered, the bake fails with [`TrainError::Interrupted`].
+/// the lifter's width) into the bundle's geometry (see the module documentation). The
+/// optimisation runs through the [driver](crate::driver): with an output folder in `run` it
+/// writes `checkpoint.safetensors` there periodically and when stopped, and `resume` continues
+/// from such a checkpoint exactly (the targets are rendered again, bit-identically, and must be
+/// the same ones). A stop request during the target rendering fails with
+/// [`TrainError::Interrupted`]; during the optimisation it ends the run with the partial bake.
 pub fn bake(
     bundle: &SceneBundle,
     stats: &ChannelStats<f32>,
     config: &BakeConfig,
-    stop: Option<&AtomicBool>,
+    resume: Option<&Path>,
+    run: &Run,
 ) -> Result<BakeReport, TrainError> {
     config.validate()?;
     bundle.validate()?;
@@ -569,35 +576,33 @@ pub fn bake(
 
     let start = Instant::now();
     let total = (cameras.train.len() + cameras.held_out.len()) as u64;
-    let bar = progress_bar(
-        config.progress,
+    run.sink.emit(Event::StageStarted {
+        stage: Stage::BakeTargets,
         total,
-        0,
-        "targets {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}]",
-    );
+        done: 0,
+    });
     let interrupted = || TrainError::Interrupted("rendering the stylized targets".into());
-    let held_out = render_targets(
-        bundle,
-        stats,
-        &cameras.held_out,
-        config.composite_background,
-        config.render_batch,
-        stop,
-        &bar,
-    )?
-    .ok_or_else(interrupted)?;
-    let train = render_targets(
-        bundle,
-        stats,
-        &cameras.train,
-        config.composite_background,
-        config.render_batch,
-        stop,
-        &bar,
-    )?
-    .ok_or_else(interrupted)?;
-    bar.finish_and_clear();
+    let render = |cams: &[NamedCamera], done: u64| {
+        let composite = config.composite_background;
+        render_targets(
+            bundle,
+            stats,
+            cams,
+            composite,
+            config.render_batch,
+            run,
+            done,
+        )
+    };
+    let held_out = render(&cameras.held_out, 0)?.ok_or_else(interrupted)?;
+    let train = render(&cameras.train, held_out.len() as u64)?.ok_or_else(interrupted)?;
     let target_seconds = start.elapsed().as_secs_f64();
+    run.sink.emit(Event::StageFinished {
+        stage: Stage::BakeTargets,
+        done: total,
+        seconds: target_seconds,
+        interrupted: false,
+    });
     if train.is_empty() {
         return Err(TrainError::Config("no training targets to bake".into()));
     }
@@ -607,169 +612,308 @@ pub fn bake(
     let unbaked_held_out_psnr =
         mean_psnr(&bundle.scene, bundle.scene.sh_degree, background, &held_out)?;
 
-    let start = Instant::now();
-    let mut scene = initial_baked_scene(&bundle.scene)?;
-    let (iterations, stopped) = optimise(&mut scene, &train, background, config, stop)?;
-    let optimise_seconds = start.elapsed().as_secs_f64();
+    let initial = initial_baked_scene(&bundle.scene)?;
+    let mut baker = match resume {
+        None => Baker::new(initial, &train, background, config)?,
+        Some(p) => Baker::resume(p, initial, &train, background, config)?,
+    };
+    let outcome = baker.train(run)?;
+    let scene = baker.scene;
 
     let d = config.sh_degree;
     Ok(BakeReport {
         train_psnr: mean_psnr(&scene, d, background, &train)?.unwrap_or(0.0),
         held_out_psnr: mean_psnr(&scene, d, background, &held_out)?,
         scene,
-        iterations,
-        interrupted: stopped,
+        run: outcome,
         train_views: train.len(),
         held_out_views: held_out.len(),
         unbaked_train_psnr,
         unbaked_held_out_psnr,
         target_seconds,
-        optimise_seconds,
     })
 }
 
-/// Fits `scene`'s SH colours (and, with `adapt_geometry`, its opacities and scales within their
-/// budgets) to `targets` for `config.iterations` iterations. `scene` must store SH at degree 3.
-/// Returns the completed iterations and whether `stop` ended the run early.
-pub fn optimise(
-    scene: &mut FeatureGaussians<f32>,
-    targets: &[View],
-    background: [f32; 3],
-    config: &BakeConfig,
-    stop: Option<&AtomicBool>,
-) -> Result<(u64, bool), TrainError> {
-    config.validate()?;
-    if targets.is_empty() {
-        return Err(TrainError::Config("no training targets to bake".into()));
-    }
-    if scene.sh_degree != STORED_SH_DEGREE {
-        return Err(TrainError::Shape(format!(
-            "the scene stores SH degree {}, baking needs {STORED_SH_DEGREE}",
-            scene.sh_degree
-        )));
-    }
+/// The value of the `format` metadata entry of bake checkpoints.
+pub const BAKE_CHECKPOINT_FORMAT: &str = "dsgs-bake-checkpoint-v1";
+
+/// FNV-1a over the targets' names, sizes and pixel bits: which targets a checkpoint was fitted
+/// to.
+fn targets_fingerprint(targets: &[View]) -> String {
+    let mut h = Fnv1a::new();
     for v in targets {
-        let s = v.shape();
-        if v.image.len() != s.len() {
+        h.eat(v.name.as_bytes());
+        let k = v.camera.intrinsics;
+        h.eat(&[k.width.to_le_bytes(), k.height.to_le_bytes()].concat());
+        v.image.iter().for_each(|&x| h.eat_f32(x));
+    }
+    h.hex()
+}
+
+/// A bake optimisation in progress: `scene`'s SH colours (and, with `adapt_geometry`, its
+/// opacities and scales within their budgets) fitted to `targets`, one view an iteration.
+pub struct Baker<'a> {
+    /// The scene being baked (SH stored at degree 3).
+    pub scene: FeatureGaussians<f32>,
+    targets: &'a [View],
+    background: [f32; 3],
+    config: BakeConfig,
+    adam: Adam<f32>,
+    g_dc: usize,
+    g_rest: Option<usize>,
+    geometry_groups: Option<(usize, usize)>,
+    opacity0: Vec<f32>,
+    log_scales0: Vec<f32>,
+    rng: StdRng,
+    /// Target indices left in the current pass, popped from the back.
+    order: Vec<usize>,
+    /// Running averages of the loss and PSNR.
+    ema: Option<[f64; 2]>,
+    step: u64,
+}
+
+impl<'a> Baker<'a> {
+    /// A bake at step 0 from `scene`, which must store SH at degree 3.
+    pub fn new(
+        scene: FeatureGaussians<f32>,
+        targets: &'a [View],
+        background: [f32; 3],
+        config: &BakeConfig,
+    ) -> Result<Self, TrainError> {
+        config.validate()?;
+        if targets.is_empty() {
+            return Err(TrainError::Config("no training targets to bake".into()));
+        }
+        if scene.sh_degree != STORED_SH_DEGREE {
             return Err(TrainError::Shape(format!(
-                "target `{}` has {} values for a {}x{} camera",
-                v.name,
-                v.image.len(),
-                s.width,
-                s.height
+                "the scene stores SH degree {}, baking needs {STORED_SH_DEGREE}",
+                scene.sh_degree
             )));
         }
+        for v in targets {
+            let s = v.shape();
+            if v.image.len() != s.len() {
+                return Err(TrainError::Shape(format!(
+                    "target `{}` has {} values for a {}x{} camera",
+                    v.name,
+                    v.image.len(),
+                    s.width,
+                    s.height
+                )));
+            }
+        }
+        let n = scene.len();
+        let k_opt = (config.sh_degree + 1) * (config.sh_degree + 1);
+        let mut adam = Adam::<f32>::new(config.adam);
+        let g_dc = adam.add_param(F_DC, config.feature_lr, n, 3);
+        let g_rest = (k_opt > 1).then(|| {
+            adam.add_param(
+                F_REST,
+                config.feature_lr / config.feature_rest_divisor,
+                n,
+                3 * (k_opt - 1),
+            )
+        });
+        let geometry_groups = config.adapt_geometry.then(|| {
+            (
+                adam.add_param(OPACITY, config.opacity_lr, n, 1),
+                adam.add_param(SCALING, config.scaling_lr, n, 3),
+            )
+        });
+        Ok(Baker {
+            opacity0: scene.opacity_logits.clone(),
+            log_scales0: scene.log_scales.as_flattened().to_vec(),
+            scene,
+            targets,
+            background,
+            config: config.clone(),
+            adam,
+            g_dc,
+            g_rest,
+            geometry_groups,
+            rng: StdRng::seed_from_u64(config.seed),
+            order: Vec::new(),
+            ema: None,
+            step: 0,
+        })
     }
-    let n = scene.len();
-    let d = config.sh_degree;
-    let k_all = scene.sh_coeffs_per_gaussian();
-    let k_opt = (d + 1) * (d + 1);
-    let stride = 3 * k_all;
 
-    let mut adam = Adam::<f32>::new(config.adam);
-    let g_dc = adam.add_param(F_DC, config.feature_lr, n, 3);
-    let g_rest = (k_opt > 1).then(|| {
-        adam.add_param(
-            F_REST,
-            config.feature_lr / config.feature_rest_divisor,
-            n,
-            3 * (k_opt - 1),
-        )
-    });
-    let geometry_groups = config.adapt_geometry.then(|| {
-        (
-            adam.add_param(OPACITY, config.opacity_lr, n, 1),
-            adam.add_param(SCALING, config.scaling_lr, n, 3),
-        )
-    });
-    let opacity0 = scene.opacity_logits.clone();
-    let log_scales0: Vec<f32> = scene.log_scales.as_flattened().to_vec();
+    /// The bake of `checkpoint`, continuing from `initial` (the scene baking started from) on
+    /// the same `targets` and configuration.
+    pub fn resume(
+        checkpoint: &Path,
+        initial: FeatureGaussians<f32>,
+        targets: &'a [View],
+        background: [f32; 3],
+        config: &BakeConfig,
+    ) -> Result<Self, TrainError> {
+        let bytes = std::fs::read(checkpoint).map_err(|e| TrainError::io(checkpoint, e))?;
+        let r = StateReader::new(&bytes, checkpoint, BAKE_CHECKPOINT_FORMAT)?;
+        let mut b = Baker::new(initial, targets, background, config)?;
+        let want = serde_json::to_string(config).map_err(|e| TrainError::Config(e.to_string()))?;
+        if r.meta_str("config")? != want {
+            return Err(r.err(
+                "it was written with another bake configuration; resume with the same settings"
+                    .into(),
+            ));
+        }
+        let (found, want) = (r.meta_str("targets")?, targets_fingerprint(targets));
+        if found != want {
+            return Err(r.err(format!(
+                "it belongs to other targets (fingerprint {found}, these are {want}): another \
+                 bundle, style or strength"
+            )));
+        }
+        let n = b.scene.len();
+        let k = b.scene.sh_coeffs_per_gaussian();
+        let sh = r.f32s("sh", &[n, k, 3])?;
+        b.scene.sh = sh.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        b.scene.opacity_logits = r.f32s("opacity_logits", &[n])?;
+        let ls = r.f32s("log_scales", &[n, 3])?;
+        b.scene.log_scales = ls.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let adam = r.adam(config.adam)?;
+        let shapes = |a: &Adam<f32>| -> Vec<(String, usize, usize)> {
+            let p = a.params();
+            p.iter()
+                .map(|p| (p.name.clone(), p.rows(), p.width()))
+                .collect()
+        };
+        if shapes(&adam) != shapes(&b.adam) {
+            return Err(r.err(format!(
+                "optimiser tensors {:?} do not fit this bake",
+                shapes(&adam)
+            )));
+        }
+        b.adam = adam;
+        b.ema = r.ema()?;
+        let step: u64 = r.meta_parse("step")?;
+        // The view order: the same draws from the seeded generator as the run so far.
+        for _ in 0..step {
+            b.next_target();
+        }
+        b.step = step;
+        Ok(b)
+    }
 
-    let bar = progress_bar(
-        config.progress,
-        config.iterations,
-        0,
-        "bake {bar:30} {pos}/{len} [{elapsed_precise}<{eta_precise}] {per_sec} {msg}",
-    );
-    let mut rng = StdRng::seed_from_u64(config.seed);
-    let mut order: Vec<usize> = Vec::new();
-    let (mut ema_loss, mut ema_psnr) = (0.0, 0.0);
-    let start = Instant::now();
-    let mut step = 0u64;
-    let mut stopped = false;
-    while step < config.iterations {
-        if stop.is_some_and(|s| s.load(Ordering::Relaxed)) {
-            stopped = true;
-            break;
+    /// The index of the next target: the passes over the targets follow a seeded shuffle.
+    fn next_target(&mut self) -> usize {
+        if self.order.is_empty() {
+            self.order = (0..self.targets.len()).collect();
+            self.order.shuffle(&mut self.rng);
+            self.order.reverse(); // popped from the back: the shuffled order, front first
         }
-        if order.is_empty() {
-            order = (0..targets.len()).collect();
-            order.shuffle(&mut rng);
-            order.reverse(); // popped from the back: the shuffled order, front first
-        }
-        let view = &targets[order.pop().expect("refilled above")];
+        self.order.pop().expect("refilled above")
+    }
+
+    /// Completed iterations.
+    pub fn step(&self) -> u64 {
+        self.step
+    }
+
+    /// One iteration: render, loss against the next target, one Adam step, projection into
+    /// the budgets. Returns the loss and the PSNR of the render.
+    pub fn train_step(&mut self) -> Result<(f64, f64), TrainError> {
+        let view = &self.targets[self.next_target()];
+        let (d, bg) = (self.config.sh_degree, self.background);
+        let stride = 3 * self.scene.sh_coeffs_per_gaussian();
         let shape = view.shape();
-        let fwd = render_color(&view.camera, scene, d, background)?;
-        let (loss, v_image) =
-            photometric_loss_with_grad(&fwd.raster.image, &view.image, shape, config.lambda_dssim)?;
+        let fwd = render_color(&view.camera, &self.scene, d, bg)?;
+        let (loss, v_image) = photometric_loss_with_grad(
+            &fwd.raster.image,
+            &view.image,
+            shape,
+            self.config.lambda_dssim,
+        )?;
         let step_psnr = psnr(&fwd.raster.image, &view.image, shape)?;
-        let grads = render_color_backward(&view.camera, scene, d, background, &fwd, &v_image)?;
+        let grads = render_color_backward(&view.camera, &self.scene, d, bg, &fwd, &v_image)?;
         drop(fwd);
 
-        adam.step_strided(
-            g_dc,
-            scene.sh.as_flattened_mut(),
-            grads.sh.as_flattened(),
-            stride,
-            0,
-        )?;
-        if let Some(g) = g_rest {
-            adam.step_strided(
-                g,
-                scene.sh.as_flattened_mut(),
-                grads.sh.as_flattened(),
-                stride,
-                3,
-            )?;
+        let scene = &mut self.scene;
+        let sh_grads = grads.sh.as_flattened();
+        let adam = &mut self.adam;
+        adam.step_strided(self.g_dc, scene.sh.as_flattened_mut(), sh_grads, stride, 0)?;
+        if let Some(g) = self.g_rest {
+            adam.step_strided(g, scene.sh.as_flattened_mut(), sh_grads, stride, 3)?;
         }
-        if let Some((g_op, g_sc)) = geometry_groups {
+        if let Some((g_op, g_sc)) = self.geometry_groups {
+            let c = &self.config;
             adam.step(g_op, &mut scene.opacity_logits, &grads.opacity_logits)?;
             project_into_budget(
                 &mut scene.opacity_logits,
-                &opacity0,
-                config.opacity_logit_budget,
+                &self.opacity0,
+                c.opacity_logit_budget,
             );
-            adam.step(
-                g_sc,
-                scene.log_scales.as_flattened_mut(),
-                grads.log_scales.as_flattened(),
-            )?;
-            project_into_budget(
-                scene.log_scales.as_flattened_mut(),
-                &log_scales0,
-                config.log_scale_budget,
-            );
+            let log_scales = scene.log_scales.as_flattened_mut();
+            adam.step(g_sc, log_scales, grads.log_scales.as_flattened())?;
+            project_into_budget(log_scales, &self.log_scales0, c.log_scale_budget);
         }
 
-        step += 1;
-        if step == 1 {
-            (ema_loss, ema_psnr) = (loss.total, step_psnr);
-        } else {
-            ema_loss = 0.4 * loss.total + 0.6 * ema_loss;
-            ema_psnr = 0.4 * step_psnr + 0.6 * ema_psnr;
-        }
-        if step.is_multiple_of(10) || step == config.iterations {
-            bar.set_message(format!("loss {ema_loss:.5}  psnr {ema_psnr:.2}"));
-            bar.set_position(step);
-        }
-        if config.log_interval > 0 && step.is_multiple_of(config.log_interval) {
-            let secs = start.elapsed().as_secs_f64();
-            eprintln!(
-                "[BAKE {step}] loss {ema_loss:.5} psnr {ema_psnr:.2} | {:.2} it/s, {secs:.0} s",
-                step as f64 / secs
-            );
-        }
+        self.step += 1;
+        self.ema = Some(match self.ema {
+            None => [loss.total, step_psnr],
+            Some([l, p]) => [0.4 * loss.total + 0.6 * l, 0.4 * step_psnr + 0.6 * p],
+        });
+        Ok((loss.total, step_psnr))
     }
-    bar.finish();
-    Ok((step, stopped))
+
+    /// The checkpoint as safetensors bytes.
+    pub fn checkpoint_bytes(&self) -> Result<Vec<u8>, TrainError> {
+        let mut w = StateWriter::new(BAKE_CHECKPOINT_FORMAT);
+        w.meta("step", self.step);
+        w.meta(
+            "config",
+            serde_json::to_string(&self.config).map_err(|e| TrainError::Config(e.to_string()))?,
+        );
+        w.meta("targets", targets_fingerprint(self.targets));
+        w.ema(self.ema.as_ref().map(|e| e.as_slice()));
+        let (n, k) = (self.scene.len(), self.scene.sh_coeffs_per_gaussian());
+        w.f32s("sh", vec![n, k, 3], self.scene.sh.as_flattened());
+        w.f32s("opacity_logits", vec![n], &self.scene.opacity_logits);
+        w.f32s(
+            "log_scales",
+            vec![n, 3],
+            self.scene.log_scales.as_flattened(),
+        );
+        w.adam(&self.adam);
+        w.finish()
+    }
+
+    /// Writes a checkpoint atomically.
+    pub fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
+        base::write_atomic(path, &self.checkpoint_bytes()?).map_err(|e| TrainError::io(path, e))
+    }
+
+    /// Runs the optimisation to `config.iterations` through the [driver](crate::driver).
+    pub fn train(&mut self, run: &Run) -> Result<RunOutcome, TrainError> {
+        let cadence = Cadence {
+            checkpoint_interval: self.config.checkpoint_interval,
+            log_interval: self.config.log_interval,
+        };
+        drive(self, cadence, run)
+    }
+}
+
+impl TrainingLoop for Baker<'_> {
+    const STAGE: Stage = Stage::Bake;
+
+    fn step(&self) -> u64 {
+        self.step
+    }
+
+    fn iterations(&self) -> u64 {
+        self.config.iterations
+    }
+
+    fn advance(&mut self) -> Result<(), TrainError> {
+        self.train_step().map(|_| ())
+    }
+
+    fn status(&self) -> String {
+        let [l, p] = self.ema.unwrap_or_default();
+        format!("loss {l:.5} psnr {p:.2}")
+    }
+
+    fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
+        Baker::save_checkpoint(self, path)
+    }
 }

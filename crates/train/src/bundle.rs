@@ -34,6 +34,7 @@ use raster::{render, Channels, RenderOptions};
 use serde::{Deserialize, Serialize};
 use style::ChannelStats;
 
+use crate::checkpoint::Fnv1a;
 use crate::error::TrainError;
 
 /// File names inside a bundle directory.
@@ -205,23 +206,17 @@ pub struct SceneBundle {
 /// FNV-1a (64-bit) over the encoder's layer names, shapes and weight bits: a cheap identity for
 /// "the same encoder weights", recorded in bundles and compared on load.
 pub fn weights_fingerprint(encoder: &Encoder<f32>) -> String {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    let mut eat = |bytes: &[u8]| {
-        for &b in bytes {
-            h ^= b as u64;
-            h = h.wrapping_mul(0x0100_0000_01b3);
-        }
-    };
+    let mut h = Fnv1a::new();
     for l in encoder.layers() {
-        eat(l.name.as_bytes());
+        h.eat(l.name.as_bytes());
         for &d in l.weight.shape() {
-            eat(&(d as u64).to_le_bytes());
+            h.eat(&(d as u64).to_le_bytes());
         }
-        for v in l.weight.iter().chain(l.bias.iter()) {
-            eat(&v.to_bits().to_le_bytes());
+        for &v in l.weight.iter().chain(l.bias.iter()) {
+            h.eat_f32(v);
         }
     }
-    format!("{h:016x}")
+    h.hex()
 }
 
 fn bundle_err(path: &Path, message: impl Into<String>) -> TrainError {

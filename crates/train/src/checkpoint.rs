@@ -348,3 +348,239 @@ impl<'a> Reader<'a> {
             .collect())
     }
 }
+
+/// Safetensors state files of the style stages and the bake: tensors plus string metadata, written with
+/// [`base::write_atomic`]. Floating-point metadata uses Rust's shortest round-trip form.
+pub(crate) struct StateWriter {
+    tensors: Vec<(String, Dtype, Vec<usize>, Vec<u8>)>,
+    meta: HashMap<String, String>,
+}
+
+impl StateWriter {
+    pub(crate) fn new(format: &str) -> Self {
+        let mut meta = HashMap::new();
+        meta.insert("format".to_string(), format.to_string());
+        StateWriter {
+            tensors: Vec::new(),
+            meta,
+        }
+    }
+
+    pub(crate) fn meta(&mut self, key: &str, value: impl ToString) {
+        self.meta.insert(key.to_string(), value.to_string());
+    }
+
+    pub(crate) fn f32s(&mut self, name: &str, shape: Vec<usize>, v: &[f32]) {
+        let bytes = v.iter().flat_map(|x| x.to_le_bytes()).collect();
+        self.tensors
+            .push((name.to_string(), Dtype::F32, shape, bytes));
+    }
+
+    pub(crate) fn bytes(&mut self, name: &str, v: Vec<u8>) {
+        self.tensors
+            .push((name.to_string(), Dtype::U8, vec![v.len()], v));
+    }
+
+    /// Running averages shown by the progress display, comma-separated.
+    pub(crate) fn ema(&mut self, ema: Option<&[f64]>) {
+        if let Some(e) = ema {
+            let v: Vec<String> = e.iter().map(f64::to_string).collect();
+            self.meta("ema", v.join(","));
+        }
+    }
+
+    /// The optimiser: hyper-parameters, per-tensor names, learning rates, step counts and widths
+    /// as metadata, moments as `adam.{name}.exp_avg` / `adam.{name}.exp_avg_sq`.
+    pub(crate) fn adam(&mut self, adam: &Adam<f32>) {
+        self.meta("adam.beta1", adam.config.beta1);
+        self.meta("adam.beta2", adam.config.beta2);
+        self.meta("adam.eps", adam.config.eps);
+        let names: Vec<&str> = adam.params().iter().map(|p| p.name.as_str()).collect();
+        self.meta("adam.groups", names.join(","));
+        for p in adam.params() {
+            self.meta(&format!("adam.{}.lr", p.name), p.lr);
+            self.meta(&format!("adam.{}.step", p.name), p.step_count());
+            self.meta(&format!("adam.{}.width", p.name), p.width());
+            let shape = vec![p.rows(), p.width()];
+            self.f32s(
+                &format!("adam.{}.exp_avg", p.name),
+                shape.clone(),
+                p.exp_avg(),
+            );
+            self.f32s(
+                &format!("adam.{}.exp_avg_sq", p.name),
+                shape,
+                p.exp_avg_sq(),
+            );
+        }
+    }
+
+    pub(crate) fn finish(self) -> Result<Vec<u8>, TrainError> {
+        let views = self
+            .tensors
+            .iter()
+            .map(|(name, dtype, shape, bytes)| {
+                safetensors::tensor::TensorView::new(*dtype, shape.clone(), bytes)
+                    .map(|v| (name.clone(), v))
+                    .map_err(|e| TrainError::Shape(format!("state tensor {name}: {e}")))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        safetensors::serialize(views, Some(self.meta))
+            .map_err(|e| TrainError::Shape(format!("cannot serialise the state: {e}")))
+    }
+}
+
+/// Validating access to a file written by [`StateWriter`]; errors name the file.
+pub(crate) struct StateReader<'a> {
+    st: SafeTensors<'a>,
+    meta: HashMap<String, String>,
+    path: &'a Path,
+}
+
+impl<'a> StateReader<'a> {
+    pub(crate) fn new(bytes: &'a [u8], path: &'a Path, format: &str) -> Result<Self, TrainError> {
+        let err = |message: String| TrainError::Checkpoint {
+            path: path.to_path_buf(),
+            message,
+        };
+        let st = SafeTensors::deserialize(bytes)
+            .map_err(|e| err(format!("not a safetensors file: {e}")))?;
+        let meta = SafeTensors::read_metadata(bytes)
+            .ok()
+            .and_then(|(_, m)| m.metadata().clone())
+            .unwrap_or_default();
+        let r = StateReader { st, meta, path };
+        let found = r.meta_str("format")?;
+        if found != format {
+            return Err(err(format!("format `{found}`, expected `{format}`")));
+        }
+        Ok(r)
+    }
+
+    pub(crate) fn err(&self, message: String) -> TrainError {
+        TrainError::Checkpoint {
+            path: self.path.to_path_buf(),
+            message,
+        }
+    }
+
+    pub(crate) fn meta_str(&self, key: &str) -> Result<&str, TrainError> {
+        self.meta
+            .get(key)
+            .map(String::as_str)
+            .ok_or_else(|| self.err(format!("metadata entry `{key}` is missing")))
+    }
+
+    pub(crate) fn meta_parse<V: std::str::FromStr>(&self, key: &str) -> Result<V, TrainError> {
+        let s = self.meta_str(key)?;
+        s.parse()
+            .map_err(|_| self.err(format!("metadata entry `{key}` = `{s}` is malformed")))
+    }
+
+    /// The running averages written by [`StateWriter::ema`], which must have `n` values.
+    pub(crate) fn ema<const N: usize>(&self) -> Result<Option<[f64; N]>, TrainError> {
+        let Some(s) = self.meta.get("ema") else {
+            return Ok(None);
+        };
+        let bad = || self.err(format!("metadata entry `ema` = `{s}` is malformed"));
+        let v: Vec<f64> = s
+            .split(',')
+            .map(str::parse)
+            .collect::<Result<_, _>>()
+            .map_err(|_| bad())?;
+        let a: [f64; N] = v.try_into().map_err(|_| bad())?;
+        Ok(Some(a))
+    }
+
+    fn raw(&self, name: &str, dtype: Dtype) -> Result<(Vec<usize>, &'a [u8]), TrainError> {
+        let t = self
+            .st
+            .tensor(name)
+            .map_err(|_| self.err(format!("tensor `{name}` is missing")))?;
+        if t.dtype() != dtype {
+            return Err(self.err(format!(
+                "tensor `{name}` is {:?}, expected {dtype:?}",
+                t.dtype()
+            )));
+        }
+        Ok((t.shape().to_vec(), t.data()))
+    }
+
+    pub(crate) fn bytes(&self, name: &str) -> Result<&'a [u8], TrainError> {
+        Ok(self.raw(name, Dtype::U8)?.1)
+    }
+
+    /// An `f32` tensor whose shape must be `shape`.
+    pub(crate) fn f32s(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>, TrainError> {
+        let (found, data) = self.raw(name, Dtype::F32)?;
+        if found != shape {
+            return Err(self.err(format!(
+                "tensor `{name}` has shape {found:?}, expected {shape:?}"
+            )));
+        }
+        Ok(data
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect())
+    }
+
+    /// The optimiser written by [`StateWriter::adam`]; `config` must match the stored
+    /// hyper-parameters.
+    pub(crate) fn adam(&self, config: AdamConfig) -> Result<Adam<f32>, TrainError> {
+        let stored = AdamConfig {
+            beta1: self.meta_parse("adam.beta1")?,
+            beta2: self.meta_parse("adam.beta2")?,
+            eps: self.meta_parse("adam.eps")?,
+        };
+        if stored != config {
+            return Err(self.err(format!(
+                "the optimiser ran with {stored:?}, the configuration asks for {config:?}"
+            )));
+        }
+        let mut adam = Adam::new(stored);
+        for name in self.meta_str("adam.groups")?.split(',') {
+            let width: usize = self.meta_parse(&format!("adam.{name}.width"))?;
+            let (shape, _) = self.raw(&format!("adam.{name}.exp_avg"), Dtype::F32)?;
+            let rows = shape.first().copied().unwrap_or(0);
+            let m = self.f32s(&format!("adam.{name}.exp_avg"), &[rows, width])?;
+            let v = self.f32s(&format!("adam.{name}.exp_avg_sq"), &[rows, width])?;
+            let state = ParamState::from_parts(
+                name,
+                self.meta_parse(&format!("adam.{name}.lr"))?,
+                width,
+                self.meta_parse(&format!("adam.{name}.step"))?,
+                m,
+                v,
+            )
+            .map_err(|e| self.err(e.to_string()))?;
+            adam.push_state(state);
+        }
+        Ok(adam)
+    }
+}
+
+/// FNV-1a (64-bit): a cheap identity of inputs a checkpoint belongs to (weights, geometry,
+/// bake targets), recorded in checkpoints and bundles and compared on load.
+pub(crate) struct Fnv1a(u64);
+
+impl Fnv1a {
+    pub(crate) fn new() -> Self {
+        Fnv1a(0xcbf2_9ce4_8422_2325)
+    }
+
+    pub(crate) fn eat(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 ^= b as u64;
+            self.0 = self.0.wrapping_mul(0x0100_0000_01b3);
+        }
+    }
+
+    pub(crate) fn eat_f32(&mut self, v: f32) {
+        self.eat(&v.to_bits().to_le_bytes());
+    }
+
+    /// The hash as 16 hexadecimal digits.
+    pub(crate) fn hex(&self) -> String {
+        format!("{:016x}", self.0)
+    }
+}

@@ -102,7 +102,8 @@ impl<'a> Run<'a> {
         }
     }
 
-    fn stop_requested(&self) -> bool {
+    /// Whether the stop flag is raised.
+    pub fn stop_requested(&self) -> bool {
         self.stop.is_some_and(|s| s.load(Ordering::Relaxed))
     }
 }
@@ -173,7 +174,10 @@ pub fn drive<L: TrainingLoop>(
         });
         l.after_step(run.out_dir, run.sink)?;
         let k = cadence.checkpoint_interval;
-        if let Some(dir) = run.out_dir.filter(|_| k > 0 && it.is_multiple_of(k) && it < total) {
+        if let Some(dir) = run
+            .out_dir
+            .filter(|_| k > 0 && it.is_multiple_of(k) && it < total)
+        {
             write_checkpoint(l, dir, run.sink)?;
         }
     }
@@ -260,7 +264,10 @@ mod tests {
             base::write_atomic(path, self.step.to_string().as_bytes())
                 .map_err(|e| TrainError::io(path, e))
         }
-        fn finish(&mut self, out_dir: &Path) -> Result<Option<(&'static str, PathBuf)>, TrainError> {
+        fn finish(
+            &mut self,
+            out_dir: &Path,
+        ) -> Result<Option<(&'static str, PathBuf)>, TrainError> {
             let p = out_dir.join("count.txt");
             base::write_atomic(&p, self.step.to_string().as_bytes())
                 .map_err(|e| TrainError::io(&p, e))?;
@@ -319,7 +326,11 @@ mod tests {
         assert_eq!(progress, 7);
         assert!(matches!(
             events.first(),
-            Some(Event::StageStarted { total: 7, done: 0, .. })
+            Some(Event::StageStarted {
+                total: 7,
+                done: 0,
+                ..
+            })
         ));
         assert!(matches!(
             events.last(),

@@ -64,12 +64,11 @@ use crate::bundle::{
     feature_size, weights_fingerprint, BundleInfo, CameraRecord, SceneBundle, Variant,
     BUNDLE_FORMAT,
 };
-use crate::decoder_training::{
-    conv_default_init, mix, StateReader, StateWriter, INIT_STREAM, STEP_STREAM,
-};
+use crate::checkpoint::{Fnv1a, StateReader, StateWriter};
+use crate::decoder_training::{conv_default_init, mix, INIT_STREAM, STEP_STREAM};
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
-use crate::event::Stage;
 use crate::error::TrainError;
+use crate::event::Stage;
 use crate::geometry::{load_views, View};
 use crate::image_folder::{to_tensor, ImageSet};
 
@@ -480,21 +479,17 @@ pub struct FeatureTrainer {
 /// FNV-1a (64-bit) over the geometry's parameter bits (not its colours or features): which
 /// frozen Gaussians a checkpoint belongs to.
 pub fn geometry_fingerprint(scene: &FeatureGaussians<f32>) -> String {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    let mut eat = |v: f32| {
-        for b in v.to_bits().to_le_bytes() {
-            h ^= b as u64;
-            h = h.wrapping_mul(0x0100_0000_01b3);
-        }
-    };
-    eat(scene.len() as f32);
+    let mut h = Fnv1a::new();
+    h.eat_f32(scene.len() as f32);
     for i in 0..scene.len() {
-        scene.means[i].iter().for_each(|&v| eat(v));
-        scene.log_scales[i].iter().for_each(|&v| eat(v));
-        scene.quats[i].iter().for_each(|&v| eat(v));
-        eat(scene.opacity_logits[i]);
+        let row = scene.means[i]
+            .iter()
+            .chain(&scene.log_scales[i])
+            .chain(&scene.quats[i]);
+        row.chain([&scene.opacity_logits[i]])
+            .for_each(|&v| h.eat_f32(v));
     }
-    format!("{h:016x}")
+    h.hex()
 }
 
 impl FeatureTrainer {

@@ -23,12 +23,12 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
 use style::{channel_stats, encode_style, ChannelStats};
-use train::bake::{bake, bake_cameras, evaluate_baked, initial_baked_scene, optimise, BakeConfig};
+use train::bake::{bake, bake_cameras, evaluate_baked, initial_baked_scene, BakeConfig, Baker};
 use train::bundle::{weights_fingerprint, BundleInfo, CameraRecord, SceneBundle, BUNDLE_FORMAT};
 use train::geometry::View;
 use train::loss::psnr;
 use train::render::render_color;
-use train::{TrainError, Variant};
+use train::{Quiet, Run, TrainError, Variant};
 
 const SIZE: u32 = 48;
 const FEATURES: usize = 8;
@@ -242,7 +242,6 @@ fn config() -> BakeConfig {
         sh_degree: 3,
         interpolated_per_pair: 2,
         held_out: 3,
-        progress: false,
         ..BakeConfig::default()
     }
 }
@@ -274,10 +273,10 @@ fn same_geometry(a: &FeatureGaussians<f32>, b: &FeatureGaussians<f32>) -> bool {
 fn baked_colours_reproduce_held_out_stylized_views() {
     let Fixture { bundle, stats, .. } = fixture();
     let cfg = config();
-    let report = bake(bundle, stats, &cfg, None).unwrap();
+    let report = bake(bundle, stats, &cfg, None, &Run::in_memory()).unwrap();
     let cams = bake_cameras(&bundle.cameras(), &cfg).unwrap();
-    assert_eq!(report.iterations, 150);
-    assert!(!report.interrupted);
+    assert_eq!(report.run.step, 150);
+    assert!(!report.run.interrupted);
     assert_eq!(report.train_views, cams.train.len());
     assert_eq!(report.held_out_views, 3);
 
@@ -362,7 +361,11 @@ fn adapted_geometry_stays_within_its_budget_for_any_thread_count() {
             .num_threads(threads)
             .build()
             .unwrap();
-        pool.install(|| bake(bundle, stats, &cfg, None).unwrap().scene)
+        pool.install(|| {
+            bake(bundle, stats, &cfg, None, &Run::in_memory())
+                .unwrap()
+                .scene
+        })
     };
     let one = run(1);
     let three = run(3);
@@ -477,7 +480,12 @@ fn stop_flag_ends_the_bake() {
     let Fixture { bundle, stats, .. } = fixture();
     let stop = AtomicBool::new(true);
     // Raised before the targets exist: nothing to bake.
-    let e = bake(bundle, stats, &config(), Some(&stop)).unwrap_err();
+    let stopped = Run {
+        out_dir: None,
+        stop: Some(&stop),
+        sink: &Quiet,
+    };
+    let e = bake(bundle, stats, &config(), None, &stopped).unwrap_err();
     assert!(matches!(e, TrainError::Interrupted(_)), "{e}");
     // Raised during the optimisation: the scene as it was, reported as interrupted.
     let cams = bake_cameras(&bundle.cameras(), &config()).unwrap();
@@ -491,11 +499,11 @@ fn stop_flag_ends_the_bake() {
             image: target(bundle, stats, &c.camera),
         })
         .collect();
-    let mut scene = initial_baked_scene(&bundle.scene).unwrap();
-    let before = scene.clone();
-    let (steps, stopped) =
-        optimise(&mut scene, &targets, BACKGROUND, &config(), Some(&stop)).unwrap();
-    assert_eq!((steps, stopped), (0, true));
+    let before = initial_baked_scene(&bundle.scene).unwrap();
+    let mut baker = Baker::new(before.clone(), &targets, BACKGROUND, &config()).unwrap();
+    let outcome = baker.train(&stopped).unwrap();
+    assert_eq!((outcome.step, outcome.interrupted), (0, true));
+    let scene = baker.scene;
     assert_eq!(scene, before);
     // The starting scene: the bundle's DC, zero higher bands, no features.
     let k0 = bundle.scene.sh_coeffs_per_gaussian();
@@ -503,4 +511,70 @@ fn stop_flag_ends_the_bake() {
         assert_eq!(row[0], bundle.scene.sh[i * k0]);
         assert!(row[1..].iter().flatten().all(|&v| v == 0.0));
     }
+}
+
+/// Two training targets of the fixture, rendered here.
+fn two_targets() -> Vec<View> {
+    let Fixture { bundle, stats, .. } = fixture();
+    let cams = bake_cameras(&bundle.cameras(), &config()).unwrap();
+    cams.train
+        .iter()
+        .take(2)
+        .map(|c| View {
+            name: c.name.clone(),
+            camera: c.camera,
+            image: target(bundle, stats, &c.camera),
+        })
+        .collect()
+}
+
+#[test]
+#[cfg_attr(
+    debug_assertions,
+    ignore = "slow without optimisation: run with --release"
+)]
+fn a_bake_resumed_from_its_checkpoint_ends_bit_identical() {
+    let Fixture { bundle, .. } = fixture();
+    let targets = two_targets();
+    // 5 iterations over 2 targets: the checkpoint at 3 falls inside the second pass, so the
+    // resumed view order must continue that pass; adapting geometry covers every Adam group.
+    let cfg = BakeConfig {
+        iterations: 5,
+        checkpoint_interval: 3,
+        adapt_geometry: true,
+        ..config()
+    };
+    let dir = std::env::temp_dir().join(format!("dsgs-bake-resume-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let initial = initial_baked_scene(&bundle.scene).unwrap();
+    let mut whole = Baker::new(initial.clone(), &targets, BACKGROUND, &cfg).unwrap();
+    let outcome = whole.train(&Run::into_dir(&dir)).unwrap();
+    assert_eq!((outcome.step, outcome.interrupted), (5, false));
+    let ck = dir.join(train::driver::CHECKPOINT_FILE);
+    let mut resumed = Baker::resume(&ck, initial.clone(), &targets, BACKGROUND, &cfg).unwrap();
+    assert_eq!(resumed.step(), 3);
+    resumed.train(&Run::in_memory()).unwrap();
+    assert_eq!(resumed.scene, whole.scene, "resumed bake differs");
+    assert_ne!(resumed.scene, initial, "the bake changed nothing");
+
+    // Other targets or another configuration are refused, naming the checkpoint.
+    let other: Vec<View> = targets.iter().rev().cloned().collect();
+    let e = Baker::resume(&ck, initial.clone(), &other, BACKGROUND, &cfg)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        e.contains("other targets") && e.contains("checkpoint.safetensors"),
+        "{e}"
+    );
+    let lr = BakeConfig {
+        feature_lr: 0.5,
+        ..cfg.clone()
+    };
+    let e = Baker::resume(&ck, initial, &targets, BACKGROUND, &lr)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("another bake configuration"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
 }

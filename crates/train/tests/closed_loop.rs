@@ -14,6 +14,7 @@ use train::density::DensifyConfig;
 use train::geometry::{GeometryConfig, GeometryTrainer, View};
 use train::init::{gaussians_from_points, random_points_in_box};
 use train::model::LearningRates;
+use train::Run;
 
 /// Compresses the 3DGS schedule into `iterations` steps.
 pub fn compressed_config(iterations: u64) -> GeometryConfig {
@@ -35,7 +36,6 @@ pub fn compressed_config(iterations: u64) -> GeometryConfig {
         },
         test_iterations: vec![iterations],
         save_iterations: vec![],
-        progress: false,
         ..GeometryConfig::default()
     }
 }
@@ -65,11 +65,11 @@ fn fits_a_known_scene_to_30_db_on_held_out_views() {
     let initial = gaussians_from_points(&cloud, config.sh_degree).unwrap();
     let mut trainer = GeometryTrainer::new(config, initial, train_views, test_views).unwrap();
     let before = trainer.evaluate().unwrap().unwrap();
-    let summary = trainer.train(None, None).unwrap();
+    let summary = trainer.train(&Run::in_memory()).unwrap();
     let after = summary.evaluations.last().copied().unwrap();
     println!(
         "closed loop: held-out PSNR {:.2} dB -> {:.2} dB, SSIM {:.4} -> {:.4}, {} Gaussians, {:.1} s",
-        before.psnr, after.psnr, before.ssim, after.ssim, after.gaussians, summary.seconds
+        before.psnr, after.psnr, before.ssim, after.ssim, after.gaussians, summary.run.seconds
     );
     assert!(
         after.psnr >= 30.0,

@@ -3,6 +3,7 @@
 //! to the uninterrupted one, both variants train; and the image folders it reads from.
 
 use std::path::PathBuf;
+use train::{Quiet, Run};
 
 use dsgs_testkit::{shared_path, Fixture};
 use nets::{Decoder, Encoder, NetWeights, Resolution, StateDict, TensorF32};
@@ -88,7 +89,6 @@ fn config(variant: Variant) -> DecoderTrainConfig {
         eval_pairs: 4,
         eval_interval: 0,
         checkpoint_interval: 0,
-        progress: false,
         ..DecoderTrainConfig::default()
     }
 }
@@ -203,13 +203,13 @@ fn train_writes_checkpoints_and_the_final_weights_and_stops_on_request() {
     cfg.eval_interval = 2;
     let mut t =
         DecoderTrainer::new(enc.clone(), dec.clone(), contents(), styles(), cfg.clone()).unwrap();
-    let summary = t.train(Some(&dir), None).unwrap();
-    assert_eq!(summary.step, 3);
-    assert!(!summary.interrupted);
+    let summary = t.train(&Run::into_dir(&dir)).unwrap();
+    assert_eq!(summary.run.step, 3);
+    assert!(!summary.run.interrupted);
     // evaluations before the first iteration, at 2 (interval) and at 3 (the end)
     let steps: Vec<u64> = summary.evaluations.iter().map(|e| e.step).collect();
     assert_eq!(steps, [0, 2, 3]);
-    let weights = summary.weights.unwrap();
+    let weights = summary.run.output.unwrap().1;
     assert_eq!(weights, dir.join(DECODER_WEIGHTS_FILE));
     let saved = NetWeights::load(&weights).unwrap();
     assert_eq!(
@@ -225,17 +225,23 @@ fn train_writes_checkpoints_and_the_final_weights_and_stops_on_request() {
     let mut resumed =
         DecoderTrainer::resume(&ck, enc.clone(), contents(), styles(), cfg.clone()).unwrap();
     assert_eq!(resumed.step(), 2);
-    resumed.train(None, None).unwrap();
+    resumed.train(&Run::in_memory()).unwrap();
     assert_eq!(weights_of(resumed.decoder()), weights_of(t.decoder()));
 
     // a raised stop flag ends the run before its first iteration and leaves a checkpoint
     std::fs::remove_file(&ck).unwrap();
     let stop = std::sync::atomic::AtomicBool::new(true);
     let mut s = DecoderTrainer::new(enc, dec, contents(), styles(), cfg).unwrap();
-    let summary = s.train(Some(&dir), Some(&stop)).unwrap();
-    assert!(summary.interrupted);
-    assert_eq!(summary.step, 0);
-    assert!(summary.weights.is_none());
+    let summary = s
+        .train(&Run {
+            out_dir: Some(&dir),
+            stop: Some(&stop),
+            sink: &Quiet,
+        })
+        .unwrap();
+    assert!(summary.run.interrupted);
+    assert_eq!(summary.run.step, 0);
+    assert!(summary.run.output.is_none());
     assert!(ck.is_file());
     let _ = std::fs::remove_dir_all(&dir);
 }

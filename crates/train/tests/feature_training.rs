@@ -6,6 +6,7 @@
 mod common;
 
 use std::path::PathBuf;
+use train::Run;
 
 use common::{render_views, sphere_cameras, synthetic_scene};
 use dsgs_testkit::{shared_path, Fixture};
@@ -103,7 +104,6 @@ fn config(variant: Variant) -> FeatureTrainConfig {
         lr_lifter: 0.01,
         seed: 5,
         checkpoint_interval: 0,
-        progress: false,
         ..FeatureTrainConfig::default()
     }
 }
@@ -338,10 +338,10 @@ fn the_bundle_saves_loads_and_renders() {
     cfg.iterations = 3;
     cfg.checkpoint_interval = 2;
     let mut t = FeatureTrainer::new(cfg, inputs()).unwrap();
-    let summary = t.train(Some(&dir), None).unwrap();
-    assert_eq!(summary.step, 3);
+    let summary = t.train(&Run::into_dir(&dir)).unwrap();
+    assert_eq!(summary.run.step, 3);
     assert!(dir.join(FEATURE_CHECKPOINT_FILE).is_file());
-    let bundle_dir = summary.bundle.unwrap();
+    let bundle_dir = summary.run.output.unwrap().1;
     assert_eq!(bundle_dir, dir.join(BUNDLE_DIR));
 
     let b = SceneBundle::load(&bundle_dir).unwrap();

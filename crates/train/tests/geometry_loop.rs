@@ -9,6 +9,7 @@ use train::density::DensifyConfig;
 use train::geometry::{GeometryConfig, GeometryTrainer, View};
 use train::init::{gaussians_from_points, random_points_in_box};
 use train::model::LearningRates;
+use train::Run;
 
 /// A 20-iteration schedule that exercises every event: SH degree increments (every 5),
 /// densification (every 4 from 4 to 18) and opacity resets (every 12).
@@ -33,7 +34,6 @@ fn busy_config() -> GeometryConfig {
         },
         test_iterations: vec![],
         save_iterations: vec![],
-        progress: false,
         ..GeometryConfig::default()
     }
 }
@@ -76,8 +76,8 @@ fn resuming_from_a_checkpoint_reproduces_the_uninterrupted_run() {
     drop(first);
     let mut resumed = GeometryTrainer::resume(busy_config(), ckpt, views(), vec![]).unwrap();
     assert_eq!(resumed.step, 10);
-    let summary = resumed.train(None, None).unwrap();
-    assert_eq!(summary.step, 20);
+    let summary = resumed.train(&Run::in_memory()).unwrap();
+    assert_eq!(summary.run.step, 20);
 
     assert_eq!(
         resumed.model, straight.model,

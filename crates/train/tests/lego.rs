@@ -10,6 +10,7 @@
 use gaussian::dataset::{Dataset, LoadOptions, Resolution};
 use train::geometry::{load_views, GeometryConfig, GeometryTrainer};
 use train::init::{gaussians_from_points, random_points_in_box};
+use train::Run;
 
 #[test]
 #[cfg_attr(
@@ -37,19 +38,18 @@ fn a_short_lego_run_raises_held_out_psnr() {
         background: [1.0; 3],
         test_iterations: vec![300],
         save_iterations: vec![],
-        progress: false,
         ..GeometryConfig::default()
     };
     let cloud = random_points_in_box(20_000, [-1.3; 3], [1.3; 3], config.seed);
     let initial = gaussians_from_points(&cloud, config.sh_degree).unwrap();
     let mut trainer = GeometryTrainer::new(config, initial, train_views, test_views).unwrap();
     let before = trainer.evaluate().unwrap().unwrap();
-    let summary = trainer.train(None, None).unwrap();
+    let summary = trainer.train(&Run::in_memory()).unwrap();
     let after = *summary.evaluations.last().unwrap();
     println!(
         "lego 100x100, 300 iterations: held-out PSNR {:.2} -> {:.2} dB, SSIM {:.4} -> {:.4}, \
          {:.1} s",
-        before.psnr, after.psnr, before.ssim, after.ssim, summary.seconds
+        before.psnr, after.psnr, before.ssim, after.ssim, summary.run.seconds
     );
     assert!(
         after.psnr >= before.psnr + 8.0,

@@ -1,9 +1,11 @@
 //! `dsgs stylize`: zero-shot stylization of a scene bundle along a camera sequence.
 //!
-//! Each camera's feature map is rasterized once and kept in memory ([`FeatureView`]), so every
-//! further style costs only the lift, the transform and the decode of that map. The stages
-//! follow `train::bundle` exactly ([`decode_view`] is `SceneBundle::decode` split into timed
-//! stages).
+//! A frame, top down ([`run`]): rasterize the camera's feature map
+//! ([`render_feature_view`], `SceneBundle::render_features`), then per style the target
+//! statistics (`SceneBundle::target_stats`), lift, transform and decode
+//! (`SceneBundle::decode_timed`) and clamp ([`stylize_view`]). Each camera's feature map is
+//! rasterized once and kept in memory ([`FeatureView`]), so every further style costs only the
+//! lift, the transform and the decode of that map.
 //!
 //! Styles:
 //! * each `--style` image is read, reduced so its longer side is at most `max_side`, and encoded
@@ -224,26 +226,6 @@ pub struct StageSeconds {
     pub decode: f64,
 }
 
-/// `SceneBundle::decode` in timed stages: lift, transform with `stats` (the target statistics
-/// from `SceneBundle::target_stats`), decode, crop to `width x height`. Returns the image
-/// `[1, 3, height, width]` (not clamped) and the seconds of lift + transform and of decode.
-pub fn decode_view(
-    bundle: &SceneBundle,
-    features: &Array4<f32>,
-    stats: &ChannelStats<f32>,
-    width: u32,
-    height: u32,
-) -> Result<(Array4<f32>, f64, f64)> {
-    let t0 = Instant::now();
-    let lifted = bundle.lifter.forward(features.view())?;
-    let t = style::style_transform(&lifted, stats)?;
-    let t1 = Instant::now();
-    let image = bundle.decoder.forward(t.view())?;
-    let image = train::bundle::crop(image, width, height)?;
-    let t2 = Instant::now();
-    Ok((image, (t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64()))
-}
-
 /// Decodes a cached view for a target at strength `alpha`: the clamped RGB image and the stage
 /// times (raster time from the cache).
 pub fn stylize_view(
@@ -254,7 +236,7 @@ pub fn stylize_view(
 ) -> Result<(RgbImage, StageSeconds)> {
     let stats = bundle.target_stats(target.stats.deepest(), alpha)?;
     let k = view.camera.intrinsics;
-    let (img, lt, dec) = decode_view(bundle, &view.features, &stats, k.width, k.height)?;
+    let (img, [lt, dec]) = bundle.decode_timed(&view.features, &stats, k.width, k.height)?;
     Ok((
         image_io::clamped(&rgb_from_nchw(&img)?),
         StageSeconds {

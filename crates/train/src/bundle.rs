@@ -24,6 +24,7 @@
 //!    overshoot by up to `2^levels - 1` pixels).
 
 use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 use gaussian::ply::{load_ply, save_ply};
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
@@ -425,12 +426,33 @@ impl SceneBundle {
         width: u32,
         height: u32,
     ) -> Result<Array4<f32>, TrainError> {
+        Ok(self.decode_timed(features, stats, width, height)?.0)
+    }
+
+    /// [`SceneBundle::decode`], also returning the wall time of lift + transform and of the
+    /// decoder (with the crop), in seconds.
+    ///
+    /// A stylized frame, top down: [`SceneBundle::render_features`] (rasterize the per-Gaussian
+    /// features at the feature resolution), then here: lift to the encoder width, transform
+    /// with the target statistics (`T(x) = std(s) x + mean(s)`, from
+    /// [`SceneBundle::target_stats`]), decode to RGB.
+    pub fn decode_timed(
+        &self,
+        features: &Array4<f32>,
+        stats: &ChannelStats<f32>,
+        width: u32,
+        height: u32,
+    ) -> Result<(Array4<f32>, [f64; 2]), TrainError> {
         let net = |e: nets::NetError| TrainError::Shape(e.to_string());
+        let t0 = Instant::now();
         let lifted = self.lifter.forward(features.view()).map_err(net)?;
         let t =
             style::style_transform(&lifted, stats).map_err(|e| TrainError::Shape(e.to_string()))?;
+        let t1 = Instant::now();
         let image = self.decoder.forward(t.view()).map_err(net)?;
-        crop(image, width, height)
+        let image = crop(image, width, height)?;
+        let t2 = Instant::now();
+        Ok((image, [(t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64()]))
     }
 }
 

@@ -212,7 +212,7 @@ impl GaussianModel {
     pub fn clone_gaussians(&mut self, selected: &[bool]) -> Result<usize, TrainError> {
         self.check_mask(selected)?;
         let idx = indices(selected);
-        let new = rows(&self.scene, &idx);
+        let new = self.scene.subset(&idx);
         self.append(new)?;
         Ok(idx.len())
     }
@@ -236,7 +236,7 @@ impl GaussianModel {
         let idx = indices(selected);
         let m = idx.len();
         let copies: Vec<usize> = (0..count).flat_map(|_| idx.iter().copied()).collect();
-        let mut new = rows(&self.scene, &copies);
+        let mut new = self.scene.subset(&copies);
         let divisor = scale_factor * count as f64;
         for (j, &i) in copies.iter().enumerate() {
             let scale = self.scene.log_scales[i].map(|l| (l as f64).exp());
@@ -266,7 +266,7 @@ impl GaussianModel {
         self.check_mask(remove)?;
         let keep: Vec<bool> = remove.iter().map(|&r| !r).collect();
         let idx = indices(&keep);
-        self.scene = rows(&self.scene, &idx);
+        self.scene = self.scene.subset(&idx);
         for p in 0..self.adam.params().len() {
             self.adam.param_mut(p).retain_rows(&keep)?;
         }
@@ -374,30 +374,4 @@ fn select<T: Copy>(v: &[T], mask: &[bool]) -> Vec<T> {
         .zip(mask)
         .filter_map(|(&x, &m)| m.then_some(x))
         .collect()
-}
-
-/// The Gaussians at `idx`, in that order.
-fn rows(scene: &FeatureGaussians<f32>, idx: &[usize]) -> FeatureGaussians<f32> {
-    let k = scene.sh_coeffs_per_gaussian();
-    let f = scene.feature_dim;
-    let mut out = FeatureGaussians {
-        means: Vec::with_capacity(idx.len()),
-        log_scales: Vec::with_capacity(idx.len()),
-        quats: Vec::with_capacity(idx.len()),
-        opacity_logits: Vec::with_capacity(idx.len()),
-        sh_degree: scene.sh_degree,
-        sh: Vec::with_capacity(idx.len() * k),
-        feature_dim: f,
-        features: Vec::with_capacity(idx.len() * f),
-    };
-    for &i in idx {
-        out.means.push(scene.means[i]);
-        out.log_scales.push(scene.log_scales[i]);
-        out.quats.push(scene.quats[i]);
-        out.opacity_logits.push(scene.opacity_logits[i]);
-        out.sh.extend_from_slice(&scene.sh[i * k..(i + 1) * k]);
-        out.features
-            .extend_from_slice(&scene.features[i * f..(i + 1) * f]);
-    }
-    out
 }

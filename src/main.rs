@@ -444,8 +444,8 @@ struct RenderArgs {
 
 #[derive(Args)]
 struct StyleArgs {
-    /// Style image (repeat for several styles).
-    #[arg(long = "style", required = true)]
+    /// Style image (repeat for several styles; at least one).
+    #[arg(long = "style")]
     styles: Vec<PathBuf>,
     /// Mix the styles with these weights into one output (comma-separated, one per style).
     #[arg(long, value_delimiter = ',')]
@@ -500,7 +500,7 @@ struct EvalArgs {
     /// Scene bundle directory (to render and evaluate stylized sequences).
     bundle: Option<PathBuf>,
     #[command(flatten)]
-    style: EvalStyleArgs,
+    style: StyleArgs,
     #[command(flatten)]
     cameras: CameraArgs,
     /// Evaluate the existing frames (*.png in name order) of this directory instead, against
@@ -522,31 +522,6 @@ struct EvalArgs {
     /// No progress bar.
     #[arg(long)]
     no_progress: bool,
-}
-
-#[derive(Args)]
-struct EvalStyleArgs {
-    /// Style image (repeat for several styles).
-    #[arg(long = "style")]
-    styles: Vec<PathBuf>,
-    /// Mix the styles with these weights into one output.
-    #[arg(long, value_delimiter = ',')]
-    weights: Option<Vec<f64>>,
-    /// Style strength.
-    #[arg(long, default_value_t = 1.0)]
-    alpha: f64,
-    /// Keep the scene's colours.
-    #[arg(long)]
-    preserve_colour: bool,
-    /// Longest side of the style images after loading.
-    #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE)]
-    style_size: u32,
-    /// Network variant (default: the bundle's).
-    #[arg(long)]
-    variant: Option<Variant>,
-    /// Replace the bundle's decoder.
-    #[arg(long)]
-    decoder: Option<PathBuf>,
 }
 
 fn main() -> ExitCode {
@@ -917,6 +892,9 @@ fn demo(a: DemoArgs) -> Result<()> {
 }
 
 fn stylize(a: StylizeArgs) -> Result<()> {
+    if a.style.styles.is_empty() {
+        bail!("give at least one --style image to stylize with");
+    }
     let bundle = bundle_with(&a.bundle, a.style.variant, a.style.decoder.as_deref())?;
     let known = a.cameras.known(KnownCameras::from_bundle(
         &bundle,

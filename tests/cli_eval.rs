@@ -132,18 +132,3 @@ fn bad_eval_input_is_refused_with_a_message() {
     assert!(err.contains("no .png frames"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
-
-#[test]
-fn timed_decode_equals_the_bundle_decode() {
-    let bundle = common::tiny_bundle();
-    let cam = bundle.cameras()[3];
-    let feats = bundle.render_features(&cam).unwrap();
-    let style =
-        pipeline::image_io::load_style_image(&shared_path("data/styles/mondrian.jpg"), 64).unwrap();
-    let stats =
-        style::encode_style(&bundle.encoder, &pipeline::image_io::nchw_from_rgb(&style)).unwrap();
-    let target = bundle.target_stats(stats.deepest(), 0.7).unwrap();
-    let expect = bundle.decode(&feats, &target, 64, 64).unwrap();
-    let (got, _, _) = pipeline::stylize::decode_view(&bundle, &feats, &target, 64, 64).unwrap();
-    assert_eq!(got, expect);
-}

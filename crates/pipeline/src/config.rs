@@ -73,6 +73,26 @@ fn unknown_keys(given: &toml::Value, known: &toml::Value, prefix: &str, out: &mu
     }
 }
 
+/// The effective configuration of a training command writing into `out_dir`: the file `config`
+/// when given, otherwise, when resuming, the run's saved `config.toml` if there is one,
+/// otherwise the defaults; `overrides` (the command-line flags) are applied on top.
+pub fn effective<T: DeserializeOwned + Serialize + Default>(
+    config: Option<&Path>,
+    resuming: bool,
+    out_dir: &Path,
+    overrides: impl FnOnce(&mut T),
+) -> Result<T> {
+    let saved = out_dir.join(CONFIG_FILE);
+    let base = match config {
+        Some(p) => Some(p.to_path_buf()),
+        None if resuming && saved.is_file() => Some(saved),
+        None => None,
+    };
+    let mut c: T = load(base.as_deref())?;
+    overrides(&mut c);
+    Ok(c)
+}
+
 /// Reads the configuration in `path`, or the default without a path.
 pub fn load<T: DeserializeOwned + Serialize + Default>(path: Option<&Path>) -> Result<T> {
     match path {
@@ -147,5 +167,38 @@ mod tests {
     fn wrong_types_are_refused() {
         let e = parse::<Demo>("steps = \"many\"", Path::new("cfg.toml")).unwrap_err();
         assert!(format!("{e:#}").contains("cfg.toml"));
+    }
+
+    #[test]
+    fn retired_keys_of_older_runs_are_ignored_at_any_level() {
+        let text = "steps = 3\nprogress = false\n[inner]\nrate = 0.5\nprogress = true\n";
+        let c: Demo = parse(text, Path::new("old.toml")).unwrap();
+        assert_eq!(
+            c,
+            Demo {
+                steps: 3,
+                inner: Inner { rate: 0.5 }
+            }
+        );
+    }
+
+    #[test]
+    fn the_effective_configuration_prefers_the_file_then_the_saved_one_when_resuming() {
+        let dir = std::env::temp_dir().join(format!("dsgs-config-{}", std::process::id()));
+        let saved = Demo {
+            steps: 9,
+            inner: Inner { rate: 1.0 },
+        };
+        save(&saved, &dir).unwrap();
+        let bump = |c: &mut Demo| c.steps += 1;
+        let fresh: Demo = effective(None, false, &dir, bump).unwrap();
+        assert_eq!(fresh.steps, 1);
+        let resumed: Demo = effective(None, true, &dir, bump).unwrap();
+        assert_eq!(resumed.steps, 10);
+        let other = dir.join("other.toml");
+        std::fs::write(&other, "steps = 2").unwrap();
+        let given: Demo = effective(Some(&other), true, &dir, bump).unwrap();
+        assert_eq!(given.steps, 3);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

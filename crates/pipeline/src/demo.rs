@@ -24,6 +24,7 @@ use std::time::Instant;
 
 use crate::error::{bail, Context, Error, Result};
 use crate::Control;
+use train::checkpoint::checkpoint_step;
 use train::{FeatureTrainConfig, Variant};
 
 use crate::cameras::{CameraRequest, CameraSource, KnownCameras};
@@ -151,8 +152,9 @@ fn timed<T>(f: impl FnOnce() -> Result<T>) -> Result<(T, f64)> {
     Ok((v, t.elapsed().as_secs_f64()))
 }
 
-/// The newest checkpoint of a geometry run directory: the kept `chkpnt_N.safetensors` or the
-/// periodic and stop `checkpoint.safetensors`, whichever was written last.
+/// The checkpoint of a geometry run directory with the most iterations: a kept
+/// `chkpnt_N.safetensors` or the periodic and stop `checkpoint.safetensors` (unreadable files
+/// are passed over).
 fn latest_geometry_checkpoint(dir: &Path) -> Option<PathBuf> {
     let entries = std::fs::read_dir(dir).ok()?;
     entries
@@ -163,8 +165,8 @@ fn latest_geometry_checkpoint(dir: &Path) -> Option<PathBuf> {
             name == train::driver::CHECKPOINT_FILE
                 || (name.starts_with("chkpnt_") && name.ends_with(".safetensors"))
         })
-        .filter_map(|e| Some((e.metadata().ok()?.modified().ok()?, e.path())))
-        .max_by_key(|(t, _)| *t)
+        .filter_map(|e| Some((checkpoint_step(&e.path()).ok()?, e.path())))
+        .max_by_key(|(step, _)| *step)
         .map(|(_, p)| p)
 }
 
@@ -187,7 +189,7 @@ pub fn geometry_config(s: &DemoSettings) -> FitGeometryConfig {
     g.densify.opacity_reset_interval = n + 1;
     g.test_iterations = vec![n];
     g.save_iterations = vec![n];
-    g.checkpoint_iterations = vec![n];
+    g.checkpoint_iterations = vec![n / 2, n];
     g.checkpoint_interval = (n / 4).max(1);
     g.log_interval = 0;
     c
@@ -408,13 +410,25 @@ mod tests {
     fn latest_checkpoint_is_the_highest_iteration() {
         let dir = std::env::temp_dir().join(format!("dsgs-demo-ck-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
+        // A safetensors header holding only the step.
+        let header = |step: u64| {
+            let json = format!("{{\"__metadata__\":{{\"step\":\"{step}\"}}}}");
+            [&(json.len() as u64).to_le_bytes()[..], json.as_bytes()].concat()
+        };
         for n in [500, 1000, 90] {
-            std::fs::write(dir.join(format!("chkpnt_{n}.safetensors")), b"").unwrap();
+            std::fs::write(dir.join(format!("chkpnt_{n}.safetensors")), header(n)).unwrap();
         }
         std::fs::write(dir.join("chkpnt_x.safetensors"), b"").unwrap();
+        std::fs::write(dir.join("checkpoint.safetensors"), header(750)).unwrap();
         assert_eq!(
             latest_geometry_checkpoint(&dir),
             Some(dir.join("chkpnt_1000.safetensors"))
+        );
+        // A stop checkpoint past the kept ones is the one to resume.
+        std::fs::write(dir.join("checkpoint.safetensors"), header(1200)).unwrap();
+        assert_eq!(
+            latest_geometry_checkpoint(&dir),
+            Some(dir.join("checkpoint.safetensors"))
         );
         std::fs::remove_dir_all(&dir).unwrap();
     }

@@ -183,15 +183,12 @@ pub struct FitReport {
 
 /// The effective configuration of a run (base configuration plus overrides).
 pub fn effective_config(settings: &FitSettings) -> Result<FitGeometryConfig> {
-    let saved = settings.out_dir.join(config::CONFIG_FILE);
-    let base = match (&settings.config, &settings.resume) {
-        (Some(p), _) => Some(p.clone()),
-        (None, Some(_)) if saved.is_file() => Some(saved),
-        _ => None,
-    };
-    let mut c: FitGeometryConfig = config::load(base.as_deref())?;
-    settings.overrides.apply(&mut c);
-    Ok(c)
+    config::effective(
+        settings.config.as_deref(),
+        settings.resume.is_some(),
+        &settings.out_dir,
+        |c| settings.overrides.apply(c),
+    )
 }
 
 /// Runs the geometry stage, reporting to the control's sink. A stop request ends the run after

@@ -25,6 +25,33 @@ use crate::error::TrainError;
 use crate::model::GaussianModel;
 use raster::DensificationStats;
 
+/// The completed step recorded in the `step` metadata of any checkpoint of dsgs (geometry,
+/// decoder, features, bake), read from the file's header alone.
+pub fn checkpoint_step(path: &Path) -> Result<u64, TrainError> {
+    use std::io::Read;
+    let bad = |message: String| TrainError::Checkpoint {
+        path: path.to_path_buf(),
+        message,
+    };
+    let mut f = std::fs::File::open(path).map_err(|e| TrainError::io(path, e))?;
+    let mut len = [0u8; 8];
+    f.read_exact(&mut len)
+        .map_err(|e| bad(format!("no safetensors header ({e})")))?;
+    let len = u64::from_le_bytes(len);
+    if len > 100_000_000 {
+        return Err(bad(format!("a header of {len} bytes is not plausible")));
+    }
+    let mut header = vec![0u8; len as usize];
+    f.read_exact(&mut header)
+        .map_err(|e| bad(format!("truncated header ({e})")))?;
+    let json: serde_json::Value =
+        serde_json::from_slice(&header).map_err(|e| bad(format!("header is not JSON ({e})")))?;
+    json["__metadata__"]["step"]
+        .as_str()
+        .and_then(|s| s.parse().ok())
+        .ok_or_else(|| bad("no step in the metadata".into()))
+}
+
 /// The value of the `format` metadata entry.
 pub const FORMAT: &str = "dsgs-geometry-checkpoint-v1";
 

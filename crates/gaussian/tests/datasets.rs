@@ -8,7 +8,7 @@
 
 use std::path::{Path, PathBuf};
 
-use dsgs_testkit::shared_path;
+use dsgs_testkit::{repo_fixture, scratch_dir, shared_path};
 use gaussian::dataset::colmap::{self, CameraModel};
 use gaussian::dataset::images::{resize, undistort, RgbImage};
 use gaussian::dataset::{
@@ -18,19 +18,6 @@ use gaussian::dataset::{
 use gaussian::npy::{parse_npy, read_npy};
 use gaussian::{Camera, Intrinsics};
 use glam::DVec3;
-
-fn fixture(rel: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../fixtures")
-        .join(rel)
-}
-
-fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("dsgs-data-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 fn beer_can() -> PathBuf {
     shared_path("data/scenes/beer_can")
@@ -446,7 +433,7 @@ fn undistortion_inverts_a_synthetic_distortion() {
 /// Expected values computed by hand from the fixture text.
 #[test]
 fn colmap_text_fixture() {
-    let model = colmap::read_model(&fixture("colmap_tiny/sparse/0")).unwrap();
+    let model = colmap::read_model(&repo_fixture("colmap_tiny/sparse/0")).unwrap();
     assert_eq!(model.cameras.len(), 2);
     assert_eq!(model.cameras[0].model, CameraModel::Pinhole);
     assert_eq!(model.cameras[1].model, CameraModel::SimpleRadial);
@@ -487,11 +474,11 @@ fn colmap_text_fixture() {
 /// y, t = (0, 0, 4)) has its centre at -R^T t = (4, 0, 0) and looks along -x.
 #[test]
 fn colmap_text_fixture_as_dataset() {
-    let dir = scratch("colmap_tiny");
+    let dir = scratch_dir("data", "colmap_tiny");
     let sparse = dir.join("sparse/0");
     std::fs::create_dir_all(&sparse).unwrap();
     for f in ["cameras.txt", "images.txt", "points3D.txt"] {
-        std::fs::copy(fixture("colmap_tiny/sparse/0").join(f), sparse.join(f)).unwrap();
+        std::fs::copy(repo_fixture("colmap_tiny/sparse/0").join(f), sparse.join(f)).unwrap();
     }
     std::fs::create_dir_all(dir.join("images")).unwrap();
     for name in ["a.png", "b.png"] {

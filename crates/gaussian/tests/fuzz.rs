@@ -7,9 +7,9 @@
 //! loads must also survive the next stage (saving a PLY, building cameras from poses).
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-use dsgs_testkit::shared_path;
+use dsgs_testkit::{repo_fixture, shared_path};
 use gaussian::dataset::colmap::{
     self, parse_cameras_bin, parse_cameras_txt, parse_images_bin, parse_images_txt,
     parse_points3d_bin, parse_points3d_txt, ColmapModel,
@@ -33,12 +33,6 @@ impl Rng {
     fn below(&mut self, n: usize) -> usize {
         (self.next() % n as u64) as usize
     }
-}
-
-fn fixture(rel: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../fixtures")
-        .join(rel)
 }
 
 /// Runs `f` on the truncations of `input` at `offsets` and on `mutations` corrupted copies,
@@ -114,8 +108,8 @@ fn ply_inputs_never_panic() {
         values: (0..12).map(|i| i as f64 - 6.0).collect(),
     };
     let binary = encode_ply(&scene, &[extra], Path::new("small.ply")).unwrap();
-    let ascii = std::fs::read(fixture("ply/tiny_ascii_deg1.ply")).unwrap();
-    let big_endian = std::fs::read(fixture("ply/tiny_be_deg0_feat2.ply")).unwrap();
+    let ascii = std::fs::read(repo_fixture("ply/tiny_ascii_deg1.ply")).unwrap();
+    let big_endian = std::fs::read(repo_fixture("ply/tiny_be_deg0_feat2.ply")).unwrap();
     for (name, input, seed) in [
         ("binary LE PLY", &binary, 1),
         ("ASCII PLY", &ascii, 2),
@@ -208,7 +202,7 @@ fn encode_model_bin(m: &ColmapModel) -> [Vec<u8>; 3] {
 
 #[test]
 fn colmap_text_and_binary_never_panic() {
-    let dir = fixture("colmap_tiny/sparse/0");
+    let dir = repo_fixture("colmap_tiny/sparse/0");
     let model = colmap::read_model(&dir).unwrap();
     // The binary encoding of the text fixture parses back to the same model.
     let [cams, imgs, pts] = encode_model_bin(&model);
@@ -288,7 +282,7 @@ fn colmap_dataset_loading_never_panics() {
             .save(root.join("images").join(name))
             .unwrap();
     }
-    let src = fixture("colmap_tiny/sparse/0");
+    let src = repo_fixture("colmap_tiny/sparse/0");
     for f in ["cameras.txt", "images.txt", "points3D.txt"] {
         std::fs::copy(src.join(f), sparse.join(f)).unwrap();
     }

@@ -4,26 +4,12 @@
 
 use std::path::{Path, PathBuf};
 
-use dsgs_testkit::shared_path;
+use dsgs_testkit::{repo_fixture, scratch_dir, shared_path};
 use gaussian::ply::{
     encode_ply, load_ply, load_ply_with_extras, parse_ply, property_names, save_ply,
     save_ply_with_extras, ExtraProperty, PlyErrorKind, ScalarType,
 };
 use gaussian::FeatureGaussians;
-
-fn fixture(rel: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../fixtures")
-        .join(rel)
-}
-
-/// A fresh, empty scratch directory for one test.
-fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("dsgs-ply-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 fn trained() -> PathBuf {
     shared_path("data/gaussians/trained_9080.ply")
@@ -43,7 +29,7 @@ fn trained_file_loads_and_resaves_byte_identically() {
     assert_eq!(encoded.len(), original.len());
     assert!(encoded == original, "re-encoded bytes differ");
 
-    let dir = scratch("resave");
+    let dir = scratch_dir("ply", "resave");
     let out = dir.join("point_cloud.ply");
     save_ply(&out, &scene).unwrap();
     assert!(
@@ -117,7 +103,7 @@ fn trained_file_round_trips_with_32_features() {
     for (i, v) in scene.features.iter_mut().enumerate() {
         *v = ((i as f32) * 0.37).sin() * 3.0 - 0.5;
     }
-    let dir = scratch("features");
+    let dir = scratch_dir("ply", "features");
     let out = dir.join("features.ply");
     save_ply(&out, &scene).unwrap();
     let back = load_ply(&out).unwrap();
@@ -140,7 +126,7 @@ fn trained_file_round_trips_with_32_features() {
 /// rest coefficients per channel: `sh[k][c] = f_rest_{3c + k-1}`.
 #[test]
 fn ascii_fixture_with_shuffled_properties() {
-    let s = load_ply_with_extras(fixture("ply/tiny_ascii_deg1.ply")).unwrap();
+    let s = load_ply_with_extras(repo_fixture("ply/tiny_ascii_deg1.ply")).unwrap();
     let g = &s.gaussians;
     assert_eq!(g.len(), 2);
     assert_eq!(g.sh_degree, 1);
@@ -173,7 +159,7 @@ fn ascii_fixture_with_shuffled_properties() {
 
 #[test]
 fn big_endian_fixture_with_double_and_features() {
-    let g = load_ply(fixture("ply/tiny_be_deg0_feat2.ply")).unwrap();
+    let g = load_ply(repo_fixture("ply/tiny_be_deg0_feat2.ply")).unwrap();
     assert_eq!(g.len(), 2);
     assert_eq!(g.sh_degree, 0);
     assert_eq!(g.feature_dim, 2);
@@ -187,8 +173,8 @@ fn big_endian_fixture_with_double_and_features() {
 
 #[test]
 fn extra_columns_round_trip() {
-    let s = load_ply_with_extras(fixture("ply/tiny_ascii_deg1.ply")).unwrap();
-    let dir = scratch("extras");
+    let s = load_ply_with_extras(repo_fixture("ply/tiny_ascii_deg1.ply")).unwrap();
+    let dir = scratch_dir("ply", "extras");
     let out = dir.join("extras.ply");
     save_ply_with_extras(&out, &s.gaussians, &s.extras).unwrap();
     let back = load_ply_with_extras(&out).unwrap();
@@ -374,7 +360,7 @@ fn io_errors_name_the_file() {
     let err = load_ply(missing).unwrap_err();
     assert!(matches!(err.kind, PlyErrorKind::Io(_)));
     assert!(err.to_string().contains("none.ply"));
-    let g = load_ply(fixture("ply/tiny_be_deg0_feat2.ply")).unwrap();
+    let g = load_ply(repo_fixture("ply/tiny_be_deg0_feat2.ply")).unwrap();
     // A directory that cannot be created (a regular file is in the way), whoever runs the test.
     let file = std::env::temp_dir().join(format!("dsgs-ply-blocker-{}", std::process::id()));
     std::fs::write(&file, b"not a directory").unwrap();

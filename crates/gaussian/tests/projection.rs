@@ -2,11 +2,11 @@
 
 mod oracle_case;
 
-use dsgs_testkit::{assert_close, max_rel_err};
-use gaussian::project::{project, project_backward, ProjectSettings, Projected};
+use dsgs_testkit::{assert_close_verbose, max_rel_err, Fixture};
+use gaussian::project::{project, project_backward, ProjectSettings, Projected, ProjectionGrads};
 use gaussian::{Camera, Intrinsics};
 use glam::{DMat3, DQuat, DVec3};
-use oracle_case::{fixture, flat, inputs, rows, CASES};
+use oracle_case::{fixture, flat, inputs, rows, Inputs, CASES};
 use proptest::prelude::*;
 use proptest::test_runner::FileFailurePersistence;
 
@@ -31,28 +31,12 @@ fn forward_matches_oracle_in_f64() {
         let e_conics = rows::<3>(&f, &format!("{case}.conics"));
         let e_depths = &f.get(&format!("{case}.depths")).data;
         let e_radii = rows::<2>(&f, &format!("{case}.radii"));
-        let errs = [
-            max_rel_err(&flat(&p.means2d), &flat(&e_means2d)),
-            max_rel_err(&flat(&p.conics), &flat(&e_conics)),
-            max_rel_err(&p.depths, e_depths),
-        ];
-        println!(
-            "{case}: means2d {:.2e} conics {:.2e} depths {:.2e}",
-            errs[0], errs[1], errs[2]
-        );
-        assert_close(
-            &format!("{case} means2d"),
-            &flat(&p.means2d),
-            &flat(&e_means2d),
-            TOL_F64,
-        );
-        assert_close(
-            &format!("{case} conics"),
-            &flat(&p.conics),
-            &flat(&e_conics),
-            TOL_F64,
-        );
-        assert_close(&format!("{case} depths"), &p.depths, e_depths, TOL_F64);
+        let check = |what: &str, actual: &[f64], expected: &[f64]| {
+            assert_close_verbose(&format!("{case} {what}"), actual, expected, TOL_F64);
+        };
+        check("means2d", &flat(&p.means2d), &flat(&e_means2d));
+        check("conics", &flat(&p.conics), &flat(&e_conics));
+        check("depths", &p.depths, e_depths);
         let radii: Vec<[f64; 2]> = p.radii.iter().map(|r| r.map(f64::from)).collect();
         assert_eq!(radii, e_radii, "{case}: radii differ");
     }
@@ -98,17 +82,46 @@ fn forward_in_f32_is_close_to_oracle() {
         let e_c = pick(f.get(&format!("{case}.conics")).data.clone(), 3);
         let a_m = pick(up(p.means2d.iter().flatten().copied().collect()), 2);
         let a_c = pick(up(p.conics.iter().flatten().copied().collect()), 3);
-        println!(
-            "{case} f32: means2d {:.2e} conics {:.2e}",
-            max_rel_err(&a_m, &e_m),
-            max_rel_err(&a_c, &e_c)
-        );
-        assert_close(&format!("{case} f32 means2d"), &a_m, &e_m, 1e-5);
-        assert_close(&format!("{case} f32 conics"), &a_c, &e_c, 1e-5);
+        assert_close_verbose(&format!("{case} f32 means2d"), &a_m, &e_m, 1e-5);
+        assert_close_verbose(&format!("{case} f32 conics"), &a_c, &e_c, 1e-5);
         let e_r = rows::<2>(&f, &format!("{case}.radii"));
         let radii: Vec<[f64; 2]> = p.radii.iter().map(|r| r.map(f64::from)).collect();
         assert_eq!(radii, e_r, "{case}: f32 radii differ");
     }
+}
+
+/// The projection of `x` (default settings) and its backward pass with the given cotangents.
+fn project_with_backward(
+    x: &Inputs,
+    v_means2d: &[[f64; 2]],
+    v_conics: &[[f64; 3]],
+    v_depths: &[f64],
+) -> (Projected<f64>, ProjectionGrads<f64>) {
+    let s = ProjectSettings::default();
+    let p = project(&x.camera, &x.means, &x.quats, &x.log_scales, &s);
+    let g = project_backward(
+        &x.camera,
+        &x.means,
+        &x.quats,
+        &x.log_scales,
+        &s,
+        &p,
+        v_means2d,
+        v_conics,
+        v_depths,
+    );
+    (p, g)
+}
+
+/// The inputs of `case` and the projection backward with the oracle's cotangents of means2d and
+/// conics (and none of the depths).
+fn backward_from_oracle_cotangents(f: &Fixture, case: &str) -> (Inputs, ProjectionGrads<f64>) {
+    let x = inputs(f, case);
+    let v_means2d = rows::<2>(f, &format!("{case}.grad.means2d"));
+    let v_conics = rows::<3>(f, &format!("{case}.grad.conics"));
+    let zeros = vec![0.0; x.means.len()];
+    let (_, g) = project_with_backward(&x, &v_means2d, &v_conics, &zeros);
+    (x, g)
 }
 
 /// `grad.quats` and `grad.log_scales` reach the inputs only through the conics, and the
@@ -118,42 +131,14 @@ fn forward_in_f32_is_close_to_oracle() {
 fn backward_matches_oracle_for_quats_and_log_scales() {
     let f = fixture();
     for case in CASES {
-        let x = inputs(&f, case);
-        let s = ProjectSettings::default();
-        let p = project(&x.camera, &x.means, &x.quats, &x.log_scales, &s);
-        let v_means2d = rows::<2>(&f, &format!("{case}.grad.means2d"));
-        let v_conics = rows::<3>(&f, &format!("{case}.grad.conics"));
-        let zeros = vec![0.0; x.means.len()];
-        let g = project_backward(
-            &x.camera,
-            &x.means,
-            &x.quats,
-            &x.log_scales,
-            &s,
-            &p,
-            &v_means2d,
-            &v_conics,
-            &zeros,
-        );
+        let (_, g) = backward_from_oracle_cotangents(&f, case);
         let e_q = rows::<4>(&f, &format!("{case}.grad.quats"));
         let e_s = rows::<3>(&f, &format!("{case}.grad.log_scales"));
-        println!(
-            "{case}: grad quats {:.2e} log_scales {:.2e}",
-            max_rel_err(&flat(&g.quats), &flat(&e_q)),
-            max_rel_err(&flat(&g.log_scales), &flat(&e_s))
-        );
-        assert_close(
-            &format!("{case} grad.quats"),
-            &flat(&g.quats),
-            &flat(&e_q),
-            TOL_F64,
-        );
-        assert_close(
-            &format!("{case} grad.log_scales"),
-            &flat(&g.log_scales),
-            &flat(&e_s),
-            TOL_F64,
-        );
+        let check = |what: &str, actual: &[f64], expected: &[f64]| {
+            assert_close_verbose(&format!("{case} {what}"), actual, expected, TOL_F64);
+        };
+        check("grad.quats", &flat(&g.quats), &flat(&e_q));
+        check("grad.log_scales", &flat(&g.log_scales), &flat(&e_s));
     }
 }
 
@@ -166,23 +151,7 @@ fn backward_matches_oracle_for_quats_and_log_scales() {
 fn mean_gradients_agree_with_oracle_up_to_the_depth_direction() {
     let f = fixture();
     for case in CASES {
-        let x = inputs(&f, case);
-        let s = ProjectSettings::default();
-        let p = project(&x.camera, &x.means, &x.quats, &x.log_scales, &s);
-        let v_means2d = rows::<2>(&f, &format!("{case}.grad.means2d"));
-        let v_conics = rows::<3>(&f, &format!("{case}.grad.conics"));
-        let zeros = vec![0.0; x.means.len()];
-        let g = project_backward(
-            &x.camera,
-            &x.means,
-            &x.quats,
-            &x.log_scales,
-            &s,
-            &p,
-            &v_means2d,
-            &v_conics,
-            &zeros,
-        );
+        let (x, g) = backward_from_oracle_cotangents(&f, case);
         let mut ours = g.means.clone();
         if case == "sh3" {
             let d_sh_means = sh_mean_gradient_from_oracle(&f, &x.camera, &x.means);
@@ -218,11 +187,7 @@ fn mean_gradients_agree_with_oracle_up_to_the_depth_direction() {
 
 /// The SH part of the sh3 mean gradient. The colour cotangent (after the clamp mask) is read
 /// from the DC coefficient's gradient, `d sh_0 = C0 * v_colour`, which the oracle records.
-fn sh_mean_gradient_from_oracle(
-    f: &dsgs_testkit::Fixture,
-    camera: &Camera,
-    means: &[[f64; 3]],
-) -> Vec<[f64; 3]> {
+fn sh_mean_gradient_from_oracle(f: &Fixture, camera: &Camera, means: &[[f64; 3]]) -> Vec<[f64; 3]> {
     let sh = rows::<3>(f, "sh3.sh_coeffs");
     let d_sh = rows::<3>(f, "sh3.grad.sh_coeffs");
     let k = 16;
@@ -239,20 +204,8 @@ fn sh_mean_gradient_from_oracle(
 fn culled_gaussians_get_zero_gradient() {
     let f = fixture();
     let x = inputs(&f, "edges");
-    let s = ProjectSettings::default();
-    let p = project(&x.camera, &x.means, &x.quats, &x.log_scales, &s);
     let n = x.means.len();
-    let g = project_backward(
-        &x.camera,
-        &x.means,
-        &x.quats,
-        &x.log_scales,
-        &s,
-        &p,
-        &vec![[1.0; 2]; n],
-        &vec![[1.0; 3]; n],
-        &vec![1.0; n],
-    );
+    let (p, g) = project_with_backward(&x, &vec![[1.0; 2]; n], &vec![[1.0; 3]; n], &vec![1.0; n]);
     let mut culled = 0;
     for i in 0..n {
         if !p.is_visible(i) {
@@ -526,12 +479,7 @@ fn backward_in_f32_is_close_to_oracle() {
         let a_s = up(g.log_scales.iter().flatten().copied().collect());
         let e_q = flat(&rows::<4>(&f, &format!("{case}.grad.quats")));
         let e_s = flat(&rows::<3>(&f, &format!("{case}.grad.log_scales")));
-        println!(
-            "{case} f32: grad quats {:.2e} log_scales {:.2e}",
-            max_rel_err(&a_q, &e_q),
-            max_rel_err(&a_s, &e_s)
-        );
-        assert_close(&format!("{case} f32 grad.quats"), &a_q, &e_q, 1e-5);
-        assert_close(&format!("{case} f32 grad.log_scales"), &a_s, &e_s, 1e-5);
+        assert_close_verbose(&format!("{case} f32 grad.quats"), &a_q, &e_q, 1e-5);
+        assert_close_verbose(&format!("{case} f32 grad.log_scales"), &a_s, &e_s, 1e-5);
     }
 }

@@ -2,7 +2,7 @@
 
 mod oracle_case;
 
-use dsgs_testkit::{assert_close, max_rel_err};
+use dsgs_testkit::{assert_close_verbose, max_rel_err, Fixture};
 use gaussian::sh::{eval_bases, num_bases, sh_colors, sh_colors_backward};
 use oracle_case::{camera, fixture, flat, rows};
 use proptest::prelude::*;
@@ -12,20 +12,20 @@ use proptest::test_runner::FileFailurePersistence;
 /// magnitude of room for rounding while any wrong constant or sign shows at 1e-3 or more.
 const TOL_F64: f64 = 1e-9;
 
+/// The sh3 case: the camera centre, the means and the SH coefficients (degree 3, 16 a Gaussian).
+fn sh3(f: &Fixture) -> ([f64; 3], Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    let center = camera(f, "sh3").center().to_array();
+    (center, rows(f, "sh3.means"), rows(f, "sh3.sh_coeffs"))
+}
+
 #[test]
 fn sh3_colors_match_oracle() {
     let f = fixture();
-    let cam = camera(&f, "sh3");
-    let means = rows::<3>(&f, "sh3.means");
-    let sh = rows::<3>(&f, "sh3.sh_coeffs");
+    let (center, means, sh) = sh3(&f);
     assert_eq!(f.get("sh3.sh_degree").scalar(), 3.0);
-    let colors = sh_colors(3, 16, &sh, &means, cam.center().to_array());
+    let colors = sh_colors(3, 16, &sh, &means, center);
     let expected = rows::<3>(&f, "sh3.colors");
-    println!(
-        "sh3 colours: {:.2e}",
-        max_rel_err(&flat(&colors), &flat(&expected))
-    );
-    assert_close("sh3 colors", &flat(&colors), &flat(&expected), TOL_F64);
+    assert_close_verbose("sh3 colors", &flat(&colors), &flat(&expected), TOL_F64);
     // The case must exercise the clamp at zero for the mask test below to mean something.
     assert!(expected.iter().flatten().any(|&c| c == 0.0));
 }
@@ -37,21 +37,15 @@ fn sh3_colors_match_oracle() {
 #[test]
 fn sh3_coefficient_gradients_match_oracle() {
     let f = fixture();
-    let cam = camera(&f, "sh3");
-    let means = rows::<3>(&f, "sh3.means");
-    let sh = rows::<3>(&f, "sh3.sh_coeffs");
+    let (center, means, sh) = sh3(&f);
     let expected = rows::<3>(&f, "sh3.grad.sh_coeffs");
     let c0 = eval_bases::<f64>(1, [0.0, 0.0, 1.0])[0];
     let v_colors: Vec<[f64; 3]> = (0..means.len())
         .map(|i| expected[i * 16].map(|v| v / c0))
         .collect();
     assert!(v_colors.iter().flatten().any(|&v| v != 0.0));
-    let (d_sh, _) = sh_colors_backward(3, 16, &sh, &means, cam.center().to_array(), &v_colors);
-    println!(
-        "sh3 grad sh_coeffs: {:.2e}",
-        max_rel_err(&flat(&d_sh), &flat(&expected))
-    );
-    assert_close(
+    let (d_sh, _) = sh_colors_backward(3, 16, &sh, &means, center, &v_colors);
+    assert_close_verbose(
         "sh3 grad.sh_coeffs",
         &flat(&d_sh),
         &flat(&expected),
@@ -61,11 +55,7 @@ fn sh3_coefficient_gradients_match_oracle() {
 
 #[test]
 fn lower_active_degree_ignores_higher_coefficients() {
-    let f = fixture();
-    let cam = camera(&f, "sh3");
-    let means = rows::<3>(&f, "sh3.means");
-    let sh = rows::<3>(&f, "sh3.sh_coeffs");
-    let center = cam.center().to_array();
+    let (center, means, sh) = sh3(&fixture());
     for degree in 0..3 {
         let nb = num_bases(degree);
         let truncated: Vec<[f64; 3]> = sh.chunks(16).flat_map(|c| c[..nb].to_vec()).collect();

@@ -28,20 +28,20 @@ use rayon::prelude::*;
 
 const SIZE: usize = 256;
 
-/// The encoders' shapes, then the decoders' (512->256 is the relu4_1 decoder's first conv).
-const SHAPES: [(usize, usize); 11] = [
-    (3, 64),
-    (64, 64),
-    (64, 128),
-    (128, 128),
-    (128, 256),
-    (256, 256),
-    (256, 512),
-    (512, 256),
-    (256, 128),
-    (128, 64),
-    (64, 3),
-];
+/// The distinct `(in, out)` widths of the relu4_1 encoder (which contains relu3_1's), then those
+/// of the decoders not already listed (the relu4_1 decoder mirrors that encoder, from 512->256,
+/// and ends in the relu3_1 decoder).
+fn shapes() -> Vec<(usize, usize)> {
+    let encoder = conv_shapes("relu4_1");
+    let decoder = encoder.iter().rev().map(|&(c, o)| (o, c));
+    let mut shapes = Vec::new();
+    for s in encoder.iter().copied().chain(decoder) {
+        if !shapes.contains(&s) {
+            shapes.push(s);
+        }
+    }
+    shapes
+}
 
 const BACKENDS: [(GemmBackend, &str); 2] = [
     (GemmBackend::Gemm, "gemm"),
@@ -144,7 +144,7 @@ fn table(rng: &mut Lcg) {
     println!(
         "shape     pass  gemm s   gemm GFLOP/s  mm s     mm GFLOP/s  gemm/mm time  (best of {reps}, alternating)"
     );
-    for (ci, co) in SHAPES {
+    for (ci, co) in shapes() {
         let case = Case::new(rng, ci, co);
         let flop = 2.0 * (co * ci * 9 * SIZE * SIZE) as f64 / 1e9;
         for pass in PASSES.into_iter().filter(|p| passes.contains(p)) {
@@ -176,7 +176,7 @@ fn conv(c: &mut Criterion) {
     group.sample_size(10);
     group.warm_up_time(std::time::Duration::from_secs(1));
     group.measurement_time(std::time::Duration::from_secs(3));
-    for (ci, co) in SHAPES {
+    for (ci, co) in shapes() {
         let case = Case::new(&mut rng, ci, co);
         let a = rng.vec(co * 9 * ci, 0.1);
         let bs: Vec<Vec<f32>> = (0..OPERANDS)

@@ -11,6 +11,8 @@
 mod common;
 
 use common::*;
+use dsgs_testkit::arrays::hwc_image;
+use dsgs_testkit::oracle::real_weights_fixture;
 use dsgs_testkit::{shared_path, Fixture};
 use ndarray::Array4;
 use nets::checkpoint::load_checkpoint;
@@ -18,27 +20,8 @@ use nets::{Decoder, Encoder, PoolRounding, Resolution, StateDict};
 
 const TOL: f64 = 1e-4;
 
-/// The input images `content` and `style` of the fixture. The generator stored them from a
-/// non-contiguous `permute(2, 0, 1)` view, and `safetensors.numpy` wrote the underlying buffer,
-/// so the bytes are in HWC order although the header says `[1, 3, H, W]`. (Verified against the
-/// generator's own image loading: the HWC reading matches it to 3e-8, and the features in the file
-/// are those of that image.) Read them as `[1, H, W, 3]` and move the channels forward.
-fn image(fx: &Fixture, name: &str) -> Array4<f32> {
-    let t = fx.get(name);
-    let (n, c, h, w) = (t.shape[0], t.shape[1], t.shape[2], t.shape[3]);
-    Array4::from_shape_vec((n, h, w, c), t.to_f32())
-        .unwrap()
-        .permuted_axes([0, 3, 1, 2])
-        .as_standard_layout()
-        .into_owned()
-}
-
 fn checkpoint(rel: &str) -> StateDict {
     load_checkpoint(&shared_path(&format!("weights/{rel}"))).unwrap()
-}
-
-fn real() -> Fixture {
-    Fixture::shared("oracle/fixtures/real_weights.safetensors")
 }
 
 fn check(what: &str, a: &Array4<f32>, fx: &Fixture, key: &str) {
@@ -49,7 +32,7 @@ fn check(what: &str, a: &Array4<f32>, fx: &Fixture, key: &str) {
 
 #[test]
 fn wct_relu3_1_pair_matches_pytorch() {
-    let fx = real();
+    let fx = real_weights_fixture();
     let enc: Encoder = Encoder::from_checkpoint(&shared_path(
         "weights/wct-relu1_1-3_1/vgg_normalised_conv3_1.pth",
     ))
@@ -71,7 +54,7 @@ fn wct_relu3_1_pair_matches_pytorch() {
         let enc = enc.clone().with_resolution(res);
         let dec = dec.clone().with_resolution(res);
         for img in ["content", "style"] {
-            let feats = enc.forward(image(&fx, img).view()).unwrap();
+            let feats = enc.forward(hwc_image(fx.get(img)).view()).unwrap();
             assert_eq!(feats.len(), 3);
             for (k, f) in feats.iter().enumerate() {
                 check("wct", f, &fx, &format!("wct.{v}.{img}.relu{}_1", k + 1));
@@ -105,7 +88,7 @@ fn adain(c: &Array4<f64>, s: &Array4<f64>) -> Array4<f64> {
 
 #[test]
 fn compressed_relu4_1_pair_matches_pytorch() {
-    let fx = real();
+    let fx = real_weights_fixture();
     let se = checkpoint("compressed-16x-relu4_1/4SE.pth");
     let sd = checkpoint("compressed-16x-relu4_1/4SD.pth");
     let enc: Encoder = Encoder::from_state_dict(&se).unwrap();
@@ -115,7 +98,7 @@ fn compressed_relu4_1_pair_matches_pytorch() {
     assert!(dec.final_relu());
     assert_eq!(dec.in_channels(), 128);
     let c4 = enc
-        .forward(image(&fx, "content").view())
+        .forward(hwc_image(fx.get("content")).view())
         .unwrap()
         .pop()
         .unwrap();
@@ -127,7 +110,7 @@ fn compressed_relu4_1_pair_matches_pytorch() {
         "compressed.decoded_content",
     );
     let s4 = enc
-        .forward(image(&fx, "style").view())
+        .forward(hwc_image(fx.get("style")).view())
         .unwrap()
         .pop()
         .unwrap();

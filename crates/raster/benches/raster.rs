@@ -12,49 +12,27 @@
 //! pixel about 20 times on average (like a trained scene seen from a training view), opacities
 //! in `[0.1, 0.9]`, depths uniform.
 
+#[path = "../tests/common/mod.rs"]
+mod common;
+
+use common::{ellipse, Rng, Scene2d};
 use criterion::{
     criterion_group, criterion_main, BenchmarkId, Criterion, SamplingMode, Throughput,
 };
 use raster::{
-    rasterize, rasterize_backward_with, rasterize_binned_with, Cotangents, Kernel, Splats,
-    TileBins, DEFAULT_GRADIENT_BUFFER_VALUES,
+    rasterize, rasterize_backward_with, rasterize_binned_with, Cotangents, Kernel,
+    DEFAULT_GRADIENT_BUFFER_VALUES,
 };
 
-struct Scene {
-    width: u32,
-    height: u32,
-    d: usize,
-    means2d: Vec<[f32; 2]>,
-    conics: Vec<[f32; 3]>,
-    depths: Vec<f32>,
-    radii: Vec<[u32; 2]>,
-    opacities: Vec<f32>,
-    channels: Vec<f32>,
-    background: Vec<f32>,
-}
-
-/// SplitMix64 uniform numbers.
-struct Rng(u64);
-impl Rng {
-    fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^= z >> 31;
-        lo + (hi - lo) * ((z >> 11) as f64 / (1u64 << 53) as f64)
-    }
-}
-
-fn scene(n: usize, size: u32, d: usize) -> Scene {
+fn scene(n: usize, size: u32, d: usize) -> Scene2d<f32> {
     let mut rng = Rng(n as u64 ^ ((size as u64) << 32) ^ d as u64);
     let (w, h) = (size as f64, size as f64);
     // n * pi * (2 sigma)^2 = 20 * w * h
     let sigma = (20.0 * w * h / (4.0 * std::f64::consts::PI * n as f64)).sqrt();
-    let mut s = Scene {
+    let mut s = Scene2d {
         width: size,
         height: size,
-        d,
+        channel_count: d,
         means2d: Vec::with_capacity(n),
         conics: Vec::with_capacity(n),
         depths: Vec::with_capacity(n),
@@ -68,20 +46,9 @@ fn scene(n: usize, size: u32, d: usize) -> Scene {
             .push([rng.uniform(0.0, w) as f32, rng.uniform(0.0, h) as f32]);
         let aniso = rng.uniform(0.5, 2.0);
         let (l1, l2) = ((sigma * aniso).powi(2) + 0.3, (sigma / aniso).powi(2) + 0.3);
-        let th = rng.uniform(0.0, std::f64::consts::PI);
-        let (c, sn) = (th.cos(), th.sin());
-        let (xx, xy, yy) = (
-            l1 * c * c + l2 * sn * sn,
-            (l1 - l2) * c * sn,
-            l1 * sn * sn + l2 * c * c,
-        );
-        let det = xx * yy - xy * xy;
-        s.conics
-            .push([(yy / det) as f32, (-xy / det) as f32, (xx / det) as f32]);
-        s.radii.push([
-            (3.33 * xx.sqrt()).ceil() as u32,
-            (3.33 * yy.sqrt()).ceil() as u32,
-        ]);
+        let (conic, radii) = ellipse(l1, l2, rng.uniform(0.0, std::f64::consts::PI), 3.33);
+        s.conics.push(conic.map(|v| v as f32));
+        s.radii.push(radii);
         s.depths.push(rng.uniform(1.0, 100.0) as f32);
         s.opacities.push(rng.uniform(0.1, 0.9) as f32);
         for _ in 0..d {
@@ -89,20 +56,6 @@ fn scene(n: usize, size: u32, d: usize) -> Scene {
         }
     }
     s
-}
-
-impl Scene {
-    fn splats(&self) -> Splats<'_, f32> {
-        Splats {
-            means2d: &self.means2d,
-            conics: &self.conics,
-            depths: &self.depths,
-            radii: &self.radii,
-            opacities: &self.opacities,
-            channels: &self.channels,
-            channel_count: self.d,
-        }
-    }
 }
 
 fn bench(c: &mut Criterion) {
@@ -175,18 +128,9 @@ fn bench(c: &mut Criterion) {
                                 g.bench_function(id, |b| {
                                     pool.install(|| {
                                         b.iter(|| {
-                                            let splats = s.splats();
-                                            let bins = TileBins::new(
-                                                s.width,
-                                                s.height,
-                                                splats.means2d,
-                                                splats.depths,
-                                                splats.radii,
-                                            )
-                                            .unwrap();
                                             rasterize_binned_with(
-                                                &splats,
-                                                bins,
+                                                &s.splats(),
+                                                s.tile_bins(),
                                                 &s.background,
                                                 kernel,
                                             )

@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{random_scene, Rng, Scene2d};
+use common::{cast, cotangents, random_scene, Rng, Scene2d};
 use gaussian::Real;
 use raster::{
     rasterize, rasterize_backward, rasterize_backward_with_budget, Cotangents, RasterError,
@@ -20,15 +20,12 @@ fn bits<T: Real>(v: &[T]) -> Vec<u64> {
 }
 
 fn run<T: Real>(s: &Scene2d, budget: usize) -> (Rasterized<T>, SplatGrads<T>) {
-    let c = |v: &[f64]| v.iter().map(|&x| T::lit(x)).collect::<Vec<T>>();
     let scene = s.cast::<T>();
     let (splats, bg) = (scene.splats(), &scene.background);
     let out = rasterize(&splats, s.width, s.height, bg).unwrap();
-    let mut rng = Rng(11);
     let px = (s.width * s.height) as usize;
-    let vi = c(&rng.vec(px * s.channel_count, -1.0, 1.0));
-    let va = c(&rng.vec(px, -1.0, 1.0));
-    let vd = c(&rng.vec(px, -1.0, 1.0));
+    let (vi, va, vd) = cotangents(&mut Rng(11), px, s.channel_count, 1.0);
+    let (vi, va, vd) = (cast::<T>(&vi), cast::<T>(&va), cast::<T>(&vd));
     let cot = Cotangents {
         image: &vi,
         alpha: Some(&va),

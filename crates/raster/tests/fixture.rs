@@ -5,17 +5,7 @@
 mod common;
 
 use common::{flat, logit_grads, raster_fixture, to_f64, RasterCase, CASES};
-use dsgs_testkit::max_rel_err;
-
-/// Asserts agreement and prints the error (`cargo test -- --nocapture` shows the figures).
-fn assert_close(what: &str, actual: &[f64], expected: &[f64], tol: f64) {
-    let err = max_rel_err(actual, expected);
-    eprintln!("{what}: max relative error {err:.2e}");
-    assert!(
-        err <= tol,
-        "{what}: max relative error {err:.3e} exceeds {tol:.1e}"
-    );
-}
+use dsgs_testkit::assert_close_verbose;
 
 /// Tolerance in `f64`: the oracle is float64 too; sums run in a different order, so agreement is
 /// to a few hundred ulps of the largest magnitude, far below 1e-9.
@@ -31,38 +21,23 @@ const TOL_F32: f64 = 1e-4;
 fn check_case<T: gaussian::Real>(f: &dsgs_testkit::Fixture, name: &str, tol: f64) {
     let case = RasterCase::load(f, name);
     let (out, grads) = case.run::<T>();
-    let exp = |k: &str| f.get(&format!("{name}.{k}")).data.clone();
-    let what = |k: &str| format!("{name} ({}) {k}", std::any::type_name::<T>());
-    assert_close(&what("image"), &to_f64(&out.image), &exp("image"), tol);
-    assert_close(&what("alpha"), &to_f64(&out.alpha), &exp("alpha"), tol);
-    assert_close(&what("depth"), &to_f64(&out.depth), &exp("depth"), tol);
-    assert_close(
-        &what("grad.means2d"),
-        &flat(&grads.means2d),
-        &exp("grad.means2d"),
-        tol,
-    );
-    assert_close(
-        &what("grad.conics"),
-        &flat(&grads.conics),
-        &exp("grad.conics"),
-        tol,
-    );
-    assert_close(
-        &what("grad.opacity_logits"),
-        &logit_grads(&grads.opacities, &case.opacity_logits),
-        &exp("grad.opacity_logits"),
-        tol,
-    );
+    // Asserts agreement with the fixture's `{name}.{key}` and prints the error
+    // (`cargo test -- --nocapture` shows the figures).
+    let check = |key: &str, actual: &[f64]| {
+        let what = format!("{name} ({}) {key}", std::any::type_name::<T>());
+        assert_close_verbose(&what, actual, &f.get(&format!("{name}.{key}")).data, tol);
+    };
+    check("image", &to_f64(&out.image));
+    check("alpha", &to_f64(&out.alpha));
+    check("depth", &to_f64(&out.depth));
+    check("grad.means2d", &flat(&grads.means2d));
+    check("grad.conics", &flat(&grads.conics));
+    let v_logits = logit_grads(&grads.opacities, &case.opacity_logits);
+    check("grad.opacity_logits", &v_logits);
     // For sh3 the channels are SH colours, whose gradient the fixture does not store (it is
     // checked through the SH chain in the render tests).
     if f.has(&format!("{name}.grad.features")) {
-        assert_close(
-            &what("grad.features"),
-            &to_f64(&grads.channels),
-            &exp("grad.features"),
-            tol,
-        );
+        check("grad.features", &to_f64(&grads.channels));
     }
     // Every pixel of the alpha image agrees with its blend count: no blends, no coverage.
     for (a, &n) in out.alpha.iter().zip(&out.blended) {
@@ -104,10 +79,10 @@ fn fixture_cases_exercise_the_stop_and_culling() {
         }
     }
     let edges = RasterCase::load(&f, "edges");
-    let culled = edges.radii.iter().filter(|r| r[0] == 0).count();
+    let culled = edges.scene.radii.iter().filter(|r| r[0] == 0).count();
     assert!(culled >= 10, "edges case culls only {culled}");
     let (_, g) = edges.run::<f64>();
-    for (i, r) in edges.radii.iter().enumerate() {
+    for (i, r) in edges.scene.radii.iter().enumerate() {
         if r[0] == 0 || r[1] == 0 {
             assert_eq!(g.means2d[i], [0.0, 0.0]);
             assert_eq!(g.opacities[i], 0.0);

@@ -6,7 +6,7 @@
 
 mod common;
 
-use common::{random_scene, Rng, Scene2d};
+use common::{cast, cotangents, random_scene, Rng, Scene2d};
 use proptest::prelude::*;
 use raster::{rasterize_backward_with, rasterize_binned_with, Cotangents, Isa, Kernel, TileBins};
 
@@ -22,24 +22,14 @@ fn fingerprint(
     with_aux: bool,
     fresh_bins: bool,
 ) -> Vec<Vec<u32>> {
-    let f = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
     let scene = s.cast::<f32>();
     let (splats, bg) = (scene.splats(), &scene.background);
-    let bins = TileBins::new(
-        s.width,
-        s.height,
-        splats.means2d,
-        splats.depths,
-        splats.radii,
-    )
-    .unwrap();
+    let bins = scene.tile_bins();
     let out = rasterize_binned_with(&splats, bins.clone(), bg, kernel).unwrap();
     let backward_bins = if fresh_bins { &bins } else { &out.bins };
-    let mut rng = Rng(cot_seed);
     let px = (s.width * s.height) as usize;
-    let vi = f(&rng.vec(px * s.channel_count, -1.0, 1.0));
-    let va = f(&rng.vec(px, -1.0, 1.0));
-    let vd = f(&rng.vec(px, -1.0, 1.0));
+    let (vi, va, vd) = cotangents(&mut Rng(cot_seed), px, s.channel_count, 1.0);
+    let (vi, va, vd) = (cast::<f32>(&vi), cast::<f32>(&va), cast::<f32>(&vd));
     let cot = Cotangents {
         image: &vi,
         alpha: with_aux.then_some(&va[..]),
@@ -191,18 +181,9 @@ fn a_forward_pass_ignores_row_lists_kept_for_other_gaussians() {
     }
     let run = |s: &Scene2d, bins: Option<TileBins>| {
         let scene = s.cast::<f32>();
-        let splats = scene.splats();
-        let bins = bins.unwrap_or_else(|| {
-            TileBins::new(
-                s.width,
-                s.height,
-                splats.means2d,
-                splats.depths,
-                splats.radii,
-            )
-            .unwrap()
-        });
-        rasterize_binned_with(&splats, bins, &scene.background, Kernel::auto().unwrap()).unwrap()
+        let bins = bins.unwrap_or_else(|| scene.tile_bins());
+        let kernel = Kernel::auto().unwrap();
+        rasterize_binned_with(&scene.splats(), bins, &scene.background, kernel).unwrap()
     };
     let kept_from_a = run(&a, None).bins;
     let reused = run(&b, Some(kept_from_a));

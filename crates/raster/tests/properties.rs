@@ -6,7 +6,7 @@
 
 mod common;
 
-use common::{dense_reference, random_scene, Rng, Scene2d};
+use common::{cotangents, dense_reference, min_gap, random_scene, Rng, Scene2d};
 use dsgs_testkit::max_rel_err;
 use proptest::prelude::*;
 use raster::{rasterize, rasterize_backward, Cotangents};
@@ -109,14 +109,10 @@ proptest! {
         prop_assume!(r.blended.iter().any(|&c| c > 0));
         prop_assume!(r.alpha_min_margin > margin && r.alpha_max_margin > margin);
         prop_assume!(r.transmittance_margin_per_unit > margin);
-        let mut sorted = s.depths.clone();
-        sorted.sort_by(f64::total_cmp);
-        prop_assume!(sorted.windows(2).all(|w| w[1] - w[0] > 1e-3));
+        prop_assume!(min_gap(&s.depths) > 1e-3);
 
         let pixels = (width * height) as usize;
-        let v_image = rng.vec(pixels * d, -1.0, 1.0);
-        let v_alpha = rng.vec(pixels, -1.0, 1.0);
-        let v_depth = rng.vec(pixels, -0.1, 0.1);
+        let (v_image, v_alpha, v_depth) = cotangents(&mut rng, pixels, d, 0.1);
         let cot = (&v_image[..], &v_alpha[..], &v_depth[..]);
         let out = rasterize(&s.splats(), width, height, &s.background).unwrap();
         let g = rasterize_backward(

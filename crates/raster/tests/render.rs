@@ -4,7 +4,7 @@
 mod common;
 
 use common::{cast, flat, raster_fixture, to_f64, SceneCase, CASES};
-use dsgs_testkit::max_rel_err;
+use dsgs_testkit::assert_close_verbose;
 use gaussian::{FeatureGaussians, Real};
 use raster::{render, render_backward, Channels, RenderOptions};
 
@@ -16,15 +16,6 @@ const TOL_F64: f64 = 1e-9;
 /// error by the condition number of the 2D covariance (at most ~1e2 for these scenes). The
 /// expected error is still around 1e-5; 1e-4 is the acceptance tolerance.
 const TOL_F32: f64 = 1e-4;
-
-fn assert_close(what: &str, actual: &[f64], expected: &[f64], tol: f64) {
-    let err = max_rel_err(actual, expected);
-    eprintln!("{what}: max relative error {err:.2e}");
-    assert!(
-        err <= tol,
-        "{what}: max relative error {err:.3e} exceeds {tol:.1e}"
-    );
-}
 
 fn cast_scene<T: Real>(s: &FeatureGaussians<f64>) -> FeatureGaussians<T> {
     let r3 = |v: &[[f64; 3]]| v.iter().map(|r| r.map(T::lit)).collect::<Vec<_>>();
@@ -44,81 +35,35 @@ fn check_case<T: Real>(name: &str, tol: f64) {
     let f = raster_fixture();
     let case = SceneCase::load(&f, name);
     let exp = |k: &str| f.get(&format!("{name}.{k}")).data.clone();
-    let what = |k: &str| format!("{name} ({}) {k}", std::any::type_name::<T>());
+    // Asserts agreement with the fixture's `{name}.{key}` and prints the error.
+    let check = |key: &str, actual: &[f64]| {
+        let what = format!("{name} ({}) {key}", std::any::type_name::<T>());
+        assert_close_verbose(&what, actual, &exp(key), tol);
+    };
     let scene = cast_scene::<T>(&case.scene);
     let opts = RenderOptions::new(case.channels, cast(&case.background));
     let r = render(&case.camera, &scene, &opts).unwrap();
-    assert_close(
-        &what("means2d"),
-        &flat(&r.projected.means2d),
-        &exp("means2d"),
-        tol,
-    );
-    assert_close(
-        &what("conics"),
-        &flat(&r.projected.conics),
-        &exp("conics"),
-        tol,
-    );
-    assert_close(&what("image"), &to_f64(&r.raster.image), &exp("image"), tol);
-    assert_close(&what("alpha"), &to_f64(&r.raster.alpha), &exp("alpha"), tol);
-    assert_close(&what("depth"), &to_f64(&r.raster.depth), &exp("depth"), tol);
+    check("means2d", &flat(&r.projected.means2d));
+    check("conics", &flat(&r.projected.conics));
+    check("image", &to_f64(&r.raster.image));
+    check("alpha", &to_f64(&r.raster.alpha));
+    check("depth", &to_f64(&r.raster.depth));
     let (vi, va, vd) = (
         cast::<T>(&exp("v_image")),
         cast::<T>(&exp("v_alpha")),
         cast::<T>(&exp("v_depth")),
     );
     let g = render_backward(&case.camera, &scene, &opts, &r, &vi, Some(&va), Some(&vd)).unwrap();
-    assert_close(
-        &what("grad.means"),
-        &flat(&g.means),
-        &exp("grad.means"),
-        tol,
-    );
-    assert_close(
-        &what("grad.quats"),
-        &flat(&g.quats),
-        &exp("grad.quats"),
-        tol,
-    );
-    assert_close(
-        &what("grad.log_scales"),
-        &flat(&g.log_scales),
-        &exp("grad.log_scales"),
-        tol,
-    );
-    assert_close(
-        &what("grad.opacity_logits"),
-        &to_f64(&g.opacity_logits),
-        &exp("grad.opacity_logits"),
-        tol,
-    );
-    assert_close(
-        &what("grad.means2d"),
-        &flat(&g.means2d),
-        &exp("grad.means2d"),
-        tol,
-    );
+    check("grad.means", &flat(&g.means));
+    check("grad.quats", &flat(&g.quats));
+    check("grad.log_scales", &flat(&g.log_scales));
+    check("grad.opacity_logits", &to_f64(&g.opacity_logits));
+    check("grad.means2d", &flat(&g.means2d));
     match case.channels {
-        Channels::Features => assert_close(
-            &what("grad.features"),
-            &to_f64(&g.features),
-            &exp("grad.features"),
-            tol,
-        ),
+        Channels::Features => check("grad.features", &to_f64(&g.features)),
         _ => {
-            assert_close(
-                &what("colors"),
-                &flat(r.colors.as_ref().unwrap()),
-                &exp("colors"),
-                tol,
-            );
-            assert_close(
-                &what("grad.sh_coeffs"),
-                &flat(&g.sh),
-                &exp("grad.sh_coeffs"),
-                tol,
-            );
+            check("colors", &flat(r.colors.as_ref().unwrap()));
+            check("grad.sh_coeffs", &flat(&g.sh));
         }
     }
 }

@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{dense_reference, Rng, Scene2d};
+use common::{cotangents, dense_reference, min_gap, Rng, Scene2d};
 use dsgs_testkit::max_rel_err;
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
 use glam::{DMat4, DQuat, DVec3};
@@ -180,14 +180,10 @@ fn chain_case(
     let margins = dense_reference(&scene2d(&base));
     prop_assume!(margins.alpha_min_margin > 1e-4);
     prop_assume!(margins.transmittance_margin_per_unit > 1e-4);
-    let mut depths = base.projected.depths.clone();
-    depths.sort_by(f64::total_cmp);
-    prop_assume!(depths.windows(2).all(|w| w[1] - w[0] > 1e-4));
+    prop_assume!(min_gap(&base.projected.depths) > 1e-4);
 
     let pixels = (width * height) as usize;
-    let v_image = rng.vec(pixels * dc, -1.0, 1.0);
-    let v_alpha = rng.vec(pixels, -1.0, 1.0);
-    let v_depth = rng.vec(pixels, -0.1, 0.1);
+    let (v_image, v_alpha, v_depth) = cotangents(&mut rng, pixels, dc, 0.1);
     let g = render_backward(
         &camera,
         &scene,

@@ -98,7 +98,9 @@ fn adain_and_decoder_loss<T: Real>(report: &mut Report) {
     }
 }
 
-fn stage3<T: Real>(report: &mut Report) {
+/// The stage-3 loss of the oracle's inputs in precision `T`, its values and gradients added to
+/// `report` as errors against the oracle.
+fn stage3<T: Real>(report: &mut Report) -> Stage3Loss<T> {
     let fx = nets_fixture();
     let (enc, dec) = networks::<T>(&fx, Resolution::Fullres);
     let lift = lifter::<T>(&fx);
@@ -157,6 +159,7 @@ fn stage3<T: Real>(report: &mut Report) {
         "stage3.grad.lifter.bias",
         rel_err(&out.grad_lifter.bias, fx.get("stage3.grad.lifter.bias")),
     );
+    out
 }
 
 /// In `f32`, the fullres decoder gradients are checked by
@@ -230,24 +233,10 @@ fn decoder_loss_reference_for_f32_pattern(
         rel_err(&g64, fx.get("fullres.grad.decoder_input")) < TOL_F64,
         "the replay reproduces the oracle"
     );
-    let mut flips: Vec<String> = Vec::new();
-    for (name, steps, a, b) in [
+    let flips = pattern::ties(&[
         ("decoder", &dsteps, &d64, &d32),
         ("encoder", &esteps, &e64, &e32),
-    ] {
-        for (i, idx, pre) in pattern::flips(a, b) {
-            let scale = pattern::scale(a, i);
-            let what = format!(
-                "{name} {} unit {idx:?}: pre-activation {pre:.2e} (layer scale {scale:.2e})",
-                steps[i].layer.name
-            );
-            assert!(
-                pre.abs() <= 1e-5 * scale,
-                "not a tie at f32 resolution: {what}"
-            );
-            flips.push(what);
-        }
-    }
+    ]);
     let (g_in, params) = grads(&e32.pattern, &d32.pattern);
     (flips, g_in, params)
 }
@@ -301,25 +290,11 @@ fn stage3_reference_for_f32_pattern(
         rel_err(&exact.0, fx.get("stage3.grad.raster_features")) < TOL_F64,
         "the replay reproduces the oracle"
     );
-    let mut flips: Vec<String> = Vec::new();
-    for (name, steps, a, b) in [
+    let flips = pattern::ties(&[
         ("lifter", &lsteps, &l64, &l32),
         ("decoder", &dsteps, &d64, &d32),
         ("encoder", &esteps, &e64, &e32),
-    ] {
-        for (i, idx, pre) in pattern::flips(a, b) {
-            let scale = pattern::scale(a, i);
-            let what = format!(
-                "{name} {} unit {idx:?}: pre-activation {pre:.2e} (layer scale {scale:.2e})",
-                steps[i].layer.name
-            );
-            assert!(
-                pre.abs() <= 1e-5 * scale,
-                "not a tie at f32 resolution: {what}"
-            );
-            flips.push(what);
-        }
-    }
+    ]);
     (flips, grads(&l32.pattern, &d32.pattern, &e32.pattern))
 }
 
@@ -383,29 +358,13 @@ fn fullres_decoder_gradients_f32_match_the_exact_gradient_of_their_relu_pattern(
 fn stage3_loss_and_gradients_match_the_oracle_f32() {
     let fx = nets_fixture();
     let mut r = Report::default();
-    stage3::<f32>(&mut r);
+    let out = stage3::<f32>(&mut r);
     let (grads, values): (Vec<_>, Vec<_>) =
         r.0.into_iter().partition(|(k, _)| k.contains(".grad."));
     Report(values).check("f32", TOL_F32);
     for (k, e) in &grads {
         println!("f32 {k}: against the oracle {e:.2e}");
     }
-    let (enc, dec) = networks::<f32>(&fx, Resolution::Fullres);
-    let lift = lifter::<f32>(&fx);
-    let c: Array4<f32> = arr4(fx.get("content"));
-    let target = align_target(&enc, &c).unwrap();
-    let s = encode_style(&enc, &arr4(fx.get("style"))).unwrap();
-    let raster: Array4<f32> = arr4(fx.get("stage3.raster_features"));
-    let out = stage3_loss(
-        &lift,
-        &dec,
-        &enc,
-        &raster,
-        &target,
-        &s,
-        Stage3Weights::default(),
-    )
-    .unwrap();
     let (flips, reference) = stage3_reference_for_f32_pattern(&fx);
     check_flips(&flips);
     let mut m = Report::default();

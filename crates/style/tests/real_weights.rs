@@ -12,6 +12,8 @@ mod common;
 use std::path::Path;
 
 use common::*;
+use dsgs_testkit::arrays::hwc_image;
+use dsgs_testkit::oracle::real_weights_fixture;
 use dsgs_testkit::{shared_path, Fixture};
 use ndarray::Array4;
 use nets::checkpoint::load_checkpoint;
@@ -19,19 +21,6 @@ use nets::{Decoder, Encoder, Resolution};
 use style::*;
 
 const TOL: f64 = 1e-4;
-
-/// The fixture's input images. The generator stored them from a non-contiguous `permute` view and
-/// the file holds the underlying HWC buffer under an NCHW header, so they are read as
-/// `[1, H, W, 3]` and the channels moved forward.
-fn image(fx: &Fixture, name: &str) -> Array4<f32> {
-    let t = fx.get(name);
-    let (n, c, h, w) = (t.shape[0], t.shape[1], t.shape[2], t.shape[3]);
-    Array4::from_shape_vec((n, h, w, c), t.to_f32())
-        .unwrap()
-        .permuted_axes([0, 3, 1, 2])
-        .as_standard_layout()
-        .into_owned()
-}
 
 fn wct_pair() -> (Encoder, Decoder) {
     let sd = |rel: &str| load_checkpoint(&shared_path(&format!("weights/{rel}"))).unwrap();
@@ -47,9 +36,9 @@ fn check(r: &mut Report, key: &str, a: &Array4<f32>, fx: &Fixture) {
 
 #[test]
 fn wct_relu3_1_stylization_matches_pytorch() {
-    let fx = Fixture::shared("oracle/fixtures/real_weights.safetensors");
+    let fx = real_weights_fixture();
     let (enc, dec) = wct_pair();
-    let (content, style_img) = (image(&fx, "content"), image(&fx, "style"));
+    let (content, style_img) = (hwc_image(fx.get("content")), hwc_image(fx.get("style")));
     let mut r = Report::default();
     for (v, res) in [
         ("standard", Resolution::Standard),
@@ -84,13 +73,13 @@ fn wct_relu3_1_stylization_matches_pytorch() {
 
 #[test]
 fn compressed_relu4_1_stylization_matches_pytorch() {
-    let fx = Fixture::shared("oracle/fixtures/real_weights.safetensors");
+    let fx = real_weights_fixture();
     let sd = |rel: &str| load_checkpoint(&shared_path(&format!("weights/{rel}"))).unwrap();
     let enc: Encoder = Encoder::from_state_dict(&sd("compressed-16x-relu4_1/4SE.pth")).unwrap();
     let dec: Decoder = Decoder::from_state_dict(&sd("compressed-16x-relu4_1/4SD.pth")).unwrap();
-    let s = encode_style(&enc, &image(&fx, "style")).unwrap();
+    let s = encode_style(&enc, &hwc_image(fx.get("style"))).unwrap();
     assert_eq!(s.levels.len(), 4);
-    let out = stylize(&enc, &dec, &image(&fx, "content"), s.deepest(), 1.0).unwrap();
+    let out = stylize(&enc, &dec, &hwc_image(fx.get("content")), s.deepest(), 1.0).unwrap();
     let mut r = Report::default();
     check(&mut r, "compressed.stylized", &out, &fx);
     r.check("real", TOL);
@@ -101,16 +90,16 @@ fn compressed_relu4_1_stylization_matches_pytorch() {
 /// weights and bias (relative 6e-8 each) propagated through the decoder, about 1e-6.
 #[test]
 fn folded_real_decoder_equals_the_unfolded_path() {
-    let fx = Fixture::shared("oracle/fixtures/real_weights.safetensors");
+    let fx = real_weights_fixture();
     let (enc, dec) = wct_pair();
     for res in [Resolution::Standard, Resolution::Fullres] {
         let (enc, dec) = (
             enc.clone().with_resolution(res),
             dec.clone().with_resolution(res),
         );
-        let s = encode_style(&enc, &image(&fx, "style")).unwrap();
+        let s = encode_style(&enc, &hwc_image(fx.get("style"))).unwrap();
         let y = instance_normalize(
-            &enc.forward(image(&fx, "content").view())
+            &enc.forward(hwc_image(fx.get("content")).view())
                 .unwrap()
                 .pop()
                 .unwrap(),

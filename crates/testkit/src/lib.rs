@@ -1,18 +1,39 @@
 //! Test support shared by the dsgs crates (a dev-dependency only).
 //!
 //! * [`shared_dir`] locates the read-only reference material: the `DSGS_SHARED` environment
-//!   variable if set, otherwise `../shared` beside the workspace root.
+//!   variable if set, otherwise `../shared` beside the workspace root. [`repo_fixture`] names a
+//!   small input kept in the repository's `fixtures/`; [`scratch_dir`] makes a fresh temporary
+//!   directory.
 //! * [`Fixture`] reads an oracle safetensors file and hands out tensors as `f64`, whatever their
 //!   stored dtype (the oracle stores float64; the real-weights file stores float32).
+//!   [`oracle`] names the oracle's files and cases; [`arrays`] turns tensors into `ndarray`
+//!   arrays in either precision.
 //! * [`max_rel_err`] and [`assert_close`] compare results with a reference using one definition of
 //!   relative error for the whole project: the largest absolute difference divided by the largest
 //!   reference magnitude (an infinity-norm relative error). Element-wise relative error is
 //!   meaningless for entries that are zero in the reference, which gradients routinely have.
+//! * [`SplitMix64`] generates deterministic test values.
+//!
+//! Dependencies: a crate whose own tests use the testkit must not be a dependency of it (that
+//! would be a dependency cycle), so the helpers are generic over [`base::Real`], `ndarray` arrays
+//! and plain slices. What needs a workspace crate's types is either a macro expanded in the caller
+//! ([`oracle_camera!`], for `gaussian`) or, for the crates downstream of `nets` (style, train),
+//! the module `nets` behind the cargo feature of the same name, which the tests of `nets` itself
+//! do not enable.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
+use base::Real;
 use safetensors::{Dtype, SafeTensors};
+
+pub mod arrays;
+#[cfg(feature = "nets")]
+pub mod nets;
+pub mod oracle;
+mod rng;
+
+pub use rng::SplitMix64;
 
 /// The environment variable that points at the shared reference material.
 pub const SHARED_ENV: &str = "DSGS_SHARED";
@@ -35,6 +56,22 @@ pub fn shared_dir() -> PathBuf {
 /// A path inside the shared reference directory, e.g. `shared_path("oracle/fixtures/raster.safetensors")`.
 pub fn shared_path(rel: &str) -> PathBuf {
     shared_dir().join(rel)
+}
+
+/// A file of the repository's `fixtures/` directory (small test inputs kept with the code).
+pub fn repo_fixture(rel: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../fixtures")
+        .join(rel)
+}
+
+/// A fresh, empty scratch directory `dsgs-{tag}-{process id}-{name}` in the system's temporary
+/// directory (whatever an earlier run left there is removed first).
+pub fn scratch_dir(tag: &str, name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("dsgs-{tag}-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
 }
 
 /// A tensor read from a fixture, converted to `f64`, row-major.
@@ -137,6 +174,44 @@ impl Fixture {
         v.sort_unstable();
         v
     }
+
+    /// The rows of a tensor whose last dimension is `K`, as arrays (asserting that dimension).
+    pub fn rows<const K: usize>(&self, name: &str) -> Vec<[f64; K]> {
+        let t = self.get(name);
+        assert_eq!(
+            t.shape.last().copied(),
+            Some(K),
+            "{name} has shape {:?}",
+            t.shape
+        );
+        t.data
+            .chunks_exact(K)
+            .map(|c| std::array::from_fn(|i| c[i]))
+            .collect()
+    }
+
+    /// The tensors named `{prefix}*`, prefix removed, rounded to `f32` and built by
+    /// `new(shape, data)` (`None` for a shape that does not fit the data), e.g.
+    /// `fx.f32_tensors("vgg.", nets::TensorF32::new)` for a state dict of `nets`.
+    pub fn f32_tensors<V, C>(
+        &self,
+        prefix: &str,
+        new: impl Fn(Vec<usize>, Vec<f32>) -> Option<V>,
+    ) -> C
+    where
+        C: FromIterator<(String, V)>,
+    {
+        self.names()
+            .into_iter()
+            .filter_map(|n| {
+                n.strip_prefix(prefix).map(|k| {
+                    let t = self.get(n);
+                    let v = new(t.shape.clone(), t.to_f32()).expect("shape");
+                    (k.to_string(), v)
+                })
+            })
+            .collect()
+    }
 }
 
 /// Infinity-norm relative error: `max |a - e| / max |e|` (or the absolute error when the reference
@@ -158,8 +233,22 @@ pub fn max_rel_err(actual: &[f64], expected: &[f64]) -> f64 {
 }
 
 /// Asserts `max_rel_err(actual, expected) <= tol`, naming the quantity on failure.
+#[track_caller]
 pub fn assert_close(what: &str, actual: &[f64], expected: &[f64], tol: f64) {
+    assert_within(what, max_rel_err(actual, expected), tol);
+}
+
+/// [`assert_close`] that first prints the error to stderr (`cargo test -- --nocapture` shows the
+/// figures).
+#[track_caller]
+pub fn assert_close_verbose(what: &str, actual: &[f64], expected: &[f64], tol: f64) {
     let err = max_rel_err(actual, expected);
+    eprintln!("{what}: max relative error {err:.2e}");
+    assert_within(what, err, tol);
+}
+
+#[track_caller]
+fn assert_within(what: &str, err: f64, tol: f64) {
     assert!(
         err <= tol,
         "{what}: max relative error {err:.3e} exceeds {tol:.1e}"
@@ -167,9 +256,19 @@ pub fn assert_close(what: &str, actual: &[f64], expected: &[f64], tol: f64) {
 }
 
 /// [`assert_close`] for `f32` results.
+#[track_caller]
 pub fn assert_close_f32(what: &str, actual: &[f32], expected: &[f64], tol: f64) {
-    let a: Vec<f64> = actual.iter().map(|&v| v as f64).collect();
-    assert_close(what, &a, expected, tol);
+    assert_close(what, &to_f64(actual), expected, tol);
+}
+
+/// Values as `f64` (exactly), in iteration order: slices, vectors and `ndarray` arrays alike.
+pub fn to_f64<'a, T: Real>(values: impl IntoIterator<Item = &'a T>) -> Vec<f64> {
+    values.into_iter().map(|x| x.to_f64_exact()).collect()
+}
+
+/// Rows of `K` values as one `f64` vector, row-major.
+pub fn flat<T: Real, const K: usize>(rows: &[[T; K]]) -> Vec<f64> {
+    rows.iter().flatten().map(|x| x.to_f64_exact()).collect()
 }
 
 #[cfg(test)]
@@ -181,6 +280,16 @@ mod tests {
         assert_eq!(max_rel_err(&[1.0, 2.0], &[1.0, 2.0]), 0.0);
         assert!((max_rel_err(&[1.0, 2.1], &[1.0, 2.0]) - 0.05).abs() < 1e-12);
         assert!((max_rel_err(&[0.5], &[0.0]) - 0.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn splitmix64_matches_the_reference_sequence() {
+        // Pins the sequence: the random test values of every crate derive from it.
+        let mut r = SplitMix64(1234567);
+        assert_eq!(r.next_u64(), 6457827717110365317);
+        assert_eq!(r.next_u64(), 3203168211198807973);
+        let u = r.uniform(-2.0, 3.0);
+        assert!((-2.0..3.0).contains(&u));
     }
 
     #[test]

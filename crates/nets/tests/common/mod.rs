@@ -1,42 +1,22 @@
 //! Shared helpers of the `nets` integration tests: fixture tensors as arrays and state dicts.
 #![allow(dead_code)]
 
-use base::Real;
-use dsgs_testkit::{Fixture, Tensor};
+use dsgs_testkit::arrays::conv_params;
+use dsgs_testkit::{Fixture, SplitMix64};
 use ndarray::{Array4, ArrayView4, Dimension};
 use nets::{ConvLayer, StateDict, TensorF32};
 
-/// The oracle fixture of the networks.
-pub fn nets_fixture() -> Fixture {
-    Fixture::shared("oracle/fixtures/nets.safetensors")
-}
-
-/// A 4-D fixture tensor in precision `T`.
-pub fn arr4<T: Real>(t: &Tensor) -> Array4<T> {
-    assert_eq!(t.shape.len(), 4, "not a 4-D tensor: {:?}", t.shape);
-    let s = &t.shape;
-    Array4::from_shape_vec(
-        (s[0], s[1], s[2], s[3]),
-        t.data.iter().map(|&v| T::lit(v)).collect(),
-    )
-    .expect("shape")
-}
+// The testkit's helpers the test files use (each file some of them).
+#[allow(unused_imports)]
+pub use dsgs_testkit::{
+    arrays::{arr4, rel_err},
+    oracle::nets_fixture,
+    to_f64,
+};
 
 /// The tensors named `{prefix}*` as an `f32` state dict with the prefix removed.
 pub fn state_dict(fx: &Fixture, prefix: &str) -> StateDict {
-    fx.names()
-        .into_iter()
-        .filter_map(|n| {
-            n.strip_prefix(prefix).map(|k| {
-                let t = fx.get(n);
-                let data = t.data.iter().map(|&v| v as f32).collect();
-                (
-                    k.to_string(),
-                    TensorF32::new(t.shape.clone(), data).expect("shape"),
-                )
-            })
-        })
-        .collect()
+    fx.f32_tensors(prefix, TensorF32::new)
 }
 
 /// Overwrites every layer's parameters with the exact (float64) fixture values
@@ -47,23 +27,8 @@ pub fn exact_weights<'a>(
     prefix: &str,
 ) {
     for l in layers {
-        let w = fx.get(&format!("{prefix}{}.weight", l.source));
-        assert_eq!(w.shape, l.weight.shape());
-        l.weight = arr4(w);
-        let b = fx.get(&format!("{prefix}{}.bias", l.source));
-        l.bias = ndarray::Array1::from_vec(b.data.clone());
+        (l.weight, l.bias) = conv_params(fx, prefix, &l.source, l.weight.shape());
     }
-}
-
-/// Data as `f64` in row-major order.
-pub fn to_f64<T: Real, D: Dimension>(a: &ndarray::Array<T, D>) -> Vec<f64> {
-    a.iter().map(|v| v.to_f64_exact()).collect()
-}
-
-/// `max_rel_err` of an array against a fixture tensor, after checking the shape.
-pub fn rel_err<T: Real, D: Dimension>(a: &ndarray::Array<T, D>, e: &Tensor) -> f64 {
-    assert_eq!(a.shape(), e.shape.as_slice(), "shape mismatch");
-    dsgs_testkit::max_rel_err(&to_f64(a), &e.data)
 }
 
 /// Per-channel mean and standard deviation over H*W with the unbiased variance plus 1e-5 (the
@@ -106,24 +71,20 @@ pub fn mean_std_backward(x: ArrayView4<f64>, gm: &[f64], gs: &[f64]) -> Array4<f
 }
 
 /// A small deterministic generator (splitmix64) for test tensors.
-pub struct TestRng(u64);
+pub struct TestRng(SplitMix64);
 
 impl TestRng {
     pub fn new(seed: u64) -> TestRng {
-        TestRng(seed ^ 0x9E37_79B9_7F4A_7C15)
+        TestRng(SplitMix64(seed ^ 0x9E37_79B9_7F4A_7C15))
     }
 
     pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
+        self.0.next_u64()
     }
 
     /// Uniform in `[-1, 1)`.
     pub fn uniform(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+        self.0.unit() * 2.0 - 1.0
     }
 
     pub fn array4(&mut self, dim: (usize, usize, usize, usize)) -> Array4<f64> {

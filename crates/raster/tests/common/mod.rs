@@ -1,40 +1,18 @@
-//! Shared test support: oracle fixture cases and a dense reference rasterizer.
+//! Shared test support: oracle fixture cases, random scenes and a dense reference rasterizer.
 #![allow(dead_code)]
 
 use dsgs_testkit::Fixture;
 use gaussian::Real;
-use raster::{rasterize, rasterize_backward, Cotangents, Rasterized, SplatGrads, Splats};
+use raster::{rasterize, rasterize_backward, Cotangents, Rasterized, SplatGrads, Splats, TileBins};
 
-/// The five cases of `oracle/fixtures/raster.safetensors`.
-pub const CASES: [&str; 5] = ["basic", "features", "saturated", "edges", "sh3"];
-
-pub fn raster_fixture() -> Fixture {
-    Fixture::shared("oracle/fixtures/raster.safetensors")
-}
-
-/// One oracle case at the rasterizer level: projected inputs, cotangents and expected values.
-pub struct RasterCase {
-    pub name: String,
-    pub width: u32,
-    pub height: u32,
-    pub channel_count: usize,
-    pub means2d: Vec<[f64; 2]>,
-    pub conics: Vec<[f64; 3]>,
-    pub depths: Vec<f64>,
-    pub radii: Vec<[u32; 2]>,
-    pub opacity_logits: Vec<f64>,
-    pub channels: Vec<f64>,
-    pub background: Vec<f64>,
-    pub v_image: Vec<f64>,
-    pub v_alpha: Vec<f64>,
-    pub v_depth: Vec<f64>,
-}
-
-pub fn rows<const K: usize>(data: &[f64]) -> Vec<[f64; K]> {
-    data.chunks_exact(K)
-        .map(|c| std::array::from_fn(|i| c[i]))
-        .collect()
-}
+// The testkit's helpers the test files use (each file some of them). `Rng` is a small
+// deterministic generator (SplitMix64) for test values derived from a proptest seed.
+#[allow(unused_imports)]
+pub use dsgs_testkit::{
+    flat,
+    oracle::{raster_fixture, RASTER_CASES as CASES},
+    to_f64, SplitMix64 as Rng,
+};
 
 pub fn cast<T: Real>(v: &[f64]) -> Vec<T> {
     v.iter().map(|&x| T::lit(x)).collect()
@@ -44,72 +22,62 @@ pub fn cast_rows<T: Real, const K: usize>(v: &[[f64; K]]) -> Vec<[T; K]> {
     v.iter().map(|r| r.map(T::lit)).collect()
 }
 
-pub fn to_f64<T: Real>(v: &[T]) -> Vec<f64> {
-    v.iter().map(|x| x.to_f64_exact()).collect()
-}
-
-pub fn flat<T: Real, const K: usize>(v: &[[T; K]]) -> Vec<f64> {
-    v.iter().flatten().map(|x| x.to_f64_exact()).collect()
-}
-
 pub fn sigmoid(x: f64) -> f64 {
     1.0 / (1.0 + (-x).exp())
 }
 
+/// One oracle case at the rasterizer level: the projected scene, and the cotangents.
+pub struct RasterCase {
+    pub name: String,
+    /// The projected inputs, with opacities `sigmoid(opacity_logits)`.
+    pub scene: Scene2d,
+    pub opacity_logits: Vec<f64>,
+    pub v_image: Vec<f64>,
+    pub v_alpha: Vec<f64>,
+    pub v_depth: Vec<f64>,
+}
+
 impl RasterCase {
     pub fn load(f: &Fixture, name: &str) -> RasterCase {
-        let g = |k: &str| f.get(&format!("{name}.{k}"));
+        let key = |k: &str| format!("{name}.{k}");
+        let g = |k: &str| f.get(&key(k));
         let size = &g("size_wh").data;
-        let (width, height) = (size[0] as u32, size[1] as u32);
-        let channels = if f.has(&format!("{name}.colors")) {
+        let channels = if f.has(&key("colors")) {
             g("colors")
         } else {
             g("features")
         };
-        let channel_count = *channels.shape.last().unwrap();
-        RasterCase {
-            name: name.to_string(),
-            width,
-            height,
-            channel_count,
-            means2d: rows(&g("means2d").data),
-            conics: rows(&g("conics").data),
+        let opacity_logits = g("opacity_logits").data.clone();
+        let scene = Scene2d {
+            width: size[0] as u32,
+            height: size[1] as u32,
+            channel_count: *channels.shape.last().unwrap(),
+            means2d: f.rows(&key("means2d")),
+            conics: f.rows(&key("conics")),
             depths: g("depths").data.clone(),
-            radii: rows::<2>(&g("radii").data)
+            radii: f
+                .rows::<2>(&key("radii"))
                 .iter()
                 .map(|r| [r[0] as u32, r[1] as u32])
                 .collect(),
-            opacity_logits: g("opacity_logits").data.clone(),
+            opacities: opacity_logits.iter().map(|&x| sigmoid(x)).collect(),
             channels: channels.data.clone(),
             background: g("background").data.clone(),
+        };
+        RasterCase {
+            name: name.to_string(),
+            scene,
+            opacity_logits,
             v_image: g("v_image").data.clone(),
             v_alpha: g("v_alpha").data.clone(),
             v_depth: g("v_depth").data.clone(),
         }
     }
 
-    pub fn opacities(&self) -> Vec<f64> {
-        self.opacity_logits.iter().map(|&x| sigmoid(x)).collect()
-    }
-
     /// Runs forward and backward in precision `T` (inputs rounded to `T`).
     pub fn run<T: Real>(&self) -> (Rasterized<T>, SplatGrads<T>) {
-        let means2d = cast_rows::<T, 2>(&self.means2d);
-        let conics = cast_rows::<T, 3>(&self.conics);
-        let depths = cast::<T>(&self.depths);
-        let opacities = cast::<T>(&self.opacities());
-        let channels = cast::<T>(&self.channels);
-        let background = cast::<T>(&self.background);
-        let splats = Splats {
-            means2d: &means2d,
-            conics: &conics,
-            depths: &depths,
-            radii: &self.radii,
-            opacities: &opacities,
-            channels: &channels,
-            channel_count: self.channel_count,
-        };
-        let out = rasterize(&splats, self.width, self.height, &background).unwrap();
+        let s = self.scene.cast::<T>();
+        let out = rasterize(&s.splats(), s.width, s.height, &s.background).unwrap();
         let v_image = cast::<T>(&self.v_image);
         let v_alpha = cast::<T>(&self.v_alpha);
         let v_depth = cast::<T>(&self.v_depth);
@@ -118,7 +86,7 @@ impl RasterCase {
             alpha: Some(&v_alpha),
             depth: Some(&v_depth),
         };
-        let grads = rasterize_backward(&splats, &out.bins, &background, &cot).unwrap();
+        let grads = rasterize_backward(&s.splats(), &out.bins, &s.background, &cot).unwrap();
         (out, grads)
     }
 }
@@ -136,34 +104,41 @@ pub fn logit_grads<T: Real>(v_opacities: &[T], logits: &[f64]) -> Vec<f64> {
         .collect()
 }
 
-/// A scene at the rasterizer level, in `f64`, owning its arrays.
+/// A scene at the rasterizer level, owning its arrays: in `f64`, or rounded to another real type
+/// by [`Scene2d::cast`].
 #[derive(Clone, Debug)]
-pub struct Scene2d {
+pub struct Scene2d<T = f64> {
     pub width: u32,
     pub height: u32,
     pub channel_count: usize,
-    pub means2d: Vec<[f64; 2]>,
-    pub conics: Vec<[f64; 3]>,
-    pub depths: Vec<f64>,
-    pub radii: Vec<[u32; 2]>,
-    pub opacities: Vec<f64>,
-    pub channels: Vec<f64>,
-    pub background: Vec<f64>,
-}
-
-/// A [`Scene2d`]'s arrays in another real type.
-pub struct SceneIn<T> {
     pub means2d: Vec<[T; 2]>,
     pub conics: Vec<[T; 3]>,
     pub depths: Vec<T>,
     pub radii: Vec<[u32; 2]>,
     pub opacities: Vec<T>,
     pub channels: Vec<T>,
-    pub channel_count: usize,
     pub background: Vec<T>,
 }
 
-impl<T: Real> SceneIn<T> {
+impl Scene2d {
+    /// The scene rounded to `T`.
+    pub fn cast<T: Real>(&self) -> Scene2d<T> {
+        Scene2d {
+            width: self.width,
+            height: self.height,
+            channel_count: self.channel_count,
+            means2d: cast_rows(&self.means2d),
+            conics: cast_rows(&self.conics),
+            depths: cast(&self.depths),
+            radii: self.radii.clone(),
+            opacities: cast(&self.opacities),
+            channels: cast(&self.channels),
+            background: cast(&self.background),
+        }
+    }
+}
+
+impl<T: Real> Scene2d<T> {
     pub fn splats(&self) -> Splats<'_, T> {
         Splats {
             means2d: &self.means2d,
@@ -175,33 +150,17 @@ impl<T: Real> SceneIn<T> {
             channel_count: self.channel_count,
         }
     }
-}
 
-impl Scene2d {
-    /// The scene rounded to `T`.
-    pub fn cast<T: Real>(&self) -> SceneIn<T> {
-        SceneIn {
-            means2d: cast_rows(&self.means2d),
-            conics: cast_rows(&self.conics),
-            depths: cast(&self.depths),
-            radii: self.radii.clone(),
-            opacities: cast(&self.opacities),
-            channels: cast(&self.channels),
-            channel_count: self.channel_count,
-            background: cast(&self.background),
-        }
-    }
-
-    pub fn splats(&self) -> Splats<'_, f64> {
-        Splats {
-            means2d: &self.means2d,
-            conics: &self.conics,
-            depths: &self.depths,
-            radii: &self.radii,
-            opacities: &self.opacities,
-            channels: &self.channels,
-            channel_count: self.channel_count,
-        }
+    /// The scene's Gaussians binned to the image's tiles.
+    pub fn tile_bins(&self) -> TileBins {
+        TileBins::new(
+            self.width,
+            self.height,
+            &self.means2d,
+            &self.depths,
+            &self.radii,
+        )
+        .unwrap()
     }
 }
 
@@ -314,26 +273,41 @@ pub fn dense_reference(s: &Scene2d) -> DenseResult {
     r
 }
 
-/// A small deterministic generator (SplitMix64) for test values derived from a proptest seed.
-pub struct Rng(pub u64);
+/// Random cotangents `(image, alpha, depth)` of an image of `pixels` pixels and `channels`
+/// channels: image and alpha uniform in `[-1, 1)`, depth in `[-depth, depth)`.
+pub fn cotangents(
+    rng: &mut Rng,
+    pixels: usize,
+    channels: usize,
+    depth: f64,
+) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let image = rng.vec(pixels * channels, -1.0, 1.0);
+    let alpha = rng.vec(pixels, -1.0, 1.0);
+    (image, alpha, rng.vec(pixels, -depth, depth))
+}
 
-impl Rng {
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
+/// The smallest difference between two of the values (infinite for fewer than two).
+pub fn min_gap(values: &[f64]) -> f64 {
+    let mut sorted = values.to_vec();
+    sorted.sort_by(f64::total_cmp);
+    sorted
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .fold(f64::INFINITY, f64::min)
+}
 
-    /// Uniform in `[lo, hi)`.
-    pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * ((self.next_u64() >> 11) as f64 / (1u64 << 53) as f64)
-    }
-
-    pub fn vec(&mut self, n: usize, lo: f64, hi: f64) -> Vec<f64> {
-        (0..n).map(|_| self.uniform(lo, hi)).collect()
-    }
+/// A projected 2D Gaussian with covariance eigenvalues `l1`, `l2` (px^2), its first axis at angle
+/// `th`: its conic (the inverse covariance) and its radii `ceil(k sqrt(var))` along x and y.
+pub fn ellipse(l1: f64, l2: f64, th: f64, k: f64) -> ([f64; 3], [u32; 2]) {
+    let (c, sn) = (th.cos(), th.sin());
+    let (xx, xy, yy) = (
+        l1 * c * c + l2 * sn * sn,
+        (l1 - l2) * c * sn,
+        l1 * sn * sn + l2 * c * c,
+    );
+    let det = xx * yy - xy * xy;
+    let radii = [(k * xx.sqrt()).ceil() as u32, (k * yy.sqrt()).ceil() as u32];
+    ([yy / det, -xy / det, xx / det], radii)
 }
 
 /// A random rasterizer-level scene: 2D covariances with eigenvalues in `[1, 20]` px^2 (so the conic
@@ -360,19 +334,9 @@ pub fn random_scene(rng: &mut Rng, n: usize, width: u32, height: u32, d: usize) 
             rng.uniform(-0.2 * h, 1.2 * h),
         ]);
         let (l1, l2) = (rng.uniform(1.0, 20.0), rng.uniform(1.0, 20.0));
-        let th = rng.uniform(0.0, std::f64::consts::PI);
-        let (c, sn) = (th.cos(), th.sin());
-        let (xx, xy, yy) = (
-            l1 * c * c + l2 * sn * sn,
-            (l1 - l2) * c * sn,
-            l1 * sn * sn + l2 * c * c,
-        );
-        let det = xx * yy - xy * xy;
-        s.conics.push([yy / det, -xy / det, xx / det]);
-        s.radii.push([
-            (3.5 * xx.sqrt()).ceil() as u32,
-            (3.5 * yy.sqrt()).ceil() as u32,
-        ]);
+        let (conic, radii) = ellipse(l1, l2, rng.uniform(0.0, std::f64::consts::PI), 3.5);
+        s.conics.push(conic);
+        s.radii.push(radii);
         s.depths.push(rng.uniform(1.0, 10.0));
         s.opacities.push(rng.uniform(0.05, 0.9999));
     }
@@ -389,35 +353,22 @@ pub struct SceneCase {
 
 impl SceneCase {
     pub fn load(f: &Fixture, name: &str) -> SceneCase {
-        use glam::DMat4;
-        let g = |k: &str| f.get(&format!("{name}.{k}"));
-        let size = &g("size_wh").data;
-        let k = &g("K").data;
-        let intrinsics = gaussian::Intrinsics {
-            fx: k[0],
-            fy: k[4],
-            cx: k[2],
-            cy: k[5],
-            width: size[0] as u32,
-            height: size[1] as u32,
-        };
-        // `viewmat` is stored row-major; glam takes columns.
-        let v: [f64; 16] = g("viewmat").data.clone().try_into().unwrap();
-        let camera_from_world = DMat4::from_cols_array(&v).transpose();
-        let camera = gaussian::Camera::new(intrinsics, camera_from_world);
+        let key = |k: &str| format!("{name}.{k}");
+        let g = |k: &str| f.get(&key(k));
+        let camera = dsgs_testkit::oracle_camera!(f, name);
         let n = g("means").shape[0];
         let mut scene = gaussian::FeatureGaussians::<f64> {
-            means: rows(&g("means").data),
-            log_scales: rows(&g("log_scales").data),
-            quats: rows(&g("quats").data),
+            means: f.rows(&key("means")),
+            log_scales: f.rows(&key("log_scales")),
+            quats: f.rows(&key("quats")),
             opacity_logits: g("opacity_logits").data.clone(),
             ..Default::default()
         };
         let channels;
-        if f.has(&format!("{name}.sh_coeffs")) {
+        if f.has(&key("sh_coeffs")) {
             let degree = g("sh_degree").scalar() as usize;
             scene.sh_degree = degree;
-            scene.sh = rows(&g("sh_coeffs").data);
+            scene.sh = f.rows(&key("sh_coeffs"));
             assert_eq!(scene.sh.len(), n * (degree + 1) * (degree + 1));
             channels = raster::Channels::Color { sh_degree: degree };
         } else {

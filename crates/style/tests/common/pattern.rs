@@ -183,3 +183,33 @@ pub fn flips<T: Real>(a: &Forward<f64>, b: &Forward<T>) -> Vec<Flip> {
 pub fn scale(f: &Forward<f64>, i: usize) -> f64 {
     f.pre[i].iter().fold(0.0, |m, v| m.max(v.abs()))
 }
+
+/// A chain whose passes in `f64` and in `T` are compared: its name, its steps, and the two passes.
+pub type Chain<'a, T> = (
+    &'a str,
+    &'a [Step<'a, f64>],
+    &'a Forward<f64>,
+    &'a Forward<T>,
+);
+
+/// The flips between the `f64` and `f32` passes of each chain, described; asserts that each is a
+/// tie at `f32` resolution (a pre-activation within 1e-5 of its layer's scale), where `f32` may
+/// legitimately land in the other linear piece.
+pub fn ties<T: Real>(chains: &[Chain<'_, T>]) -> Vec<String> {
+    let mut ties = Vec::new();
+    for &(name, steps, a, b) in chains {
+        for (i, idx, pre) in flips(a, b) {
+            let scale = scale(a, i);
+            let what = format!(
+                "{name} {} unit {idx:?}: pre-activation {pre:.2e} (layer scale {scale:.2e})",
+                steps[i].layer.name
+            );
+            assert!(
+                pre.abs() <= 1e-5 * scale,
+                "not a tie at f32 resolution: {what}"
+            );
+            ties.push(what);
+        }
+    }
+    ties
+}

@@ -1,7 +1,12 @@
 //! The dsgs pipeline: the stages of DS-StyleGaussian as functions the `dsgs` program calls.
 //!
 //! Each module maps onto one group of subcommands and speaks in files: it reads inputs, reports
-//! clear errors naming the file and the problem, and writes outputs atomically.
+//! clear errors naming the file and the problem, and writes outputs atomically. Nothing here
+//! prints: a stage reports typed [`Event`]s (stage started, progress, log line, evaluation,
+//! checkpoint written, output written, stage finished) to the [`Sink`] of the [`Control`] its
+//! caller passes, which also carries the stop flag of the training stages. The `dsgs` program
+//! draws the events as progress bars and log lines; another front end (a viewer, a service, a
+//! test) gives its own sink.
 //!
 //! * [`weights`]: importing and describing network weights (`dsgs weights`).
 //! * [`config`]: TOML configurations of the training commands, saved beside their outputs.

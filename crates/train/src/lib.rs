@@ -21,6 +21,14 @@
 //! * [`decoder_training`]: AdaIN decoder training ([`DecoderTrainer`], [`DecoderTrainConfig`]).
 //! * [`features`]: feature training on frozen geometry, the third stage ([`FeatureTrainer`],
 //!   [`FeatureTrainConfig`]), producing a [`SceneBundle`].
+//! * [`bake`](mod@bake): fitting SH colours to the stylized views of a bundle.
+//!
+//! Running them:
+//!
+//! * [`driver`]: the one training-loop driver ([`drive`], [`TrainingLoop`]) under every loop:
+//!   stop flag, periodic and stop checkpoints, progress and log events, the final output.
+//! * [`event`]: the typed [`Event`]s every loop reports to a caller's [`Sink`]; nothing in this
+//!   crate prints.
 
 pub mod adam;
 pub mod bake;

@@ -17,58 +17,14 @@
 //! element by its own magnitude), which is a property of f32 gradients and not of the optimiser.
 
 use base::Real;
-use dsgs_testkit::{max_rel_err, Fixture};
-use ndarray::{Array1, Array4};
-use nets::{ConvLayer, Decoder, Encoder, Resolution, StateDict, TensorF32};
+use dsgs_testkit::arrays::arr4;
+use dsgs_testkit::nets::networks;
+use dsgs_testkit::oracle::nets_fixture;
+use dsgs_testkit::{max_rel_err, to_f64};
+use ndarray::Array4;
+use nets::Resolution;
 use style::{adain_with_stats, decoder_training_loss, encode_style};
 use train::{Adam, AdamConfig};
-
-fn fixture() -> Fixture {
-    Fixture::shared("oracle/fixtures/nets.safetensors")
-}
-
-fn arr4<T: Real>(fx: &Fixture, name: &str) -> Array4<T> {
-    let t = fx.get(name);
-    let s = &t.shape;
-    Array4::from_shape_vec(
-        (s[0], s[1], s[2], s[3]),
-        t.data.iter().map(|&v| T::lit(v)).collect(),
-    )
-    .expect("shape")
-}
-
-fn state_dict(fx: &Fixture, prefix: &str) -> StateDict {
-    fx.names()
-        .into_iter()
-        .filter_map(|n| {
-            n.strip_prefix(prefix).map(|k| {
-                let t = fx.get(n);
-                let data = t.data.iter().map(|&v| v as f32).collect();
-                (
-                    k.to_string(),
-                    TensorF32::new(t.shape.clone(), data).expect("shape"),
-                )
-            })
-        })
-        .collect()
-}
-
-/// Replaces the layers' parameters by the fixture's `{prefix}{source}.{weight,bias}` in `T`.
-fn set_weights<'a, T: Real>(
-    layers: impl Iterator<Item = &'a mut ConvLayer<T>>,
-    fx: &Fixture,
-    prefix: &str,
-) {
-    for l in layers {
-        l.weight = arr4(fx, &format!("{prefix}{}.weight", l.source));
-        let b = fx.get(&format!("{prefix}{}.bias", l.source));
-        l.bias = Array1::from_iter(b.data.iter().map(|&v| T::lit(v)));
-    }
-}
-
-fn as_f64<T: Real>(v: &[T]) -> Vec<f64> {
-    v.iter().map(|&x| T::to_f64_exact(x)).collect()
-}
 
 struct Errors {
     loss: f64,
@@ -77,20 +33,11 @@ struct Errors {
 }
 
 fn three_adam_steps<T: Real>() -> Errors {
-    let fx = fixture();
-    let enc: Encoder<f32> = Encoder::from_state_dict(&state_dict(&fx, "vgg.")).unwrap();
-    let mut enc = enc
-        .with_depth(4)
-        .unwrap()
-        .with_resolution(Resolution::Standard)
-        .cast::<T>();
-    set_weights(enc.layers_mut(), &fx, "vgg.");
-    let dec: Decoder<f32> = Decoder::from_state_dict(&state_dict(&fx, "decoder.")).unwrap();
-    let mut dec = dec.with_resolution(Resolution::Standard).cast::<T>();
-    set_weights(dec.layers_mut(), &fx, "decoder.");
+    let fx = nets_fixture();
+    let (enc, mut dec) = networks::<T>(&fx, Resolution::Standard);
 
-    let content: Array4<T> = arr4(&fx, "content");
-    let style_img: Array4<T> = arr4(&fx, "style");
+    let content: Array4<T> = arr4(fx.get("content"));
+    let style_img: Array4<T> = arr4(fx.get("style"));
     let s = encode_style(&enc, &style_img).unwrap();
     let c = enc.forward(content.view()).unwrap();
     let t = adain_with_stats(c.last().unwrap(), s.deepest()).unwrap();
@@ -101,8 +48,8 @@ fn three_adam_steps<T: Real>() -> Errors {
     for l in dec.layers() {
         adam.add_param(&format!("{}.weight", l.source), 1e-4, l.weight.len(), 1);
         adam.add_param(&format!("{}.bias", l.source), 1e-4, l.bias.len(), 1);
-        initial.push(as_f64(l.weight.as_slice().unwrap()));
-        initial.push(as_f64(l.bias.as_slice().unwrap()));
+        initial.push(to_f64(l.weight.as_slice().unwrap()));
+        initial.push(to_f64(l.bias.as_slice().unwrap()));
     }
 
     let mut errs = Errors {
@@ -136,8 +83,8 @@ fn three_adam_steps<T: Real>() -> Errors {
 
         for (i, layer) in dec.layers().enumerate() {
             for (j, (name, values)) in [
-                ("weight", as_f64(layer.weight.as_slice().unwrap())),
-                ("bias", as_f64(layer.bias.as_slice().unwrap())),
+                ("weight", to_f64(layer.weight.as_slice().unwrap())),
+                ("bias", to_f64(layer.bias.as_slice().unwrap())),
             ]
             .into_iter()
             .enumerate()

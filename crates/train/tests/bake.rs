@@ -488,17 +488,7 @@ fn stop_flag_ends_the_bake() {
     let e = bake(bundle, stats, &config(), None, &stopped).unwrap_err();
     assert!(matches!(e, TrainError::Interrupted(_)), "{e}");
     // Raised during the optimisation: the scene as it was, reported as interrupted.
-    let cams = bake_cameras(&bundle.cameras(), &config()).unwrap();
-    let targets: Vec<View> = cams
-        .train
-        .iter()
-        .take(2)
-        .map(|c| View {
-            name: c.name.clone(),
-            camera: c.camera,
-            image: target(bundle, stats, &c.camera),
-        })
-        .collect();
+    let targets = two_targets();
     let before = initial_baked_scene(&bundle.scene).unwrap();
     let mut baker = Baker::new(before.clone(), &targets, BACKGROUND, &config()).unwrap();
     let outcome = baker.train(&stopped).unwrap();

@@ -2,11 +2,13 @@
 //! relu4_1): the held-out loss falls, only the decoder changes, a resumed run is bit-identical
 //! to the uninterrupted one, both variants train; and the image folders it reads from.
 
-use std::path::PathBuf;
+mod common;
+
 use train::{Quiet, Run};
 
-use dsgs_testkit::{shared_path, Fixture};
-use nets::{Decoder, Encoder, NetWeights, Resolution, StateDict, TensorF32};
+use common::{fixture_networks, net_bits, shared_images};
+use dsgs_testkit::{scratch_dir, shared_path};
+use nets::{Decoder, NetWeights, Resolution};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use train::bundle::Variant;
@@ -18,55 +20,18 @@ use train::image_folder::{
 };
 use train::TrainError;
 
-/// The oracle's encoder (to relu4_1) and decoder in `f32`.
-fn fixture_networks() -> (Encoder<f32>, Decoder<f32>) {
-    let fx = Fixture::shared("oracle/fixtures/nets.safetensors");
-    let sd = |prefix: &str| -> StateDict {
-        fx.names()
-            .into_iter()
-            .filter_map(|n| {
-                n.strip_prefix(prefix).map(|k| {
-                    let t = fx.get(n);
-                    (
-                        k.to_string(),
-                        TensorF32::new(t.shape.clone(), t.to_f32()).unwrap(),
-                    )
-                })
-            })
-            .collect()
-    };
-    let enc = Encoder::from_state_dict(&sd("vgg."))
-        .unwrap()
-        .with_depth(4)
-        .unwrap();
-    let dec = Decoder::from_state_dict(&sd("decoder.")).unwrap();
-    (enc, dec)
-}
-
-/// A few shared images, loaded once and shrunk (short side 48) so that every step is cheap.
-fn small_set(dir: &str, names: &[&str]) -> ImageSet {
-    let set = ImageSet::from_files(
-        names
-            .iter()
-            .map(|n| shared_path(&format!("{dir}/{n}")))
-            .collect(),
-    )
-    .unwrap();
-    let images = (0..set.len())
-        .map(|i| (names[i].to_string(), set.load_resized(i, 48).unwrap()))
-        .collect();
-    ImageSet::from_images(images).unwrap()
-}
-
+/// Four content images, short side 48.
 fn contents() -> ImageSet {
-    small_set(
+    shared_images(
         "data/content",
         &["chicago.jpg", "flowers.jpg", "sailboat.jpg", "cornell.jpg"],
+        48,
     )
 }
 
+/// Four style images, short side 48.
 fn styles() -> ImageSet {
-    small_set(
+    shared_images(
         "data/styles",
         &[
             "brushstrokes.jpg",
@@ -74,6 +39,7 @@ fn styles() -> ImageSet {
             "sketch.png",
             "woman_with_hat_matisse.jpg",
         ],
+        48,
     )
 }
 
@@ -93,13 +59,6 @@ fn config(variant: Variant) -> DecoderTrainConfig {
     }
 }
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("dsgs-dectrain-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
 fn weights_of(d: &Decoder<f32>) -> Vec<Vec<u32>> {
     d.layers()
         .map(|l| {
@@ -109,12 +68,6 @@ fn weights_of(d: &Decoder<f32>) -> Vec<Vec<u32>> {
                 .map(|v| v.to_bits())
                 .collect()
         })
-        .collect()
-}
-
-fn encoder_bits(e: &Encoder<f32>) -> Vec<u32> {
-    e.layers()
-        .flat_map(|l| l.weight.iter().chain(l.bias.iter()).map(|v| v.to_bits()))
         .collect()
 }
 
@@ -145,7 +98,7 @@ fn training_lowers_the_held_out_loss_and_changes_only_the_decoder() {
     let (before, after, t) = held_out_drop(Variant::Standard);
     println!("standard: held-out loss {before:.5} -> {after:.5}");
     assert!(after < 0.95 * before, "{before} -> {after}");
-    assert_eq!(encoder_bits(t.encoder()), encoder_bits(&enc0));
+    assert_eq!(net_bits(t.encoder().layers()), net_bits(enc0.layers()));
     let (w0, w1) = (weights_of(&dec0), weights_of(t.decoder()));
     for (k, (a, b)) in w0.iter().zip(&w1).enumerate() {
         assert_ne!(a, b, "decoder layer {k} did not change");
@@ -171,7 +124,7 @@ fn resuming_from_a_checkpoint_is_bit_identical() {
         DecoderTrainer::new(enc.clone(), dec.clone(), contents(), styles(), cfg.clone()).unwrap();
     let reports: Vec<_> = (0..4).map(|_| straight.train_step().unwrap()).collect();
 
-    let dir = scratch("resume");
+    let dir = scratch_dir("dectrain", "resume");
     let mut first =
         DecoderTrainer::new(enc.clone(), dec, contents(), styles(), cfg.clone()).unwrap();
     first.train_step().unwrap();
@@ -196,7 +149,7 @@ fn resuming_from_a_checkpoint_is_bit_identical() {
 #[test]
 fn train_writes_checkpoints_and_the_final_weights_and_stops_on_request() {
     let (enc, dec) = fixture_networks();
-    let dir = scratch("train");
+    let dir = scratch_dir("dectrain", "train");
     let mut cfg = config(Variant::Standard);
     cfg.iterations = 3;
     cfg.checkpoint_interval = 2;
@@ -217,8 +170,8 @@ fn train_writes_checkpoints_and_the_final_weights_and_stops_on_request() {
         weights_of(t.decoder())
     );
     assert_eq!(
-        encoder_bits(saved.encoder.as_ref().unwrap()),
-        encoder_bits(&enc)
+        net_bits(saved.encoder.as_ref().unwrap().layers()),
+        net_bits(enc.layers())
     );
     // the checkpoint of iteration 2 resumes to the same end point
     let ck = dir.join(DECODER_CHECKPOINT_FILE);
@@ -249,7 +202,7 @@ fn train_writes_checkpoints_and_the_final_weights_and_stops_on_request() {
 #[test]
 fn bad_checkpoints_and_configurations_are_refused_with_reasons() {
     let (enc, dec) = fixture_networks();
-    let dir = scratch("bad");
+    let dir = scratch_dir("dectrain", "bad");
     let junk = dir.join("junk.safetensors");
     std::fs::write(&junk, b"not a checkpoint").unwrap();
     let e = DecoderTrainer::resume(
@@ -368,7 +321,7 @@ fn image_folders_are_listed_sorted_and_bad_files_are_named() {
     assert_eq!(mixed[0], one);
     assert_eq!(mixed.len(), 8);
 
-    let dir = scratch("folders");
+    let dir = scratch_dir("dectrain", "folders");
     let empty = dir.join("empty");
     std::fs::create_dir_all(empty.join("sub")).unwrap();
     let msg = collect_images(&[&empty], false).unwrap_err().to_string();

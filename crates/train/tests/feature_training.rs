@@ -5,14 +5,15 @@
 
 mod common;
 
-use std::path::PathBuf;
 use train::Run;
 
-use common::{render_views, sphere_cameras, synthetic_scene};
-use dsgs_testkit::{shared_path, Fixture};
+use common::{
+    fixture_networks, net_bits, render_views, shared_images, sphere_cameras, synthetic_scene,
+};
+use dsgs_testkit::scratch_dir;
 use gaussian::FeatureGaussians;
 use ndarray::Array4;
-use nets::{Decoder, Encoder, Resolution, StateDict, TensorF32};
+use nets::Resolution;
 use style::channel_stats;
 use train::bundle::{render_feature_map, CameraRecord, SceneBundle, Variant};
 use train::features::{
@@ -21,31 +22,6 @@ use train::features::{
 };
 use train::geometry::View;
 use train::image_folder::{to_tensor, ImageSet};
-
-/// The oracle's encoder (to relu4_1) and decoder in `f32`.
-fn fixture_networks() -> (Encoder<f32>, Decoder<f32>) {
-    let fx = Fixture::shared("oracle/fixtures/nets.safetensors");
-    let sd = |prefix: &str| -> StateDict {
-        fx.names()
-            .into_iter()
-            .filter_map(|n| {
-                n.strip_prefix(prefix).map(|k| {
-                    let t = fx.get(n);
-                    (
-                        k.to_string(),
-                        TensorF32::new(t.shape.clone(), t.to_f32()).unwrap(),
-                    )
-                })
-            })
-            .collect()
-    };
-    let enc = Encoder::from_state_dict(&sd("vgg."))
-        .unwrap()
-        .with_depth(4)
-        .unwrap();
-    let dec = Decoder::from_state_dict(&sd("decoder.")).unwrap();
-    (enc, dec)
-}
 
 fn geometry() -> FeatureGaussians<f32> {
     synthetic_scene(300, 11)
@@ -62,19 +38,9 @@ fn views() -> (Vec<View>, Vec<CameraRecord>) {
     (all[..3].to_vec(), records)
 }
 
+/// Two style images, short side 40.
 fn styles() -> ImageSet {
-    let names = ["brushstrokes.jpg", "mondrian.jpg"];
-    let set = ImageSet::from_files(
-        names
-            .iter()
-            .map(|n| shared_path(&format!("data/styles/{n}")))
-            .collect(),
-    )
-    .unwrap();
-    let images = (0..set.len())
-        .map(|i| (names[i].to_string(), set.load_resized(i, 40).unwrap()))
-        .collect();
-    ImageSet::from_images(images).unwrap()
+    shared_images("data/styles", &["brushstrokes.jpg", "mondrian.jpg"], 40)
 }
 
 fn inputs() -> FeatureInputs {
@@ -111,13 +77,6 @@ fn config(variant: Variant) -> FeatureTrainConfig {
 /// Every (view, style) pair.
 const PAIRS: [(usize, usize); 6] = [(0, 0), (0, 1), (1, 0), (1, 1), (2, 0), (2, 1)];
 
-fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("dsgs-feattrain-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
-
 fn bits(v: &[f32]) -> Vec<u32> {
     v.iter().map(|x| x.to_bits()).collect()
 }
@@ -132,12 +91,6 @@ fn geometry_bits(g: &FeatureGaussians<f32>) -> Vec<u32> {
     }
     out.extend(g.sh.iter().flat_map(|c| bits(c)));
     out
-}
-
-fn net_bits<'a>(layers: impl Iterator<Item = &'a nets::ConvLayer<f32>>) -> Vec<u32> {
-    layers
-        .flat_map(|l| l.weight.iter().chain(l.bias.iter()).map(|v| v.to_bits()))
-        .collect()
 }
 
 fn lifter_bits(t: &FeatureTrainer) -> Vec<u32> {
@@ -297,7 +250,7 @@ fn resuming_from_a_checkpoint_is_bit_identical() {
     let mut straight = FeatureTrainer::new(cfg.clone(), inputs()).unwrap();
     let reports: Vec<_> = (0..4).map(|_| straight.train_step().unwrap()).collect();
 
-    let dir = scratch("resume");
+    let dir = scratch_dir("feattrain", "resume");
     let mut first = FeatureTrainer::new(cfg.clone(), inputs()).unwrap();
     first.train_step().unwrap();
     first.train_step().unwrap();
@@ -333,7 +286,7 @@ fn resuming_from_a_checkpoint_is_bit_identical() {
 
 #[test]
 fn the_bundle_saves_loads_and_renders() {
-    let dir = scratch("bundle");
+    let dir = scratch_dir("feattrain", "bundle");
     let mut cfg = config(Variant::Fullres);
     cfg.iterations = 3;
     cfg.checkpoint_interval = 2;

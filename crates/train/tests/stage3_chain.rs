@@ -29,11 +29,12 @@
 mod common;
 
 use common::{sphere_cameras, synthetic_scene};
-use dsgs_testkit::Fixture;
+use dsgs_testkit::nets::networks;
+use dsgs_testkit::oracle::nets_fixture;
 use gaussian::{Camera, FeatureGaussians};
 use ndarray::{s, Array1, Array4};
 use nets::conv::{conv1x1, conv3x3_reflect};
-use nets::{Decoder, Encoder, Lifter, Resolution, StateDict, TensorF32};
+use nets::{Decoder, Encoder, Lifter, Resolution};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
@@ -52,32 +53,10 @@ const WINDOW: CropWindow = CropWindow {
     height: 12,
 };
 
-/// The oracle's fullres encoder (to relu4_1) and decoder in `f64`.
-fn networks() -> (Encoder<f64>, Decoder<f64>) {
-    let fx = Fixture::shared("oracle/fixtures/nets.safetensors");
-    let sd = |prefix: &str| -> StateDict {
-        fx.names()
-            .into_iter()
-            .filter_map(|n| {
-                n.strip_prefix(prefix).map(|k| {
-                    let t = fx.get(n);
-                    (
-                        k.to_string(),
-                        TensorF32::new(t.shape.clone(), t.to_f32()).unwrap(),
-                    )
-                })
-            })
-            .collect()
-    };
-    let enc: Encoder<f32> = Encoder::from_state_dict(&sd("vgg."))
-        .unwrap()
-        .with_depth(4)
-        .unwrap();
-    let dec: Decoder<f32> = Decoder::from_state_dict(&sd("decoder.")).unwrap();
-    (
-        enc.with_resolution(Resolution::Fullres).cast(),
-        dec.with_resolution(Resolution::Fullres).cast(),
-    )
+/// The oracle's fullres encoder (to relu4_1) and decoder, their `f32` weights widened to `f64`.
+fn fullres_networks() -> (Encoder<f64>, Decoder<f64>) {
+    let (enc, dec) = networks::<f32>(&nets_fixture(), Resolution::Fullres);
+    (enc.cast(), dec.cast())
 }
 
 struct Problem {
@@ -93,7 +72,7 @@ struct Problem {
 
 fn problem() -> Problem {
     let mut rng = StdRng::seed_from_u64(17);
-    let (encoder, decoder) = networks();
+    let (encoder, decoder) = fullres_networks();
     let mut scene = synthetic_scene(200, 3).cast::<f64>().with_features(F, 0.0);
     for v in scene.features.iter_mut() {
         let z: f64 = StandardNormal.sample(&mut rng);

@@ -1,13 +1,19 @@
-//! Synthetic scenes and views for the training tests.
+//! Synthetic scenes and views, the oracle's networks and small image sets for the training
+//! tests.
 
 #![allow(dead_code)]
 
+use dsgs_testkit::nets::networks;
+use dsgs_testkit::oracle::nets_fixture;
+use dsgs_testkit::shared_path;
 use gaussian::camera_path::look_at;
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
 use glam::DVec3;
+use nets::{ConvLayer, Decoder, Encoder, Resolution};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use train::geometry::View;
+use train::image_folder::ImageSet;
 use train::render::render_color;
 
 /// A known scene: `n` opaque-ish Gaussians of degree-0 colour in the cube `[-0.8, 0.8]^3`.
@@ -75,5 +81,39 @@ pub fn render_views(
                 .raster
                 .image,
         })
+        .collect()
+}
+
+/// The oracle's encoder (to relu4_1) and decoder in `f32`, standard variant (1/8 of the VGG
+/// widths).
+pub fn fixture_networks() -> (Encoder<f32>, Decoder<f32>) {
+    networks(&nets_fixture(), Resolution::Standard)
+}
+
+/// A few shared images `{dir}/{name}` (relative to the shared directory), loaded once and shrunk
+/// to the short side `short_side` so that every step is cheap.
+pub fn shared_images(dir: &str, names: &[&str], short_side: u32) -> ImageSet {
+    let set = ImageSet::from_files(
+        names
+            .iter()
+            .map(|n| shared_path(&format!("{dir}/{n}")))
+            .collect(),
+    )
+    .unwrap();
+    let images = (0..set.len())
+        .map(|i| {
+            (
+                names[i].to_string(),
+                set.load_resized(i, short_side).unwrap(),
+            )
+        })
+        .collect();
+    ImageSet::from_images(images).unwrap()
+}
+
+/// The bits of every weight and bias of the layers, in order (for bit-identity checks).
+pub fn net_bits<'a>(layers: impl Iterator<Item = &'a ConvLayer<f32>>) -> Vec<u32> {
+    layers
+        .flat_map(|l| l.weight.iter().chain(l.bias.iter()).map(|v| v.to_bits()))
         .collect()
 }

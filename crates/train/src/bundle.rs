@@ -168,6 +168,33 @@ pub struct BundleInfo {
 }
 
 impl BundleInfo {
+    /// The description of a bundle of `feature_dim`-wide features aligned to `encoder` at
+    /// `variant`: the format, the encoder's widths and fingerprint and a zero feature background
+    /// follow from them; `scene_stats` are the scene's mean and std of the deepest features;
+    /// no provenance.
+    pub fn new(
+        encoder: &Encoder<f32>,
+        variant: Variant,
+        feature_dim: usize,
+        background: [f32; 3],
+        scene_stats: (Vec<f32>, Vec<f32>),
+        cameras: Vec<CameraRecord>,
+    ) -> BundleInfo {
+        BundleInfo {
+            format: BUNDLE_FORMAT.to_string(),
+            variant,
+            feature_dim,
+            encoder_widths: encoder.widths(),
+            encoder_fingerprint: weights_fingerprint(encoder),
+            feature_background: vec![0.0; feature_dim],
+            background,
+            scene_mean: scene_stats.0,
+            scene_std: scene_stats.1,
+            cameras,
+            provenance: Vec::new(),
+        }
+    }
+
     /// Reads and checks the description (`bundle.json`) of the bundle directory `dir`, without
     /// its scene or networks (enough for its cameras).
     pub fn load(dir: &Path) -> Result<BundleInfo, TrainError> {

@@ -62,7 +62,6 @@ use style::{
 use crate::adam::{Adam, AdamConfig};
 use crate::bundle::{
     feature_size, weights_fingerprint, BundleInfo, CameraRecord, SceneBundle, Variant,
-    BUNDLE_FORMAT,
 };
 use crate::checkpoint::{Fnv1a, StateReader, StateWriter};
 use crate::decoder_training::{conv_default_init, mix, INIT_STREAM, STEP_STREAM};
@@ -864,17 +863,15 @@ impl FeatureTrainer {
             decoder: self.decoder.clone(),
             lifter: self.lifter.clone(),
             info: BundleInfo {
-                format: BUNDLE_FORMAT.to_string(),
-                variant: self.config.variant,
-                feature_dim: self.config.feature_dim,
-                encoder_widths: self.encoder.widths(),
-                encoder_fingerprint: weights_fingerprint(&self.encoder),
-                feature_background: vec![0.0; self.config.feature_dim],
-                background: self.background,
-                scene_mean: self.scene_mean.clone(),
-                scene_std: self.scene_std.clone(),
-                cameras: self.cameras.clone(),
                 provenance,
+                ..BundleInfo::new(
+                    &self.encoder,
+                    self.config.variant,
+                    self.config.feature_dim,
+                    self.background,
+                    (self.scene_mean.clone(), self.scene_std.clone()),
+                    self.cameras.clone(),
+                )
             },
         }
     }

@@ -24,7 +24,7 @@ use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
 use style::{channel_stats, encode_style, ChannelStats};
 use train::bake::{bake, bake_cameras, evaluate_baked, initial_baked_scene, BakeConfig, Baker};
-use train::bundle::{weights_fingerprint, BundleInfo, CameraRecord, SceneBundle, BUNDLE_FORMAT};
+use train::bundle::{BundleInfo, CameraRecord, SceneBundle};
 use train::geometry::View;
 use train::loss::psnr;
 use train::render::render_color;
@@ -139,23 +139,20 @@ fn tiny_bundle() -> (SceneBundle, DVec3) {
         mean += &(s.mean / cameras.len() as f32);
         std += &(s.std / cameras.len() as f32);
     }
-    let info = BundleInfo {
-        format: BUNDLE_FORMAT.into(),
-        variant: Variant::Standard,
-        feature_dim: FEATURES,
-        encoder_widths: encoder.widths(),
-        encoder_fingerprint: weights_fingerprint(&encoder),
-        feature_background: vec![0.0; FEATURES],
-        background: BACKGROUND,
-        scene_mean: mean.row(0).to_vec(),
-        scene_std: std.row(0).to_vec(),
-        cameras: cameras
-            .iter()
-            .enumerate()
-            .map(|(i, cam)| CameraRecord::new(format!("ring_{i:02}"), cam, false))
-            .collect(),
-        provenance: Vec::new(),
-    };
+    let records = cameras
+        .iter()
+        .enumerate()
+        .map(|(i, cam)| CameraRecord::new(format!("ring_{i:02}"), cam, false))
+        .collect();
+    let stats = (mean.row(0).to_vec(), std.row(0).to_vec());
+    let info = BundleInfo::new(
+        &encoder,
+        Variant::Standard,
+        FEATURES,
+        BACKGROUND,
+        stats,
+        records,
+    );
     let bundle = SceneBundle {
         scene,
         encoder,

@@ -5,6 +5,8 @@ mod common;
 
 use std::path::Path;
 
+#[cfg(unix)]
+use common::stop_and_resume;
 use common::{dsgs, fails, ok, scratch};
 
 /// Writes `n` views on a circle of radius 3 around the origin (OpenGL camera-to-world poses,
@@ -235,75 +237,24 @@ fn a_stopped_run_writes_a_checkpoint_that_resumes() {
 #[cfg(unix)]
 #[test]
 fn sigterm_mid_run_writes_a_checkpoint_that_resumes_exactly() {
-    use std::io::{BufRead, BufReader};
-    use std::process::Stdio;
-
     let dir = scratch("fit-geometry-sigterm");
     let data = dir.join("data");
     write_dataset(&data, 4);
     let cfg = dir.join("small.toml");
     std::fs::write(&cfg, "random_init_points = 300\nprogress = false\n").unwrap();
+    let (full, cut) = (dir.join("full"), dir.join("cut"));
     // Long enough that the signal lands well before the end.
-    let iterations = "1500";
     let fit = |out: &Path| {
         let mut c = dsgs();
         c.arg("fit-geometry")
             .arg(&data)
             .arg("--config")
             .arg(&cfg)
-            .args(["--iterations", iterations, "--log-every", "1", "-o"])
+            .args(["--iterations", "1500", "-o"])
             .arg(out);
         c
     };
-    let full = dir.join("full");
-    ok(&mut fit(&full));
-
-    let cut = dir.join("cut");
-    let mut child = fit(&cut)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut stderr = BufReader::new(child.stderr.take().unwrap());
-    let mut log = String::new();
-    // Signal once the run has logged its fifth iteration.
-    loop {
-        let mut line = String::new();
-        assert!(stderr.read_line(&mut line).unwrap() > 0, "no log: {log}");
-        log.push_str(&line);
-        if line.contains("[ITER 5]") {
-            break;
-        }
-    }
-    let killed = std::process::Command::new("kill")
-        .args(["-TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(killed.success());
-    let mut rest = String::new();
-    std::io::Read::read_to_string(&mut stderr, &mut rest).unwrap();
-    log.push_str(&rest);
-    let status = child.wait().unwrap();
-    assert_eq!(status.code(), Some(130), "{log}");
-    let resume = log
-        .lines()
-        .find_map(|l| l.split("resume with --resume ").nth(1))
-        .unwrap_or_else(|| panic!("no resume hint: {log}"));
-    let checkpoint = Path::new(resume.trim());
-    assert!(checkpoint.is_file(), "{log}");
-    assert!(
-        !log.contains(&format!("[ITER {iterations}]")),
-        "the run finished before the signal: {log}"
-    );
-
-    // Resuming without --config takes the run's saved config.toml.
-    ok(dsgs()
-        .arg("fit-geometry")
-        .arg(&data)
-        .arg("--resume")
-        .arg(checkpoint)
-        .arg("-o")
-        .arg(&cut));
+    stop_and_resume(1500, &full, &cut, fit, |_, _| {});
     assert_eq!(
         std::fs::read(full.join("point_cloud.ply")).unwrap(),
         std::fs::read(cut.join("point_cloud.ply")).unwrap(),

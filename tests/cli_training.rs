@@ -2,11 +2,16 @@
 //! relu3_1 WCT networks: 32-pixel crops and views and a handful of iterations. Outputs exist
 //! and load, the effective configurations are saved, a resumed decoder run is bit-identical to
 //! an uninterrupted one, the trained bundle stylizes, and bad input is refused with a message.
+//! Each command stopped by SIGTERM mid-run resumes to the uninterrupted run's output, byte for
+//! byte.
 
 mod common;
 
 use std::path::{Path, PathBuf};
+use std::process::Command;
 
+#[cfg(unix)]
+use common::{assert_same_files, stop_and_resume};
 use common::{dsgs, fails, ok, save_tiny_bundle, scratch, wct_relu3, Lcg};
 use dsgs_testkit::shared_path;
 use gaussian::ply::{load_ply, save_ply};
@@ -49,41 +54,95 @@ fn styles(dir: &Path) -> PathBuf {
     )
 }
 
-#[test]
-fn pretrain_decoder_writes_weights_and_config_and_resumes_exactly() {
-    let dir = scratch("pretrain-decoder");
-    let nets = save_networks(&dir);
+/// A training command on tiny inputs: `dsgs COMMAND`, its inputs (named by their flag, or by
+/// their usage name when positional) and its fixed arguments.
+struct Tiny {
+    command: &'static str,
+    inputs: Vec<(&'static str, PathBuf)>,
+    args: &'static [&'static str],
+}
+
+impl Tiny {
+    /// The input named `name`.
+    fn path(&self, name: &str) -> &Path {
+        let (_, p) = self.inputs.iter().find(|(n, _)| *n == name).unwrap();
+        p
+    }
+
+    /// The command of `iterations` without progress bars, with the fixed and the further
+    /// arguments `args`, writing to `out`.
+    fn command(&self, out: &Path, iterations: u64, args: &[&str]) -> Command {
+        let mut cmd = self.inputs_only(out, iterations, args);
+        cmd.args(self.args);
+        cmd
+    }
+
+    /// The command without the fixed arguments (for a run that takes them from a saved
+    /// configuration).
+    fn inputs_only(&self, out: &Path, iterations: u64, args: &[&str]) -> Command {
+        let mut cmd = dsgs();
+        cmd.arg(self.command);
+        for (name, path) in &self.inputs {
+            if name.starts_with('-') {
+                cmd.arg(name);
+            }
+            cmd.arg(path);
+        }
+        cmd.arg("--iterations")
+            .arg(iterations.to_string())
+            .args(["--no-progress", "-o"])
+            .arg(out)
+            .args(args);
+        cmd
+    }
+
+    /// [`stop_and_resume`] of `iterations` with the further arguments `args`, writing to
+    /// `output` below `dir/full` and `dir/cut`: returns those two outputs.
+    #[cfg(unix)]
+    fn stop_and_resume(
+        &self,
+        dir: &Path,
+        output: &str,
+        iterations: u64,
+        args: &[&str],
+        stopped: impl FnOnce(&Path, &str),
+    ) -> (PathBuf, PathBuf) {
+        let (full, cut) = (dir.join("full").join(output), dir.join("cut").join(output));
+        let command = |out: &Path| self.command(out, iterations, args);
+        stop_and_resume(iterations, &full, &cut, command, stopped);
+        (full, cut)
+    }
+}
+
+/// `pretrain-decoder` of the relu3_1 networks on two content and two style images, with a
+/// configuration of two evaluation pairs and no periodic checkpoints, on 32-pixel crops, one
+/// pair a batch.
+fn tiny_pretrain(dir: &Path) -> Tiny {
+    let config = dir.join("decoder.toml");
+    std::fs::write(&config, "eval_pairs = 2\ncheckpoint_interval = 0\n").unwrap();
     let content = small_images(
         &dir.join("content"),
         &["content/sailboat.jpg", "content/flowers.jpg"],
     );
-    let styles = styles(&dir);
-    let cfg = dir.join("decoder.toml");
-    std::fs::write(&cfg, "eval_pairs = 2\ncheckpoint_interval = 0\n").unwrap();
-    let run = |out: &Path, iterations: &str, resume: Option<&Path>| {
-        let mut cmd = dsgs();
-        cmd.arg("pretrain-decoder")
-            .arg("--content")
-            .arg(&content)
-            .arg("--style")
-            .arg(&styles)
-            .arg("--weights")
-            .arg(&nets)
-            .arg("--config")
-            .arg(&cfg)
-            .args([
-                "--iterations",
-                iterations,
-                "--batch-size",
-                "1",
-                "--resize",
-                "32",
-                "--crop",
-                "32",
-                "--no-progress",
-                "-o",
-            ])
-            .arg(out);
+    Tiny {
+        command: "pretrain-decoder",
+        inputs: vec![
+            ("--content", content),
+            ("--style", styles(dir)),
+            ("--weights", save_networks(dir)),
+            ("--config", config),
+        ],
+        args: &["--batch-size", "1", "--resize", "32", "--crop", "32"],
+    }
+}
+
+#[test]
+fn pretrain_decoder_writes_weights_and_config_and_resumes_exactly() {
+    let dir = scratch("pretrain-decoder");
+    let inputs = tiny_pretrain(&dir);
+    let [nets, content, styles] = ["--weights", "--content", "--style"].map(|n| inputs.path(n));
+    let run = |out: &Path, iterations: u64, resume: Option<&Path>| {
+        let mut cmd = inputs.command(out, iterations, &[]);
         if let Some(ck) = resume {
             cmd.arg("--resume").arg(ck);
         }
@@ -91,7 +150,7 @@ fn pretrain_decoder_writes_weights_and_config_and_resumes_exactly() {
     };
     // Three iterations straight through.
     let full = dir.join("full");
-    let text = run(&full, "3", None);
+    let text = run(&full, 3, None);
     println!("{text}");
     assert!(text.contains("2 content and 2 style images"), "{text}");
     assert!(text.contains("iteration 3: evaluation loss"), "{text}");
@@ -114,8 +173,8 @@ fn pretrain_decoder_writes_weights_and_config_and_resumes_exactly() {
     // Two iterations, then one more from the final checkpoint: the same weights, bit for bit
     // (compared as tensors: the order of the file's metadata is not fixed).
     let part = dir.join("part");
-    run(&part, "2", None);
-    let text = run(&part, "3", Some(&part.join("checkpoint.safetensors")));
+    run(&part, 2, None);
+    let text = run(&part, 3, Some(&part.join("checkpoint.safetensors")));
     assert!(text.contains("1 iterations"), "{text}");
     let resumed = NetWeights::load(&part.join("decoder.safetensors"))
         .unwrap()
@@ -134,11 +193,11 @@ fn pretrain_decoder_writes_weights_and_config_and_resumes_exactly() {
     ok(dsgs()
         .arg("pretrain-decoder")
         .arg("--content")
-        .arg(&content)
+        .arg(content)
         .arg("--style")
-        .arg(&styles)
+        .arg(styles)
         .arg("--weights")
-        .arg(&nets)
+        .arg(nets)
         .arg("--from-scratch")
         .args([
             "--iterations",
@@ -158,9 +217,9 @@ fn pretrain_decoder_writes_weights_and_config_and_resumes_exactly() {
         dsgs()
             .arg("pretrain-decoder")
             .arg("--content")
-            .arg(&content)
+            .arg(content)
             .args(["--style", "no/such/styles", "--weights"])
-            .arg(&nets)
+            .arg(nets)
             .arg("-o")
             .arg(dir.join("bad")),
     );
@@ -170,9 +229,9 @@ fn pretrain_decoder_writes_weights_and_config_and_resumes_exactly() {
         dsgs()
             .arg("pretrain-decoder")
             .arg("--content")
-            .arg(&content)
+            .arg(content)
             .arg("--style")
-            .arg(&styles)
+            .arg(styles)
             .arg("--encoder")
             .arg(shared_path(
                 "weights/wct-relu1_1-3_1/vgg_normalised_conv3_1.pth",
@@ -253,39 +312,32 @@ fn random_geometry(n: usize) -> FeatureGaussians<f32> {
     g
 }
 
+/// `fit-features` of 4-d features for 400 random Gaussians, trained on 8-pixel crops of a
+/// dataset of six 32x32 white-background views, with the relu3_1 networks and two styles.
+fn tiny_features(dir: &Path) -> Tiny {
+    let data = dir.join("data");
+    write_dataset(&data, 6);
+    let geometry = dir.join("geometry.ply");
+    save_ply(&geometry, &random_geometry(400)).unwrap();
+    Tiny {
+        command: "fit-features",
+        inputs: vec![
+            ("--geometry", geometry),
+            ("--dataset", data),
+            ("--style", styles(dir)),
+            ("--weights", save_networks(dir)),
+        ],
+        args: &["--feature-dim", "4", "--crop", "8", "--white"],
+    }
+}
+
 #[test]
 fn fit_features_writes_a_bundle_that_stylizes() {
     let dir = scratch("fit-features");
-    let nets = save_networks(&dir);
-    let styles = styles(&dir);
-    let data = dir.join("data");
-    write_dataset(&data, 6);
-    let ply = dir.join("geometry.ply");
-    save_ply(&ply, &random_geometry(400)).unwrap();
+    let inputs = tiny_features(&dir);
+    let [nets, styles, data] = ["--weights", "--style", "--dataset"].map(|n| inputs.path(n));
     let out = dir.join("out");
-    let text = ok(dsgs()
-        .arg("fit-features")
-        .arg("--geometry")
-        .arg(&ply)
-        .arg("--dataset")
-        .arg(&data)
-        .arg("--style")
-        .arg(&styles)
-        .arg("--weights")
-        .arg(&nets)
-        .args([
-            "--iterations",
-            "3",
-            "--feature-dim",
-            "4",
-            "--crop",
-            "8",
-            "--white",
-            "--no-progress",
-            "-o",
-        ])
-        .arg(&out))
-    .stdout;
+    let text = ok(&mut inputs.command(&out, 3, &[])).stdout;
     let text = String::from_utf8_lossy(&text);
     println!("{text}");
     // Every 8th view is held out: 5 of the 6 are trained on.
@@ -307,27 +359,11 @@ fn fit_features_writes_a_bundle_that_stylizes() {
     // One more iteration from the final checkpoint (with the saved configuration) gives the
     // features and lifter of four iterations straight through, bit for bit.
     let features_run = |out: &Path, extra: &[&str]| {
-        let text = ok(dsgs()
-            .arg("fit-features")
-            .arg("--geometry")
-            .arg(&ply)
-            .arg("--dataset")
-            .arg(&data)
-            .arg("--style")
-            .arg(&styles)
-            .arg("--weights")
-            .arg(&nets)
-            .args(extra)
-            .arg("-o")
-            .arg(out))
-        .stdout;
-        String::from_utf8_lossy(&text).into_owned()
+        String::from_utf8_lossy(&ok(&mut inputs.inputs_only(out, 4, extra)).stdout).into_owned()
     };
     let text = features_run(
         &out,
         &[
-            "--iterations",
-            "4",
             "--resume",
             out.join("checkpoint.safetensors").to_str().unwrap(),
         ],
@@ -336,12 +372,7 @@ fn fit_features_writes_a_bundle_that_stylizes() {
     let straight = dir.join("straight");
     features_run(
         &straight,
-        &[
-            "--config",
-            out.join("config.toml").to_str().unwrap(),
-            "--iterations",
-            "4",
-        ],
+        &["--config", out.join("config.toml").to_str().unwrap()],
     );
     let a = SceneBundle::load(&out.join("bundle")).unwrap();
     let b = SceneBundle::load(&straight.join("bundle")).unwrap();
@@ -371,11 +402,11 @@ fn fit_features_writes_a_bundle_that_stylizes() {
                 "no/such/geometry.ply",
                 "--dataset",
             ])
-            .arg(&data)
+            .arg(data)
             .arg("--style")
-            .arg(&styles)
+            .arg(styles)
             .arg("--weights")
-            .arg(&nets)
+            .arg(nets)
             .arg("-o")
             .arg(dir.join("bad")),
     );
@@ -383,43 +414,40 @@ fn fit_features_writes_a_bundle_that_stylizes() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-#[test]
-fn bake_writes_a_plain_ply_and_a_report() {
-    let dir = scratch("bake");
-    let bundle = save_tiny_bundle(&dir);
-    let style = shared_path("data/styles/mondrian.jpg");
-    let cfg = dir.join("bake.toml");
+/// `bake` of the tiny bundle to SH degree 1 with the Mondrian style at 64 pixels, on four
+/// training and two held-out target views.
+fn tiny_bake(dir: &Path) -> Tiny {
+    let config = dir.join("bake.toml");
     std::fs::write(
-        &cfg,
+        &config,
         "target_views = 4\ninterpolated_per_pair = 1\nheld_out = 2\n",
     )
     .unwrap();
+    Tiny {
+        command: "bake",
+        inputs: vec![
+            ("BUNDLE", save_tiny_bundle(dir)),
+            ("--style", shared_path("data/styles/mondrian.jpg")),
+            ("--config", config),
+        ],
+        args: &["--style-size", "64", "--sh-degree", "1"],
+    }
+}
+
+#[test]
+fn bake_writes_a_plain_ply_and_a_report() {
+    let dir = scratch("bake");
+    let inputs = tiny_bake(&dir);
+    let (bundle, style) = (inputs.path("BUNDLE"), inputs.path("--style"));
     let out = dir.join("out/baked.ply");
-    let text = ok(dsgs()
-        .arg("bake")
-        .arg(&bundle)
-        .arg("--style")
-        .arg(&style)
-        .arg("--config")
-        .arg(&cfg)
-        .args([
-            "--style-size",
-            "64",
-            "--iterations",
-            "8",
-            "--sh-degree",
-            "1",
-            "--no-progress",
-            "-o",
-        ])
-        .arg(&out))
-    .stdout;
+    let text = ok(&mut inputs.command(&out, 8, &[])).stdout;
     let text = String::from_utf8_lossy(&text);
     println!("{text}");
     assert!(
-        text.contains("4 training and 2 held-out target views, 8 iterations"),
+        text.contains("4 training and 2 held-out target views"),
         "{text}"
     );
+    assert!(text.contains("\n8 iterations in "), "{text}");
     assert!(text.contains("held-out PSNR: baked "), "{text}");
     let baked = load_ply(&out).unwrap();
     assert_eq!(baked.len(), 1500);
@@ -441,7 +469,7 @@ fn bake_writes_a_plain_ply_and_a_report() {
         .args(["render", "--scene"])
         .arg(&out)
         .arg("--dataset")
-        .arg(&bundle)
+        .arg(bundle)
         .args(["--cameras", "test", "-o"])
         .arg(&frames));
     let mut names: Vec<_> = std::fs::read_dir(&frames)
@@ -461,11 +489,11 @@ fn bake_writes_a_plain_ply_and_a_report() {
     let err = fails(
         dsgs()
             .arg("bake")
-            .arg(&bundle)
+            .arg(bundle)
             .arg("--style")
-            .arg(&style)
+            .arg(style)
             .arg("--style")
-            .arg(&style)
+            .arg(style)
             .arg("-o")
             .arg(dir.join("two.ply")),
     );
@@ -478,11 +506,71 @@ fn bake_writes_a_plain_ply_and_a_report() {
             .arg("bake")
             .arg(&not_bundle)
             .arg("--style")
-            .arg(&style)
+            .arg(style)
             .arg("-o")
             .arg(dir.join("x.ply")),
     );
     assert!(err.contains("not-a-bundle"), "{err}");
     assert!(!dir.join("x.ply").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A SIGTERM in the middle of a decoder run with no periodic checkpoints: the checkpoint the
+/// stop writes resumes to the uninterrupted run's decoder, byte for byte.
+#[cfg(unix)]
+#[test]
+fn pretrain_decoder_stopped_by_sigterm_resumes_exactly() {
+    let dir = scratch("pretrain-decoder-sigterm");
+    let no_periodic_checkpoints = ["--checkpoint-every", "0"];
+    let (full, cut) = tiny_pretrain(&dir).stop_and_resume(
+        &dir,
+        "out",
+        300,
+        &no_periodic_checkpoints,
+        |checkpoint, log| {
+            assert!(
+                checkpoint.ends_with("cut/out/checkpoint.safetensors"),
+                "{log}"
+            )
+        },
+    );
+    let decoder = |out: &Path| std::fs::read(out.join("decoder.safetensors")).unwrap();
+    assert!(
+        decoder(&full) == decoder(&cut),
+        "the resumed decoder differs from the uninterrupted one"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A SIGTERM in the middle of a feature fit: resuming from the checkpoint it writes gives the
+/// uninterrupted run's bundle, every file byte for byte.
+#[cfg(unix)]
+#[test]
+fn fit_features_stopped_by_sigterm_resumes_exactly() {
+    let dir = scratch("fit-features-sigterm");
+    let (full, cut) = tiny_features(&dir).stop_and_resume(&dir, "out", 500, &[], |_, _| {});
+    assert_same_files(&full.join("bundle"), &cut.join("bundle"));
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A SIGTERM in the middle of a bake: no scene is written, the checkpoint goes beside the
+/// output, and resuming from it gives the uninterrupted bake's scene, byte for byte, and a
+/// report.
+#[cfg(unix)]
+#[test]
+fn bake_stopped_by_sigterm_resumes_exactly() {
+    let dir = scratch("bake-sigterm");
+    let (full, cut) =
+        tiny_bake(&dir).stop_and_resume(&dir, "baked.ply", 1000, &[], |checkpoint, log| {
+            let beside = dir.join("cut/baked.checkpoint/checkpoint.safetensors");
+            assert_eq!(checkpoint, beside, "{log}");
+            let scene = dir.join("cut/baked.ply");
+            assert!(!scene.exists(), "a stopped bake wrote {}", scene.display());
+        });
+    assert!(
+        std::fs::read(&full).unwrap() == std::fs::read(&cut).unwrap(),
+        "the resumed bake differs from the uninterrupted one"
+    );
+    assert!(cut.with_extension("json").is_file());
     std::fs::remove_dir_all(&dir).ok();
 }

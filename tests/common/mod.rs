@@ -12,7 +12,6 @@ use gaussian::FeatureGaussians;
 use ndarray::{Array1, Array4};
 use nets::{Decoder, Encoder, Lifter};
 use pipeline::cameras::{select, CameraRequest, CameraSource, KnownCameras};
-use train::bundle::{weights_fingerprint, BUNDLE_FORMAT};
 use train::{BundleInfo, CameraRecord, SceneBundle, Variant};
 
 /// The `dsgs` binary.
@@ -130,19 +129,15 @@ pub fn tiny_bundle() -> SceneBundle {
         .enumerate()
         .map(|(i, cam)| CameraRecord::new(format!("orbit_{i:02}"), cam, i % 8 == 0))
         .collect();
-    let info = BundleInfo {
-        format: BUNDLE_FORMAT.into(),
-        variant: Variant::Standard,
-        feature_dim: FEATURES,
-        encoder_widths: encoder.widths(),
-        encoder_fingerprint: weights_fingerprint(&encoder),
-        feature_background: vec![0.0; FEATURES],
-        background: [0.0; 3],
-        scene_mean: vec![0.3; c],
-        scene_std: vec![0.5; c],
+    let stats = (vec![0.3; c], vec![0.5; c]);
+    let info = BundleInfo::new(
+        &encoder,
+        Variant::Standard,
+        FEATURES,
+        [0.0; 3],
+        stats,
         cameras,
-        provenance: Vec::new(),
-    };
+    );
     SceneBundle {
         scene,
         encoder,
@@ -162,4 +157,103 @@ pub fn save_tiny_bundle(dir: &Path) -> PathBuf {
 /// The pixel size of a PNG (or any image) file.
 pub fn size_of(path: &Path) -> (u32, u32) {
     image::image_dimensions(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
+/// The acceptance test of a stop request: `command(out)` builds a training run of
+/// `iterations` writing to `out` (run here with `--log-every 1`). The run goes straight through
+/// into `full`; again into `cut`, where SIGTERM lands once it has logged its fifth iteration,
+/// and it must stop before its last iteration, exit with status 130 and name on standard error
+/// the checkpoint to resume from; `stopped(checkpoint, log)` then checks what the stopped run
+/// left; last, the same command with `--resume CHECKPOINT` finishes the run in `cut`. The
+/// caller compares the outputs.
+#[cfg(unix)]
+pub fn stop_and_resume(
+    iterations: u64,
+    full: &Path,
+    cut: &Path,
+    command: impl Fn(&Path) -> Command,
+    stopped: impl FnOnce(&Path, &str),
+) {
+    let logged = |out: &Path| {
+        let mut cmd = command(out);
+        cmd.args(["--log-every", "1"]);
+        cmd
+    };
+    ok(&mut logged(full));
+    let (checkpoint, log) = sigterm_mid_run(&mut logged(cut), iterations);
+    stopped(&checkpoint, &log);
+    ok(logged(cut).arg("--resume").arg(&checkpoint));
+}
+
+/// Runs a command that logs every iteration and sends it SIGTERM after its fifth: see
+/// [`stop_and_resume`]. Returns the checkpoint named and the error output.
+#[cfg(unix)]
+fn sigterm_mid_run(cmd: &mut Command, iterations: u64) -> (PathBuf, String) {
+    use std::io::{BufRead, BufReader, Read};
+    use std::process::Stdio;
+
+    let mut child = cmd
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("the dsgs binary runs");
+    let mut stderr = BufReader::new(child.stderr.take().unwrap());
+    let mut log = String::new();
+    loop {
+        let mut line = String::new();
+        if stderr.read_line(&mut line).unwrap() == 0 {
+            let status = child.wait().unwrap();
+            panic!("the run ended ({status}) before its fifth iteration:\n{log}");
+        }
+        log.push_str(&line);
+        if line.contains("[ITER 5]") {
+            break;
+        }
+    }
+    let killed = Command::new("kill")
+        .args(["-TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    stderr.read_to_string(&mut log).unwrap();
+    let status = child.wait().unwrap();
+    assert_eq!(status.code(), Some(130), "{log}");
+    assert!(
+        !log.contains(&format!("[ITER {iterations}]")),
+        "the run finished before the signal:\n{log}"
+    );
+    let checkpoint = log
+        .lines()
+        .find_map(|l| l.split("resume with --resume ").nth(1))
+        .map(|p| PathBuf::from(p.trim()))
+        .unwrap_or_else(|| panic!("no resume hint:\n{log}"));
+    assert!(checkpoint.is_file(), "{}:\n{log}", checkpoint.display());
+    (checkpoint, log)
+}
+
+/// Asserts that two directories hold the same files with the same bytes.
+pub fn assert_same_files(a: &Path, b: &Path) {
+    let names = |d: &Path| {
+        let mut v: Vec<_> = std::fs::read_dir(d)
+            .unwrap_or_else(|e| panic!("{}: {e}", d.display()))
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        v.sort();
+        v
+    };
+    let files = names(a);
+    assert_eq!(files, names(b), "{} and {}", a.display(), b.display());
+    for f in &files {
+        let (x, y) = (a.join(f), b.join(f));
+        if x.is_dir() {
+            assert_same_files(&x, &y);
+        } else {
+            assert!(
+                std::fs::read(&x).unwrap() == std::fs::read(&y).unwrap(),
+                "{} and {} differ",
+                x.display(),
+                y.display()
+            );
+        }
+    }
 }

@@ -17,6 +17,9 @@
 //! * `lifter.in_channels`, `lifter.out_channels`.
 //!
 //! Loading checks the metadata against the tensors and names the offending entry on mismatch.
+//! Equal contents give equal bytes: [`serialize_canonical`] writes the header's keys in sorted
+//! order (the `safetensors` crate writes its metadata map in hash order, which differs between
+//! processes). Every safetensors file of dsgs (weights, checkpoints) is written through it.
 //! Saving writes a temporary file in the target directory and renames it, so a reader never sees a
 //! partial file. The resolution variant (standard/fullres) is a way of running the weights, not a
 //! property of them, and is not stored.
@@ -35,6 +38,34 @@ use crate::layout::{decoder_spec, encoder_spec};
 use crate::lifter::Lifter;
 use crate::pool::PoolRounding;
 use crate::state_dict::{sub_dict, StateDict, TensorF32};
+
+/// `safetensors::serialize` with the header's keys and the metadata's keys in sorted order, so
+/// that the same tensors and metadata always give the same bytes. The tensor data and their
+/// offsets are those of `safetensors::serialize`; the header is padded with spaces to a multiple
+/// of 8 bytes, as the format asks.
+pub fn serialize_canonical(
+    views: Vec<(String, TensorView<'_>)>,
+    metadata: HashMap<String, String>,
+) -> Result<Vec<u8>, String> {
+    use std::collections::BTreeMap;
+    let bytes = safetensors::serialize(views, Some(metadata)).map_err(|e| e.to_string())?;
+    let n = u64::from_le_bytes(bytes[..8].try_into().expect("8 bytes")) as usize;
+    let (header, data) = bytes[8..].split_at(n);
+    let mut header: BTreeMap<String, serde_json::Value> =
+        serde_json::from_slice(header).map_err(|e| e.to_string())?;
+    if let Some(meta) = header.get_mut("__metadata__") {
+        let sorted: BTreeMap<String, String> =
+            serde_json::from_value(meta.take()).map_err(|e| e.to_string())?;
+        *meta = serde_json::to_value(sorted).map_err(|e| e.to_string())?;
+    }
+    let mut text = serde_json::to_vec(&header).map_err(|e| e.to_string())?;
+    text.resize(text.len().next_multiple_of(8), b' ');
+    let mut out = Vec::with_capacity(8 + text.len() + data.len());
+    out.extend_from_slice(&(text.len() as u64).to_le_bytes());
+    out.extend_from_slice(&text);
+    out.extend_from_slice(data);
+    Ok(out)
+}
 
 /// The `format` metadata value.
 pub const FORMAT: &str = "dsgs-nets";
@@ -122,7 +153,7 @@ impl NetWeights {
                     .map_err(|e| NetError::Input(format!("tensor {k}: {e}")))
             })
             .collect::<Result<Vec<_>, _>>()?;
-        safetensors::serialize(views, Some(self.metadata()))
+        serialize_canonical(views, self.metadata())
             .map_err(|e| NetError::Input(format!("cannot serialise weights: {e}")))
     }
 
@@ -268,5 +299,45 @@ fn prefix_tensor(e: NetError, prefix: &str) -> NetError {
             expected,
         },
         other => other,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Two files of the same tensors and metadata, the metadata maps filled in opposite orders
+    /// (and each with its own hash seed): the same bytes, which read back to the same content.
+    #[test]
+    fn canonical_serialisation_is_independent_of_the_map_order() {
+        let data: Vec<u8> = (0..24u8).collect();
+        let keys: Vec<String> = (0..32).map(|i| format!("key{i:02}")).collect();
+        let write = |order: &mut dyn Iterator<Item = &String>| {
+            let meta: HashMap<String, String> =
+                order.map(|k| (k.clone(), format!("v{k}"))).collect();
+            let views = vec![
+                (
+                    "b".to_string(),
+                    TensorView::new(Dtype::F32, vec![2, 2], &data[..16]).unwrap(),
+                ),
+                (
+                    "a".to_string(),
+                    TensorView::new(Dtype::U8, vec![8], &data[16..]).unwrap(),
+                ),
+            ];
+            serialize_canonical(views, meta).unwrap()
+        };
+        let one = write(&mut keys.iter());
+        let two = write(&mut keys.iter().rev());
+        assert_eq!(one, two);
+        let n = u64::from_le_bytes(one[..8].try_into().unwrap()) as usize;
+        assert_eq!(n % 8, 0, "header not padded to 8 bytes");
+        let st = SafeTensors::deserialize(&one).unwrap();
+        assert_eq!(st.tensor("b").unwrap().data(), &data[..16]);
+        assert_eq!(st.tensor("a").unwrap().data(), &data[16..]);
+        let (_, meta) = SafeTensors::read_metadata(&one).unwrap();
+        let meta = meta.metadata().clone().unwrap();
+        assert_eq!(meta.len(), keys.len());
+        assert!(keys.iter().all(|k| meta[k] == format!("v{k}")));
     }
 }

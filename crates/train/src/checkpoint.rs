@@ -177,7 +177,7 @@ impl GeometryCheckpoint {
                     .map_err(|e| TrainError::Shape(format!("checkpoint tensor {}: {e}", t.name)))
             })
             .collect::<Result<_, _>>()?;
-        safetensors::serialize(views, Some(meta))
+        nets::weights_file::serialize_canonical(views, meta)
             .map_err(|e| TrainError::Shape(format!("cannot serialise the checkpoint: {e}")))
     }
 
@@ -452,7 +452,7 @@ impl StateWriter {
                     .map_err(|e| TrainError::Shape(format!("state tensor {name}: {e}")))
             })
             .collect::<Result<Vec<_>, _>>()?;
-        safetensors::serialize(views, Some(self.meta))
+        nets::weights_file::serialize_canonical(views, self.meta)
             .map_err(|e| TrainError::Shape(format!("cannot serialise the state: {e}")))
     }
 }

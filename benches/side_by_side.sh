@@ -23,7 +23,7 @@ shift || true
 case "$what" in
 nets)
   py="${1:-${DSGS_TORCH_PYTHON:-python3}}"
-  cargo bench -p nets --bench networks
+  cargo bench -p dsgs-nets --bench networks
   if "$py" -c "import torch" 2>/dev/null; then
     "$py" benches/torch_networks.py 2
   else
@@ -39,7 +39,7 @@ raster)
   log="$(mktemp)"
   trap 'rm -f "$log"' EXIT
   for c in $cases; do
-    cargo bench -q -p raster --bench raster -- "/$c/t2" 2>/dev/null | tee -a "$log" >/dev/null
+    cargo bench -q -p dsgs-raster --bench raster -- "/$c/t2" 2>/dev/null | tee -a "$log" >/dev/null
   done
   # Criterion prints the id on one line and "thrpt: [low mid high]" two lines later.
   awk '

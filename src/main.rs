@@ -164,7 +164,7 @@ struct FitGeometryArgs {
     /// Output directory.
     #[arg(short, long)]
     output: PathBuf,
-    /// TOML configuration (train::GeometryConfig keys plus a [dataset] table); flags override it.
+    /// TOML configuration (train::GeometryConfig keys plus a `[dataset]` table); flags override it.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Total iterations.
@@ -279,7 +279,7 @@ struct FitFeaturesArgs {
     /// Network variant.
     #[arg(long)]
     variant: Option<Variant>,
-    /// TOML configuration (train::FeatureTrainConfig keys, `background` and a [dataset] table);
+    /// TOML configuration (train::FeatureTrainConfig keys, `background` and a `[dataset]` table);
     /// flags override it.
     #[arg(long)]
     config: Option<PathBuf>,

@@ -3,6 +3,36 @@
 //! ([`write_atomic`]).
 //!
 //! It sits below every other crate of the workspace and depends on none of them.
+//!
+//! # Example
+//!
+//! One function, written once over [`Real`], run in `f32` and in `f64`; its result written
+//! atomically:
+//!
+//! ```
+//! use base::{write_atomic, Real};
+//!
+//! /// The logistic sigmoid, with the exponential that vector kernels reproduce bit for bit.
+//! fn sigmoid<T: Real>(x: T) -> T {
+//!     T::one() / (T::one() + (-x).exp_fixed())
+//! }
+//!
+//! let s32 = sigmoid(0.5f32);
+//! let s64 = sigmoid(0.5f64);
+//! assert_eq!(sigmoid(0.0f32), 0.5);
+//! assert!((s32.to_f64_exact() - s64).abs() < 1e-7);
+//! assert_eq!(f32::lit(0.1), 0.1f32);
+//!
+//! // The file appears complete or not at all; missing directories are created.
+//! let dir = std::env::temp_dir().join(format!("dsgs-base-doc-{}", std::process::id()));
+//! let path = dir.join("out/sigmoid.txt");
+//! write_atomic(&path, format!("{s64}\n").as_bytes())?;
+//! assert_eq!(std::fs::read_to_string(&path)?.trim().parse::<f64>().unwrap(), s64);
+//! std::fs::remove_dir_all(&dir)?;
+//! # Ok::<(), std::io::Error>(())
+//! ```
+
+#![warn(missing_docs)]
 
 pub mod fs;
 pub mod real;

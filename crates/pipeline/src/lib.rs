@@ -26,6 +26,55 @@
 //! * [`error`]: the crate's [`Error`] (a message, a message explaining an underlying error, or
 //!   an error of a crate below) and the [`Context`](error::Context) extension that adds the
 //!   explaining text.
+//!
+//! # Example
+//!
+//! Rendering a `.ply` scene along an orbit into PNG frames, with a closure collecting the
+//! stage's events.
+//!
+//! ```
+//! use std::path::Path;
+//! use std::sync::Mutex;
+//!
+//! use pipeline::cameras::{self, CameraRequest, CameraSource};
+//! use pipeline::render::{render_views, DepthStyle, RenderKind, SceneInput};
+//! use pipeline::{Event, Stage};
+//!
+//! // A two-Gaussian scene of SH degree 1 from the repository's test fixtures.
+//! let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures");
+//! let scene = SceneInput::open(&fixtures.join("ply/tiny_ascii_deg1.ply"))?;
+//! assert_eq!(scene.gaussians().len(), 2);
+//!
+//! // Four 40x30 cameras circling the scene (a .ply knows no cameras of its own).
+//! let request = CameraRequest {
+//!     frames: Some(4),
+//!     width: Some(40),
+//!     height: Some(30),
+//!     ..CameraRequest::new(CameraSource::Orbit)
+//! };
+//! let cams = cameras::select(&request, &scene.known_cameras(), scene.gaussians())?;
+//!
+//! let out = std::env::temp_dir().join(format!("dsgs-doc-render-{}", std::process::id()));
+//! let events = Mutex::new(Vec::new());
+//! let sink = |e: Event| events.lock().unwrap().push(e);
+//! let frames = render_views(&scene, &cams, RenderKind::Color, DepthStyle::Colour, &out, &sink)?;
+//!
+//! assert_eq!(frames.len(), 4);
+//! assert_eq!(frames[3], out.join("frame_0003.png"));
+//! let png = image::open(&frames[0]).expect("a PNG");
+//! assert_eq!((png.width(), png.height()), (40, 30));
+//!
+//! // One unit of progress per view, between the start and the end of the stage.
+//! let events = events.into_inner().unwrap();
+//! assert_eq!(events.len(), 6);
+//! assert!(matches!(events[0], Event::StageStarted { stage: Stage::Render, total: 4, done: 0 }));
+//! for (i, e) in (1..).zip(&events[1..5]) {
+//!     assert!(matches!(e, Event::Progress { stage: Stage::Render, done, .. } if *done == i));
+//! }
+//! assert!(matches!(events[5], Event::StageFinished { done: 4, interrupted: false, .. }));
+//! # std::fs::remove_dir_all(&out).ok();
+//! # Ok::<(), pipeline::Error>(())
+//! ```
 
 pub mod bake;
 pub mod cameras;

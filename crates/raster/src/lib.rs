@@ -14,6 +14,62 @@
 //! Conventions are those of the oracle (`gen_fixtures.py`), documented in [`blend`] and [`tiles`].
 //! Both passes run tiles in parallel with rayon and give bit-identical results for any number of
 //! threads. Kernels are generic over [`gaussian::Real`] (`f32` for production, `f64` for checks).
+//!
+//! # Example
+//!
+//! Render colour and a 4-channel feature of three Gaussians, then take the gradients of
+//! `loss = sum(image)` with respect to every scene parameter:
+//!
+//! ```
+//! use gaussian::{Camera, FeatureGaussians, Intrinsics};
+//! use glam::DMat4;
+//! use raster::{render, render_backward, Channels, RenderOptions};
+//!
+//! // Three Gaussians 4 to 6 units in front of a camera at the origin (OpenCV axes, z forward).
+//! let scene = FeatureGaussians::<f32> {
+//!     means: vec![[-0.4, 0.0, 4.0], [0.3, 0.2, 5.0], [0.0, -0.3, 6.0]],
+//!     log_scales: vec![[-1.5, -1.8, -2.0]; 3],
+//!     quats: vec![[1.0, 0.0, 0.0, 0.0], [0.9, 0.1, 0.3, 0.0], [0.7, 0.0, 0.0, 0.7]],
+//!     opacity_logits: vec![0.5, 1.0, 2.0],
+//!     sh_degree: 0,
+//!     sh: vec![[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], // one DC coefficient each
+//!     ..Default::default()
+//! }
+//! .with_features(4, 0.25);
+//! scene.validate()?;
+//! let intrinsics = Intrinsics {
+//!     fx: 40.0,
+//!     fy: 40.0,
+//!     cx: 24.0,
+//!     cy: 16.0,
+//!     width: 48,
+//!     height: 32,
+//! };
+//! let camera = Camera::new(intrinsics, DMat4::IDENTITY);
+//!
+//! // RGB followed by the 4 feature channels, on a black background.
+//! let opts = RenderOptions::new(Channels::ColorAndFeatures { sh_degree: 0 }, vec![0.0; 7]);
+//! let out = render(&camera, &scene, &opts)?;
+//! let img = &out.raster;
+//! assert_eq!((img.width, img.height, img.channel_count), (48, 32, 7));
+//! assert!(img.alpha.iter().all(|a| (0.0..=1.0).contains(a)));
+//! assert!(img.pixel(24, 16)[3] > 0.0, "the centre pixel sees the features");
+//!
+//! // d loss / d image is 1 everywhere for loss = sum(image); no loss on alpha or depth.
+//! let ones = vec![1.0; img.image.len()];
+//! let grads = render_backward(&camera, &scene, &opts, &out, &ones, None, None)?;
+//! assert!(grads.means.iter().flatten().all(|g| g.is_finite()));
+//! assert!(grads.opacity_logits.iter().all(|&g| g > 0.0), "more opacity, more light");
+//! // The image is linear in the features: each gradient is the Gaussian's total blend weight.
+//! let loss = |s: &FeatureGaussians| -> f32 {
+//!     render(&camera, s, &opts).unwrap().raster.image.iter().sum()
+//! };
+//! let mut bumped = scene.clone();
+//! bumped.features[4] += 1.0; // feature channel 0 of Gaussian 1
+//! let finite_difference = loss(&bumped) - loss(&scene);
+//! assert!((finite_difference - grads.features[4]).abs() < 1e-3 * grads.features[4]);
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
 
 pub mod backward;
 pub mod blend;

@@ -29,6 +29,68 @@
 //!   stop flag, periodic and stop checkpoints, progress and log events, the final output.
 //! * [`event`]: the typed [`Event`]s every loop reports to a caller's [`Sink`]; nothing in this
 //!   crate prints.
+//!
+//! # Example
+//!
+//! A geometry run: ground-truth views of a small known scene, rendered with the rasterizer, are
+//! fitted from random initial points for 30 iterations through the driver, with a closure as the
+//! event sink.
+//!
+//! ```
+//! use std::sync::Mutex;
+//!
+//! use gaussian::{camera_path::look_at, Intrinsics};
+//! use glam::DVec3;
+//! use train::render::render_color;
+//! use train::{gaussians_from_points, random_points_in_box, Event, Run};
+//! use train::{GeometryConfig, GeometryTrainer, View};
+//!
+//! // The scene to recover: 40 opaque, coloured Gaussians in a cube.
+//! let mut cloud = random_points_in_box(40, [-0.6; 3], [0.6; 3], 1);
+//! for (i, c) in cloud.colors.iter_mut().enumerate() {
+//!     *c = [(i % 3) as f32 / 2.0, (i % 5) as f32 / 4.0, (i % 7) as f32 / 6.0];
+//! }
+//! let mut truth = gaussians_from_points(&cloud, 0)?;
+//! truth.opacity_logits.fill(2.0);
+//!
+//! // Six 24x24 views of it from a ring of cameras.
+//! let k = Intrinsics { fx: 30.0, fy: 30.0, cx: 12.0, cy: 12.0, width: 24, height: 24 };
+//! let mut views = Vec::new();
+//! for i in 0..6 {
+//!     let a = i as f64 * std::f64::consts::PI / 3.0;
+//!     let eye = DVec3::new(4.0 * a.cos(), 4.0 * a.sin(), 1.5);
+//!     let camera = look_at(k, eye, DVec3::ZERO, DVec3::Z).expect("a valid camera");
+//!     let image = render_color(&camera, &truth, 0, [0.0; 3])?.raster.image;
+//!     views.push(View { name: format!("view{i}"), camera, image });
+//! }
+//!
+//! // 30 iterations from 200 random points, a log line every 10.
+//! let config = GeometryConfig {
+//!     iterations: 30,
+//!     sh_degree: 0,
+//!     test_iterations: vec![],
+//!     save_iterations: vec![],
+//!     log_interval: 10,
+//!     ..GeometryConfig::default()
+//! };
+//! let initial = gaussians_from_points(&random_points_in_box(200, [-1.0; 3], [1.0; 3], 2), 0)?;
+//! let mut trainer = GeometryTrainer::new(config, initial, views.clone(), vec![])?;
+//! let before = trainer.evaluate_views(&views)?.expect("views given");
+//!
+//! let events = Mutex::new(Vec::new());
+//! let sink = |e: Event| events.lock().unwrap().push(e);
+//! let summary = trainer.train(&Run { sink: &sink, ..Run::in_memory() })?;
+//!
+//! let after = trainer.evaluate_views(&views)?.expect("views given");
+//! assert_eq!(summary.run.step, 30);
+//! assert!(after.psnr > before.psnr && after.l1 < before.l1);
+//! let events = events.into_inner().unwrap();
+//! let count = |f: fn(&Event) -> bool| events.iter().filter(|e| f(e)).count();
+//! assert_eq!(count(|e| matches!(e, Event::Progress { .. })), 30);
+//! assert_eq!(count(|e| matches!(e, Event::Log { .. })), 3);
+//! assert!(matches!(events.last(), Some(Event::StageFinished { done: 30, .. })));
+//! # Ok::<(), train::TrainError>(())
+//! ```
 
 pub mod adam;
 pub mod bake;

@@ -9,17 +9,24 @@ use glam::{DMat3, DMat4, DVec3};
 /// Pinhole intrinsics in pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Intrinsics {
+    /// Focal length along x, in pixels.
     pub fx: f64,
+    /// Focal length along y, in pixels.
     pub fy: f64,
+    /// Principal point x, in pixels from the left image edge (pixel centres at `i + 0.5`).
     pub cx: f64,
+    /// Principal point y, in pixels from the top image edge (pixel centres at `j + 0.5`).
     pub cy: f64,
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
 }
 
 /// A posed pinhole camera.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Camera {
+    /// Pinhole intrinsics (focal lengths, principal point, image size).
     pub intrinsics: Intrinsics,
     /// Rigid transform from world coordinates to OpenCV camera coordinates.
     pub camera_from_world: DMat4,

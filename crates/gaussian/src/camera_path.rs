@@ -12,14 +12,20 @@ use crate::camera::{Camera, Intrinsics};
 /// An impossible camera path request.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum CameraPathError {
+    /// [`interpolate`] was given an empty keyframe list.
     #[error("a camera path needs at least one keyframe")]
     NoKeyframes,
+    /// The orbit radius (world units) is not finite and positive.
     #[error("orbit radius must be positive and finite, got {0}")]
     Radius(f64),
+    /// The orbit elevation (radians) is NaN or not strictly inside `(-pi/2, pi/2)`.
     #[error("orbit elevation must lie strictly between -90 and 90 degrees, got {0} rad")]
     Elevation(f64),
+    /// The orbit `up` axis cannot be normalised (zero, or not finite).
     #[error("orbit up axis must be a finite non-zero vector, got {0:?}")]
     Up(DVec3),
+    /// [`orbit_from`]'s start camera lies on the line through `center` along `up`, so it has no
+    /// horizontal direction to start from.
     #[error("orbit start camera sits on the orbit axis through the centre")]
     OnAxis,
 }

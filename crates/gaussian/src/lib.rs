@@ -50,6 +50,8 @@
 //! # Ok::<(), gaussian::PlyError>(())
 //! ```
 
+#![warn(missing_docs)]
+
 pub mod camera;
 pub mod camera_path;
 pub mod dataset;

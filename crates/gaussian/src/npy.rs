@@ -14,13 +14,16 @@ use std::path::{Path, PathBuf};
 #[derive(Debug, thiserror::Error)]
 #[error("{}: {problem}", path.display())]
 pub struct NpyError {
+    /// The file that was being read.
     pub path: PathBuf,
+    /// What went wrong: I/O error, bad magic or header, unsupported dtype or order, or wrong length.
     pub problem: String,
 }
 
 /// A C-order array of floats.
 #[derive(Clone, Debug, PartialEq)]
 pub struct NpyArray {
+    /// Array dimensions, outermost first (the header's `shape` tuple; empty for a scalar).
     pub shape: Vec<usize>,
     /// Row-major values.
     pub data: Vec<f64>,

@@ -50,27 +50,49 @@ use crate::{FeatureGaussians, Real};
 pub struct PlyError {
     /// The file concerned (or the name given to in-memory bytes).
     pub path: PathBuf,
+    /// What went wrong.
     pub kind: PlyErrorKind,
 }
 
 /// What went wrong with a PLY file.
 #[derive(Debug, thiserror::Error)]
 pub enum PlyErrorKind {
+    /// Reading, writing or renaming the file failed.
     #[error("I/O error: {0}")]
     Io(#[from] io::Error),
+    /// A header line is malformed or unsupported.
     #[error("header line {line}: {problem}")]
-    Header { line: usize, problem: String },
-    #[error("element `{element}`: {problem}")]
-    Element { element: String, problem: String },
-    #[error("element `{element}` instance {instance}, property `{property}`: {problem}")]
-    Value {
-        element: String,
-        instance: u64,
-        property: String,
+    Header {
+        /// 1-based header line number.
+        line: usize,
+        /// What is wrong with the line.
         problem: String,
     },
+    /// An element's declared count does not fit in the bytes that remain.
+    #[error("element `{element}`: {problem}")]
+    Element {
+        /// The element's name, e.g. `vertex`.
+        element: String,
+        /// What is wrong with it.
+        problem: String,
+    },
+    /// A property value could not be parsed or converted.
+    #[error("element `{element}` instance {instance}, property `{property}`: {problem}")]
+    Value {
+        /// The element's name.
+        element: String,
+        /// 0-based index of the instance within the element.
+        instance: u64,
+        /// The property's name.
+        property: String,
+        /// What is wrong with the value.
+        problem: String,
+    },
+    /// The `vertex` element is missing or its properties do not form the 3DGS layout (e.g. an
+    /// unsupported number of `f_rest_*` properties).
     #[error("vertex layout: {0}")]
     Layout(String),
+    /// The scene to write, or the one read, fails [`FeatureGaussians::validate`].
     #[error("invalid scene: {0}")]
     Scene(#[from] SceneError),
 }
@@ -87,13 +109,21 @@ impl PlyError {
 /// A PLY scalar type.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ScalarType {
+    /// `char` (`int8`): signed 8-bit integer.
     I8,
+    /// `uchar` (`uint8`): unsigned 8-bit integer.
     U8,
+    /// `short` (`int16`): signed 16-bit integer.
     I16,
+    /// `ushort` (`uint16`): unsigned 16-bit integer.
     U16,
+    /// `int` (`int32`): signed 32-bit integer.
     I32,
+    /// `uint` (`uint32`): unsigned 32-bit integer.
     U32,
+    /// `float` (`float32`): IEEE 754 single precision.
     F32,
+    /// `double` (`float64`): IEEE 754 double precision.
     F64,
 }
 
@@ -223,6 +253,7 @@ impl fmt::Display for ScalarType {
 /// An unknown scalar vertex property, kept so that it can be written back.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ExtraProperty {
+    /// The property's name in the header.
     pub name: String,
     /// The type it had in the file (and is written back as).
     pub ty: ScalarType,
@@ -233,6 +264,7 @@ pub struct ExtraProperty {
 /// A scene read from PLY together with the vertex properties the scene does not model.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct PlyScene {
+    /// The Gaussians.
     pub gaussians: FeatureGaussians<f32>,
     /// Unknown scalar vertex properties, in file order.
     pub extras: Vec<ExtraProperty>,

@@ -77,9 +77,11 @@ impl<T> Projected<T> {
 /// Gradients of a scalar loss with respect to the projection inputs.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct ProjectionGrads<T> {
+    /// With respect to the world-space means, one `[x, y, z]` per Gaussian.
     pub means: Vec<[T; 3]>,
     /// With respect to the unnormalised quaternions.
     pub quats: Vec<[T; 4]>,
+    /// With respect to the per-axis log-scales, one `[x, y, z]` per Gaussian.
     pub log_scales: Vec<[T; 3]>,
 }
 

@@ -12,10 +12,14 @@ use crate::{Camera, Real};
 /// A set of 3D Gaussians with colour (SH) and an optional learnable feature per Gaussian.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct FeatureGaussians<T: Real = f32> {
+    /// World-space centres, one `[x, y, z]` per Gaussian.
     pub means: Vec<[T; 3]>,
+    /// Natural-log standard deviations along the Gaussian's local axes (activated by `exp`), one
+    /// `[x, y, z]` per Gaussian.
     pub log_scales: Vec<[T; 3]>,
     /// Unnormalised rotation quaternions `(w, x, y, z)`.
     pub quats: Vec<[T; 4]>,
+    /// Opacity before the sigmoid, one per Gaussian.
     pub opacity_logits: Vec<T>,
     /// Spherical-harmonic degree, 0..=3.
     pub sh_degree: usize,
@@ -47,24 +51,45 @@ impl<T: Real> FeatureGaussians<T> {
 /// A scene whose arrays disagree with each other or hold non-finite values.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SceneError {
+    /// An array's length does not match the number of Gaussians (times the per-Gaussian width).
     #[error("array `{array}` has {actual} entries, expected {expected}")]
     Length {
+        /// Name of the offending field of [`FeatureGaussians`].
         array: &'static str,
+        /// Its length.
         actual: usize,
+        /// The length implied by `len()`, `sh_degree` and `feature_dim`.
         expected: usize,
     },
+    /// `sh_degree` is above 3.
     #[error("SH degree {0} is not supported (0..=3)")]
     ShDegree(usize),
+    /// A parameter array contains a NaN or infinity.
     #[error("array `{array}` holds a non-finite value at index {index}")]
-    NonFinite { array: &'static str, index: usize },
+    NonFinite {
+        /// Name of the offending field of [`FeatureGaussians`].
+        array: &'static str,
+        /// Gaussian (row) index, or the flat element index for `sh` and `features`.
+        index: usize,
+    },
+    /// Two scenes being combined differ in SH degree or feature width.
     #[error("cannot combine scenes with {what} {left} and {right}")]
     Mismatch {
+        /// Which property differs: `"SH degrees"` or `"feature widths"`.
         what: &'static str,
+        /// Its value in the scene being extended.
         left: usize,
+        /// Its value in the scene being appended.
         right: usize,
     },
+    /// A keep mask's length differs from the number of Gaussians.
     #[error("keep mask has {actual} entries for {expected} Gaussians")]
-    MaskLength { actual: usize, expected: usize },
+    MaskLength {
+        /// Entries in the mask.
+        actual: usize,
+        /// Gaussians in the scene.
+        expected: usize,
+    },
 }
 
 fn check_len(array: &'static str, actual: usize, expected: usize) -> Result<(), SceneError> {

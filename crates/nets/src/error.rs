@@ -7,12 +7,18 @@ use std::path::PathBuf;
 pub enum NetError {
     /// A tensor the layout requires is absent.
     #[error("missing tensor `{name}`")]
-    MissingTensor { name: String },
+    MissingTensor {
+        /// The tensor's state-dict name (e.g. `encoder.conv1_1.weight`).
+        name: String,
+    },
     /// A tensor has the wrong shape.
     #[error("tensor `{name}` has shape {found:?}, expected {expected}")]
     TensorShape {
+        /// The tensor's state-dict name.
         name: String,
+        /// Its actual shape.
         found: Vec<usize>,
+        /// The expected shape, in words (e.g. `[O, 64, 3, 3] for conv1_2`).
         expected: String,
     },
     /// The state dict matches none of the known layouts, or is inconsistent within one.
@@ -24,12 +30,19 @@ pub enum NetError {
     /// Reading or writing a file failed.
     #[error("{path}: {source}")]
     Io {
+        /// The file being read or written.
         path: PathBuf,
+        /// The underlying I/O error.
         source: std::io::Error,
     },
     /// A weights file is malformed or inconsistent.
     #[error("{path}: {detail}")]
-    File { path: PathBuf, detail: String },
+    File {
+        /// The weights file.
+        path: PathBuf,
+        /// What is malformed or inconsistent.
+        detail: String,
+    },
     /// A PyTorch checkpoint could not be imported.
     #[error(transparent)]
     Checkpoint(#[from] crate::checkpoint::CheckpointError),

@@ -95,6 +95,8 @@
 //! # Ok::<(), nets::NetError>(())
 //! ```
 
+#![warn(missing_docs)]
+
 pub mod checkpoint;
 pub mod conv;
 pub mod decoder;

@@ -8,7 +8,9 @@ use std::collections::BTreeMap;
 /// One dense `f32` tensor, row-major.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TensorF32 {
+    /// Dimensions, outermost first (e.g. OIHW `[O, I, kH, kW]` for a conv weight).
     pub shape: Vec<usize>,
+    /// The `shape.iter().product()` elements, row-major (last dimension fastest).
     pub data: Vec<f32>,
 }
 

@@ -75,8 +75,13 @@ pub const FORMAT_VERSION: &str = "1";
 /// A set of networks stored together (any of them may be absent).
 #[derive(Clone, Debug, Default)]
 pub struct NetWeights {
+    /// The normalised VGG-19 encoder up to `relu{depth}_1` (tensors `encoder.*`), if stored.
     pub encoder: Option<Encoder>,
+    /// The decoder from `relu{depth}_1` features back to an image (tensors `decoder.*`), if
+    /// stored.
     pub decoder: Option<Decoder>,
+    /// The lifter `relu(conv1x1(x))` from rasterized `F`-dimensional features to the encoder width
+    /// (tensors `lifter.*`), if stored.
     pub lifter: Option<Lifter>,
 }
 

@@ -60,14 +60,18 @@ pub struct Cotangents<'a, T> {
 /// Gradients with respect to every rasterizer input.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SplatGrads<T> {
+    /// With respect to the projected 2D means, in pixels, one `[x, y]` per Gaussian.
     pub means2d: Vec<[T; 2]>,
+    /// With respect to the conics `(a, b, c)` (inverse 2D covariances), one per Gaussian.
     pub conics: Vec<[T; 3]>,
     /// With respect to the opacities (after the sigmoid).
     pub opacities: Vec<T>,
+    /// With respect to the view-space depths (through the depth image only; the sort order carries
+    /// no gradient), one per Gaussian.
     pub depths: Vec<T>,
-    /// `len() * channel_count`, Gaussian-major.
+    /// With respect to the channel values: `len() * channel_count`, Gaussian-major.
     pub channels: Vec<T>,
-    /// `channel_count` values.
+    /// With respect to the background: `channel_count` values.
     pub background: Vec<T>,
 }
 

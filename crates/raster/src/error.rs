@@ -6,13 +6,21 @@ pub enum RasterError {
     /// An array does not have the length the Gaussian count, channel count or image size implies.
     #[error("`{array}` has {actual} entries, expected {expected}")]
     Length {
+        /// Name of the offending array (e.g. `"conics"`).
         array: &'static str,
+        /// Its number of entries.
         actual: usize,
+        /// The number of entries it should have.
         expected: usize,
     },
     /// The image has no pixels.
     #[error("image size {width}x{height} has no pixels")]
-    EmptyImage { width: u32, height: u32 },
+    EmptyImage {
+        /// Image width in pixels.
+        width: u32,
+        /// Image height in pixels.
+        height: u32,
+    },
     /// More Gaussians than the `u32` indices of the tile lists can address.
     #[error("{0} Gaussians exceed the rasterizer's limit of 2^32 - 1")]
     TooManyGaussians(usize),
@@ -21,7 +29,12 @@ pub enum RasterError {
     TooManyIntersections(usize),
     /// The tile binning given to a pass was built for another set of Gaussians.
     #[error("tile bins were built for {bins_count} Gaussians, not {count}")]
-    BinsMismatch { bins_count: usize, count: usize },
+    BinsMismatch {
+        /// Number of Gaussians the bins were built for.
+        bins_count: usize,
+        /// Number of Gaussians given to the pass.
+        count: usize,
+    },
     /// The requested tile kernel cannot run (see [`crate::Kernel::auto`]).
     #[error("{0}")]
     Kernel(String),

@@ -117,8 +117,11 @@ impl<'a, T: Real> Splats<'a, T> {
 /// has `channel_count` values per pixel (channel last).
 #[derive(Clone, Debug)]
 pub struct Rasterized<T> {
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
+    /// Channels per pixel in `image` (`D`, the [`Splats::channel_count`]).
     pub channel_count: usize,
     /// `sum_i w_i c_i + T_final background`, `height * width * channel_count` values.
     pub image: Vec<T>,

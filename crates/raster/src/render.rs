@@ -26,11 +26,17 @@ use crate::stats::ndc_grad_norms;
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Channels {
     /// RGB from the SH coefficients evaluated up to `sh_degree` (at most the scene's degree).
-    Color { sh_degree: usize },
+    Color {
+        /// Highest SH band evaluated (0 = view-independent DC colour only).
+        sh_degree: usize,
+    },
     /// The scene's feature vectors (`feature_dim` channels).
     Features,
     /// RGB (as [`Channels::Color`]) followed by the features: `3 + feature_dim` channels.
-    ColorAndFeatures { sh_degree: usize },
+    ColorAndFeatures {
+        /// Highest SH band evaluated for the colour part (as in [`Channels::Color`]).
+        sh_degree: usize,
+    },
 }
 
 impl Channels {
@@ -62,9 +68,12 @@ impl Channels {
 /// What to render and how.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RenderOptions<T> {
+    /// Which values are blended into the image channels (and hence how many channels there are).
     pub channels: Channels,
     /// One value per image channel.
     pub background: Vec<T>,
+    /// Settings of the EWA projection: 2D low-pass `eps2d`, near/far culling depths and the
+    /// screen radius in standard deviations.
     pub projection: ProjectSettings,
 }
 
@@ -102,10 +111,14 @@ impl<T: Real> Render<T> {
 /// Gradients of a loss with respect to the scene parameters, for one rendered view.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SceneGrads<T> {
+    /// With respect to the world-space 3D means (through the projection and the SH view
+    /// direction), one per Gaussian.
     pub means: Vec<[T; 3]>,
     /// With respect to the unnormalised quaternions.
     pub quats: Vec<[T; 4]>,
+    /// With respect to the per-axis log scales, one per Gaussian.
     pub log_scales: Vec<[T; 3]>,
+    /// With respect to the opacity logits (before the sigmoid), one per Gaussian.
     pub opacity_logits: Vec<T>,
     /// Same layout as the scene's `sh` (zero beyond the active degree, or everywhere when colour
     /// was not rendered).

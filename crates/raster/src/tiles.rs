@@ -70,9 +70,13 @@ impl Eq for TileBins {}
 /// A half-open rectangle of tiles `[x0, x1) x [y0, y1)`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct TileRect {
+    /// First tile column (inclusive).
     pub x0: u32,
+    /// End tile column (exclusive).
     pub x1: u32,
+    /// First tile row (inclusive).
     pub y0: u32,
+    /// End tile row (exclusive).
     pub y1: u32,
 }
 

@@ -19,6 +19,8 @@ use crate::stats::{channel_stats, ChannelStats};
 /// The statistics of one style image at every encoder level, relu1_1 .. relu_k_1.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StyleFeatureStats<T> {
+    /// Per-channel statistics of each encoder level, shallowest (relu1_1) first; level `l` is
+    /// `[N, C_l]` (usually `N = 1`, broadcast over a batch).
     pub levels: Vec<ChannelStats<T>>,
 }
 

@@ -8,19 +8,37 @@ pub enum StyleError {
     /// Two tensors that must agree in shape do not.
     #[error("{what}: shape {actual:?} does not match the expected {expected:?}")]
     Shape {
+        /// The quantity whose shape is wrong.
         what: &'static str,
+        /// The shape it must have.
         expected: Vec<usize>,
+        /// The shape it has.
         actual: Vec<usize>,
     },
     /// Unbiased statistics need at least two samples per channel.
     #[error("{what}: statistics need at least 2 pixels per channel, got {count}")]
-    TooFewPixels { what: &'static str, count: usize },
+    TooFewPixels {
+        /// The quantity whose statistics were requested.
+        what: &'static str,
+        /// Pixels per channel available (`H*W`, or the pixels inside a mask).
+        count: usize,
+    },
     /// A list that must not be empty is empty, or lists that must have equal lengths do not.
     #[error("{what}: {problem}")]
-    Invalid { what: &'static str, problem: String },
+    Invalid {
+        /// The offending input.
+        what: &'static str,
+        /// What is wrong with it.
+        problem: String,
+    },
     /// A non-finite value where a finite one is required.
     #[error("{what}: value {value} is not finite")]
-    NonFinite { what: &'static str, value: f64 },
+    NonFinite {
+        /// The quantity that must be finite (e.g. a loss weight).
+        what: &'static str,
+        /// The value given (NaN or infinite).
+        value: f64,
+    },
     /// A network operation failed.
     #[error("network: {0}")]
     Net(#[from] nets::NetError),

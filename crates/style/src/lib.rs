@@ -73,6 +73,8 @@
 //! # Ok::<(), style::StyleError>(())
 //! ```
 
+#![warn(missing_docs)]
+
 pub mod adain;
 pub mod cache;
 pub mod colour;

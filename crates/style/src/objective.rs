@@ -42,7 +42,10 @@ use crate::loss::{
 pub struct DecoderLoss<T: Real> {
     /// The decoded image `g(t)`.
     pub image: Array4<T>,
+    /// The content term `content(phi_k(g(t)), target)`: MSE on the deepest encoder level.
     pub loss_content: T,
+    /// The unweighted style term `style(phi(g(t)), S)`: summed over levels, MSE of per-channel
+    /// means plus MSE of per-channel standard deviations.
     pub loss_style: T,
     /// `loss_content + w_s * loss_style`.
     pub loss: T,
@@ -148,8 +151,13 @@ pub struct Stage3Loss<T: Real> {
     pub stylized_features: Array4<T>,
     /// The decoded image.
     pub image: Array4<T>,
+    /// The alignment term `L_align(lifted, target)` (MSE or L1, see [`AlignLoss`]).
     pub loss_align: T,
+    /// The unweighted content term `content(phi_k(image), stylized_features)`: MSE on the
+    /// deepest encoder level.
     pub loss_content: T,
+    /// The unweighted style term `style(phi(image), S)`: summed over levels, MSE of per-channel
+    /// means plus MSE of per-channel standard deviations.
     pub loss_style: T,
     /// `loss_align + lambda_c loss_content + lambda_s loss_style`.
     pub loss: T,

@@ -23,7 +23,10 @@ use crate::stats::{dims, map_planes, masked_channel_stats, planes, ChannelStats}
 /// One region of spatial control: a mask at feature resolution and the style to give it.
 #[derive(Clone, Copy, Debug)]
 pub struct Region<'a, T> {
+    /// `[H, W]` mask at the content feature map's resolution; `true` marks the region's pixels
+    /// (at least two, and no pixel may belong to two regions).
     pub mask: ArrayView2<'a, bool>,
+    /// The style statistics given to the region, `[N, C]` (or `[1, C]`, broadcast over the batch).
     pub style: &'a ChannelStats<T>,
 }
 

@@ -32,7 +32,10 @@ pub const STATS_EPS: f64 = 1e-5;
 /// The same type carries cotangents of statistics (`dL/dmean`, `dL/dstd`) in backward passes.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ChannelStats<T> {
+    /// Per-channel means over the pixels, `[N, C]` (or `dL/dmean` in a backward pass).
     pub mean: Array2<T>,
+    /// Per-channel standard deviations `sqrt(var + STATS_EPS)` (unbiased variance), `[N, C]`
+    /// (or `dL/dstd` in a backward pass).
     pub std: Array2<T>,
 }
 

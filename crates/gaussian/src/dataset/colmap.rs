@@ -28,17 +28,30 @@ use super::DatasetError;
 /// COLMAP camera models, with their numeric ids and parameter counts.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CameraModel {
+    /// `SIMPLE_PINHOLE` (id 0): `f, cx, cy`.
     SimplePinhole,
+    /// `PINHOLE` (id 1): `fx, fy, cx, cy`.
     Pinhole,
+    /// `SIMPLE_RADIAL` (id 2): `f, cx, cy, k`.
     SimpleRadial,
+    /// `RADIAL` (id 3): `f, cx, cy, k1, k2`.
     Radial,
+    /// `OPENCV` (id 4): `fx, fy, cx, cy, k1, k2, p1, p2`.
     OpenCv,
+    /// `OPENCV_FISHEYE` (id 5): `fx, fy, cx, cy, k1, k2, k3, k4`.
     OpenCvFisheye,
+    /// `FULL_OPENCV` (id 6): `fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6`.
     FullOpenCv,
+    /// `FOV` (id 7): `fx, fy, cx, cy, omega`.
     Fov,
+    /// `SIMPLE_RADIAL_FISHEYE` (id 8): `f, cx, cy, k`.
     SimpleRadialFisheye,
+    /// `RADIAL_FISHEYE` (id 9): `f, cx, cy, k1, k2`.
     RadialFisheye,
+    /// `THIN_PRISM_FISHEYE` (id 10): 12 parameters, `fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, sx1,
+    /// sy1`.
     ThinPrismFisheye,
+    /// `RAD_TAN_THIN_PRISM_FISHEYE` (id 11): 16 parameters.
     RadTanThinPrismFisheye,
 }
 
@@ -97,9 +110,13 @@ impl CameraModel {
 /// A camera of a COLMAP model.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ColmapCamera {
+    /// COLMAP camera id, referenced by [`ColmapImage::camera_id`].
     pub id: u32,
+    /// The camera model, which fixes the meaning of `params`.
     pub model: CameraModel,
+    /// Image width in pixels.
     pub width: u64,
+    /// Image height in pixels.
     pub height: u64,
     /// The model's parameters in COLMAP's order (e.g. SIMPLE_RADIAL: `f, cx, cy, k`).
     pub params: Vec<f64>,
@@ -108,12 +125,15 @@ pub struct ColmapCamera {
 /// A registered image of a COLMAP model.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ColmapImage {
+    /// COLMAP image id, referenced by [`ColmapPoint::track`].
     pub id: u32,
     /// Rotation `camera_from_world` as a quaternion `(w, x, y, z)`.
     pub qvec: [f64; 4],
     /// Translation of `camera_from_world`.
     pub tvec: [f64; 3],
+    /// Id of the [`ColmapCamera`] that took the image.
     pub camera_id: u32,
+    /// Image file name, relative to the `images` folder.
     pub name: String,
     /// 2D observations in original image pixels and the 3D point each belongs to, if any.
     pub points2d: Vec<([f64; 2], Option<u64>)>,
@@ -122,9 +142,13 @@ pub struct ColmapImage {
 /// A 3D point of a COLMAP model.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ColmapPoint {
+    /// COLMAP 3D point id, referenced by [`ColmapImage::points2d`].
     pub id: u64,
+    /// World-space position.
     pub xyz: [f64; 3],
+    /// 8-bit RGB colour.
     pub rgb: [u8; 3],
+    /// Mean reprojection error in pixels.
     pub error: f64,
     /// `(image_id, point2D_idx)` observations.
     pub track: Vec<(u32, u32)>,
@@ -133,8 +157,11 @@ pub struct ColmapPoint {
 /// A COLMAP sparse model.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct ColmapModel {
+    /// The cameras, in file order.
     pub cameras: Vec<ColmapCamera>,
+    /// The registered images, in file order.
     pub images: Vec<ColmapImage>,
+    /// The 3D points, in file order.
     pub points: Vec<ColmapPoint>,
 }
 

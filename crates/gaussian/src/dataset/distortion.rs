@@ -16,9 +16,23 @@ use crate::Intrinsics;
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Distortion {
     /// SIMPLE_RADIAL (`k2 = 0`) and RADIAL.
-    Radial { k1: f64, k2: f64 },
+    Radial {
+        /// Coefficient of `r^2`.
+        k1: f64,
+        /// Coefficient of `r^4` (0 for SIMPLE_RADIAL).
+        k2: f64,
+    },
     /// OPENCV: radial `k1, k2` and tangential `p1, p2`.
-    OpenCv { k1: f64, k2: f64, p1: f64, p2: f64 },
+    OpenCv {
+        /// Coefficient of `r^2`.
+        k1: f64,
+        /// Coefficient of `r^4`.
+        k2: f64,
+        /// First tangential coefficient.
+        p1: f64,
+        /// Second tangential coefficient.
+        p2: f64,
+    },
 }
 
 impl Distortion {

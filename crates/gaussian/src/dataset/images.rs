@@ -17,8 +17,12 @@ use crate::Intrinsics;
 /// An RGB image, row-major, channels interleaved: `data[(y * width + x) * 3 + c]`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RgbImage {
+    /// Width in pixels.
     pub width: u32,
+    /// Height in pixels.
     pub height: u32,
+    /// `width * height * 3` values in `[0, 1]` (file codes over their maximum, no gamma
+    /// conversion), row-major, channels interleaved.
     pub data: Vec<f32>,
 }
 

@@ -23,7 +23,9 @@ use crate::{Camera, Intrinsics};
 /// One LLFF pose: the full-resolution camera and its near/far bounds.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LlffPose {
+    /// The full-resolution camera (`camera_from_world`, OpenCV axes).
     pub camera: Camera,
+    /// The near and far scene depths `[near, far]` from the last two values of the row.
     pub near_far: [f64; 2],
 }
 

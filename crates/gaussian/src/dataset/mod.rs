@@ -56,31 +56,61 @@ pub const LLFF_HOLD: usize = 8;
 /// A dataset that could not be loaded.
 #[derive(Debug, thiserror::Error)]
 pub enum DatasetError {
+    /// A file or folder could not be read.
     #[error("{}: {source}", path.display())]
     Io {
+        /// The path being read.
         path: PathBuf,
+        /// The underlying I/O error.
         source: std::io::Error,
     },
+    /// A file or folder does not hold what the format requires (bad COLMAP records, JSON,
+    /// poses, missing images, ...).
     #[error("{}: {problem}", path.display())]
-    Malformed { path: PathBuf, problem: String },
+    Malformed {
+        /// The file (or folder) at fault.
+        path: PathBuf,
+        /// What is wrong with it.
+        problem: String,
+    },
+    /// An image file could not be decoded.
     #[error("{}: cannot decode image: {source}", path.display())]
     Image {
+        /// The image file.
         path: PathBuf,
+        /// The decoder's error.
         source: image::ImageError,
     },
+    /// A COLMAP camera uses a model that is not supported, or a distorted model under
+    /// [`DistortionHandling::Reject`].
     #[error("{}: camera {camera_id} uses the COLMAP model {model}, which is not supported ({why})", path.display())]
     UnsupportedCameraModel {
+        /// The `cameras` file that defines the camera.
         path: PathBuf,
+        /// The COLMAP camera id.
         camera_id: u32,
+        /// The COLMAP model name, e.g. `"OPENCV_FISHEYE"`.
         model: &'static str,
+        /// Why the model is refused.
         why: &'static str,
     },
+    /// A `.npy` file (LLFF `poses_bounds.npy`) could not be read.
     #[error(transparent)]
     Npy(#[from] NpyError),
+    /// An image index is not below the number of images.
     #[error("image index {index} out of range for a dataset of {len} images")]
-    Index { index: usize, len: usize },
+    Index {
+        /// The requested index.
+        index: usize,
+        /// Number of images in the dataset.
+        len: usize,
+    },
+    /// No supported dataset layout was found in the folder.
     #[error("{}: no COLMAP model (sparse/0 or sparse), transforms_train.json or poses_bounds.npy found", dir.display())]
-    UnknownLayout { dir: PathBuf },
+    UnknownLayout {
+        /// The folder that was searched.
+        dir: PathBuf,
+    },
 }
 
 /// The image resolution to load at.
@@ -108,7 +138,9 @@ pub enum DistortionHandling {
 /// How to load a dataset.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LoadOptions {
+    /// The image resolution to load at.
     pub resolution: Resolution,
+    /// What to do with distorted COLMAP camera models.
     pub distortion: DistortionHandling,
     /// The colour images with an alpha channel are composited onto.
     pub background: [f32; 3],
@@ -127,15 +159,20 @@ impl Default for LoadOptions {
 /// The kind of source a dataset was read from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum DatasetKind {
+    /// A COLMAP sparse model (`sparse/0` or `sparse`).
     Colmap,
+    /// A NeRF-synthetic scene (`transforms_*.json`).
     NerfSynthetic,
+    /// An LLFF scene (`poses_bounds.npy`).
     Llff,
 }
 
 /// Coloured 3D points (e.g. COLMAP `points3D`) to initialise Gaussians from.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct PointCloud {
+    /// World-space positions.
     pub positions: Vec<[f32; 3]>,
+    /// 8-bit RGB colours, one per position.
     pub colors: Vec<[u8; 3]>,
 }
 
@@ -159,7 +196,9 @@ impl PointCloud {
 /// Train and test image indices.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Split {
+    /// Indices of the training images, ascending.
     pub train: Vec<usize>,
+    /// Indices of the held-out test images (index `% 8 == 0`), ascending.
     pub test: Vec<usize>,
 }
 
@@ -172,6 +211,7 @@ pub fn eval_split(n: usize) -> Split {
 /// Posed images of one scene.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Dataset {
+    /// The source format the dataset was read from.
     pub kind: DatasetKind,
     /// One camera per image, sized for the image as [`Dataset::load_image`] returns it.
     pub cameras: Vec<Camera>,

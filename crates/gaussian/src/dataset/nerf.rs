@@ -20,20 +20,30 @@ use crate::{Camera, Intrinsics};
 /// The contents of a `transforms_*.json` file.
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 pub struct Transforms {
+    /// Horizontal field of view in radians; gives `fx` unless `fl_x` is present.
     pub camera_angle_x: Option<f64>,
+    /// Vertical field of view in radians; gives `fy` unless `fl_y` is present (else `fy = fx`).
     pub camera_angle_y: Option<f64>,
+    /// Instant-ngp focal length along x, in pixels at the `w x h` size.
     pub fl_x: Option<f64>,
+    /// Instant-ngp focal length along y, in pixels at the `w x h` size.
     pub fl_y: Option<f64>,
+    /// Instant-ngp principal point x, in pixels at the `w x h` size (default: the image centre).
     pub cx: Option<f64>,
+    /// Instant-ngp principal point y, in pixels at the `w x h` size (default: the image centre).
     pub cy: Option<f64>,
+    /// Image width in pixels that the intrinsics refer to (default: the image file's width).
     pub w: Option<f64>,
+    /// Image height in pixels that the intrinsics refer to (default: the image file's height).
     pub h: Option<f64>,
+    /// The frames, in file order; never empty after [`parse_transforms`].
     pub frames: Vec<Frame>,
 }
 
 /// One frame of a `transforms_*.json` file.
 #[derive(Clone, Debug, Deserialize, PartialEq)]
 pub struct Frame {
+    /// Image path relative to the scene folder, usually without extension (`.png` is then tried).
     pub file_path: String,
     /// Camera-to-world in OpenGL camera axes, row-major.
     pub transform_matrix: Vec<Vec<f64>>,

@@ -12,12 +12,19 @@ pub enum CheckpointError {
     /// The file could not be read at all.
     #[error("cannot read checkpoint {}: {source}", path.display())]
     Io {
+        /// The checkpoint file.
         path: PathBuf,
+        /// The underlying I/O error.
         source: std::io::Error,
     },
     /// The file was read but its contents are not an importable checkpoint.
     #[error("checkpoint {}: {problem}", path.display())]
-    Invalid { path: PathBuf, problem: FormatError },
+    Invalid {
+        /// The checkpoint file.
+        path: PathBuf,
+        /// What is wrong with its contents.
+        problem: FormatError,
+    },
 }
 
 /// What is wrong with the bytes of a checkpoint.
@@ -28,13 +35,19 @@ pub enum FormatError {
         "not a PyTorch checkpoint: it starts with {found:02x?}, expected a zip archive \
          (50 4b 03 04) or a pickle (80)"
     )]
-    UnknownFormat { found: Vec<u8> },
+    UnknownFormat {
+        /// The file's first (up to 4) bytes.
+        found: Vec<u8>,
+    },
 
     /// The data ends before a field that must be there.
     #[error("truncated: {what} at byte {offset} needs {needed} more bytes than the file has")]
     Truncated {
+        /// The field being read (e.g. `pickle GLOBAL name`).
         what: String,
+        /// Byte offset in the file where the field starts.
         offset: u64,
+        /// How many bytes beyond the end of the data the field would need.
         needed: u64,
     },
 
@@ -43,57 +56,107 @@ pub enum FormatError {
         "pickle opcode {opcode:#04x} ({}) at byte {offset} is not allowed in a state dict",
         super::pickle::opcode_name(*opcode)
     )]
-    UnsupportedOpcode { opcode: u8, offset: u64 },
+    UnsupportedOpcode {
+        /// The opcode byte.
+        opcode: u8,
+        /// Byte offset of the opcode in the file.
+        offset: u64,
+    },
 
     /// A pickle global outside the whitelist.
     #[error("pickle global {module}.{name} at byte {offset} is not allowed in a state dict")]
     UnsupportedGlobal {
+        /// The global's module (e.g. `torch._utils`).
         module: String,
+        /// The global's name within the module.
         name: String,
+        /// Byte offset of the opcode that names it.
         offset: u64,
     },
 
     /// A pickle that is well formed byte-wise but does not make sense.
     #[error("malformed pickle at byte {offset}: {reason}")]
-    Pickle { offset: u64, reason: String },
+    Pickle {
+        /// Byte offset of the offending opcode in the file.
+        offset: u64,
+        /// What does not make sense.
+        reason: String,
+    },
 
     /// A pickle that exceeds a resource limit of the importer.
     #[error("pickle at byte {offset} exceeds the limit of {limit} {what}")]
     Limit {
+        /// Byte offset of the opcode that crossed the limit.
         offset: u64,
+        /// The limited resource, plural (e.g. `memo entries`, `stack values`).
         what: &'static str,
+        /// The importer's maximum for that resource.
         limit: u64,
     },
 
     /// The legacy header pickles (magic number, protocol version, system info) are wrong.
     #[error("legacy checkpoint header at byte {offset}: {reason}")]
-    Header { offset: u64, reason: String },
+    Header {
+        /// Byte offset of the offending header pickle.
+        offset: u64,
+        /// What is wrong with it.
+        reason: String,
+    },
 
     /// A structurally broken zip archive.
     #[error("corrupt zip archive at byte {offset}: {reason}")]
-    Zip { offset: u64, reason: String },
+    Zip {
+        /// Byte offset of the broken structure (e.g. a local header or the central directory).
+        offset: u64,
+        /// What is broken.
+        reason: String,
+    },
 
     /// A zip entry the format requires is absent.
     #[error("zip archive has no entry {name}")]
-    MissingEntry { name: String },
+    MissingEntry {
+        /// The required entry's name (e.g. `<top>/data.pkl`).
+        name: String,
+    },
 
     /// A zip entry whose bytes do not match its recorded CRC-32.
     #[error("zip entry {name} at byte {offset} fails its CRC-32 check (corrupt data)")]
-    Checksum { name: String, offset: u64 },
+    Checksum {
+        /// The entry's name in the archive.
+        name: String,
+        /// Byte offset of the entry's data in the file.
+        offset: u64,
+    },
 
     /// A storage referenced by a tensor whose bytes are not in the file.
     #[error("storage {key} is referenced by the pickle but its data is not in the file")]
-    MissingStorage { key: String },
+    MissingStorage {
+        /// The storage key the pickle's persistent id names.
+        key: String,
+    },
 
     /// A storage whose recorded size or type is inconsistent.
     #[error("storage {key}: {reason}")]
-    Storage { key: String, reason: String },
+    Storage {
+        /// The storage key.
+        key: String,
+        /// What is inconsistent.
+        reason: String,
+    },
 
     /// A tensor whose shape, strides or offset do not fit its storage.
     #[error("tensor {name}: {reason}")]
-    Tensor { name: String, reason: String },
+    Tensor {
+        /// The tensor's name in the state dict.
+        name: String,
+        /// Why it does not fit.
+        reason: String,
+    },
 
     /// The unpickled object is not a (possibly wrapped or nested) dict of tensors.
     #[error("unsupported checkpoint layout: {reason}")]
-    Layout { reason: String },
+    Layout {
+        /// What was found instead.
+        reason: String,
+    },
 }

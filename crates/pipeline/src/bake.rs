@@ -31,16 +31,30 @@ use train::RunOutcome;
 /// Command-line values that override the configuration.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct BakeOverrides {
+    /// Optimisation iterations (`--iterations`; key `iterations`).
     pub iterations: Option<u64>,
+    /// SH degree that is optimised, 0..=3; the `.ply` always stores degree 3 (`--sh-degree`; key
+    /// `sh_degree`).
     pub sh_degree: Option<usize>,
+    /// Also adapt opacities and scales, within small budgets (`--adapt-geometry`; key
+    /// `adapt_geometry`). `false` leaves the configuration's value.
     pub adapt_geometry: bool,
-    /// Adam rate of the SH DC coefficients.
+    /// Adam rate of the SH DC coefficients (`--lr`; key `feature_lr`).
     pub lr: Option<f64>,
+    /// Number of training target views, 0 for all candidates (`--target-views`; key
+    /// `target_views`).
     pub target_views: Option<usize>,
+    /// Interpolated views held out for evaluation (`--held-out`; key `held_out`).
     pub held_out: Option<usize>,
+    /// Image size of the targets relative to the bundle's cameras (`--resolution-scale`; key
+    /// `resolution_scale`).
     pub resolution_scale: Option<f64>,
+    /// Seed of the view order (`--seed`; key `seed`).
     pub seed: Option<u64>,
+    /// Iterations between log lines (`--log-every`; key `log_interval`).
     pub log_every: Option<u64>,
+    /// Iterations between periodic checkpoints, 0 for only when stopped (`--checkpoint-every`;
+    /// key `checkpoint_interval`).
     pub checkpoint_every: Option<u64>,
 }
 
@@ -83,17 +97,23 @@ impl BakeOverrides {
 /// What to run.
 #[derive(Clone, Debug)]
 pub struct BakeSettings {
+    /// The scene bundle directory whose geometry is baked (the `BUNDLE` argument).
     pub bundle: PathBuf,
+    /// The style images (`--style`, repeated).
     pub styles: Vec<PathBuf>,
-    /// Mixture weights, one per style (required with several styles).
+    /// Mixture weights, one per style (`--weights`; required with several styles).
     pub weights: Option<Vec<f64>>,
+    /// Style strength: 0 reconstructs the scene, 1 is the full style (`--alpha`).
     pub alpha: f64,
-    /// Longest side of the style images after loading.
+    /// Longest side of the style images after loading (`--style-size`).
     pub style_side: u32,
+    /// Network variant; `None` keeps the bundle's (`--variant`).
     pub variant: Option<Variant>,
-    /// Replace the bundle's decoder.
+    /// Replace the bundle's decoder (`--decoder`: `.safetensors` or a PyTorch checkpoint).
     pub decoder: Option<PathBuf>,
+    /// TOML file of `train::BakeConfig` keys (`--config`); `None` starts from the defaults.
     pub config: Option<PathBuf>,
+    /// Command-line values applied on top of the configuration.
     pub overrides: BakeOverrides,
     /// The output `.ply`.
     pub output: PathBuf,
@@ -104,27 +124,45 @@ pub struct BakeSettings {
 /// The JSON report written beside the baked scene.
 #[derive(Clone, Debug, Serialize)]
 pub struct BakeSummary {
+    /// The scene bundle directory, as given.
     pub bundle: String,
+    /// The style images, as given.
     pub styles: Vec<String>,
+    /// The mixture weights of the styles, if given.
     pub weights: Option<Vec<f64>>,
+    /// The style strength.
     pub alpha: f64,
+    /// Gaussians in the baked scene.
     pub gaussians: usize,
+    /// The iteration the optimisation ended at.
     pub iterations: u64,
+    /// Whether a stop request ended the optimisation early.
     pub interrupted: bool,
+    /// Training target views.
     pub train_views: usize,
+    /// Held-out target views.
     pub held_out_views: usize,
+    /// Mean PSNR (dB) of the baked scene against the training targets.
     pub train_psnr: f64,
+    /// Mean PSNR (dB) of the baked scene against the held-out targets (`None` without held-out
+    /// views).
     pub held_out_psnr: Option<f64>,
+    /// Mean PSNR (dB) of the bundle's own colours, before baking, against the training targets.
     pub unbaked_train_psnr: f64,
+    /// Mean PSNR (dB) of the bundle's own colours against the held-out targets.
     pub unbaked_held_out_psnr: Option<f64>,
+    /// Wall time of the target rendering, in seconds.
     pub target_seconds: f64,
+    /// Wall time of the optimisation, in seconds.
     pub optimise_seconds: f64,
+    /// The effective configuration (file and flags).
     pub config: BakeConfig,
 }
 
 /// What a bake did and wrote.
 #[derive(Clone, Debug)]
 pub struct BakeOutput {
+    /// The report, also written as JSON beside the `.ply` when the bake completed.
     pub summary: BakeSummary,
     /// How the optimisation ended (with the stop checkpoint when it was stopped).
     pub run: RunOutcome,

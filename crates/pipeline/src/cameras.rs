@@ -79,8 +79,11 @@ impl std::str::FromStr for CameraSource {
 /// Cameras known for a scene (from a dataset or a bundle), with held-out flags and names.
 #[derive(Clone, Debug, Default)]
 pub struct KnownCameras {
+    /// The cameras, in the order of the dataset or bundle.
     pub cameras: Vec<Camera>,
+    /// Whether each camera is held out from training (the `test` source).
     pub held_out: Vec<bool>,
+    /// The image name of each camera.
     pub names: Vec<String>,
     /// Where they came from, for error messages (a dataset or bundle path).
     pub origin: String,
@@ -137,12 +140,19 @@ impl KnownCameras {
 /// A camera request.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CameraRequest {
+    /// Which cameras (`--cameras`: `dataset`, `test`, `path` or `orbit`).
     pub source: CameraSource,
+    /// Number of frames of a path or orbit (default [`DEFAULT_FRAMES`]), or at most this many
+    /// cameras of `dataset` and `test`, evenly spaced (`--frames`).
     pub frames: Option<usize>,
+    /// Image width; alone it keeps each camera's aspect ratio (`--width`).
     pub width: Option<u32>,
+    /// Image height; alone it keeps each camera's aspect ratio (`--height`).
     pub height: Option<u32>,
+    /// Factor scaling every camera's image (`--scale`).
     pub scale: Option<f64>,
-    /// The orbit axis when no cameras are known (default `-y`).
+    /// World up axis of orbits (`--up`); without it, the mean image-up of the known cameras,
+    /// else `-y`.
     pub up: Option<DVec3>,
 }
 

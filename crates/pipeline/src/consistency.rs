@@ -68,8 +68,11 @@ impl Default for WarpOptions {
 /// A camera with the geometry rendered from it: normalised depth and alpha, row-major.
 #[derive(Clone, Copy, Debug)]
 pub struct DepthView<'a> {
+    /// The camera.
     pub camera: &'a Camera,
+    /// Rendered normalised depth (camera z) per pixel, `width * height` values.
     pub depth: &'a [f32],
+    /// Rendered alpha per pixel, `width * height` values.
     pub alpha: &'a [f32],
 }
 
@@ -128,7 +131,9 @@ fn lerp2(v: [f64; 4], tx: f64, ty: f64) -> f64 {
 /// A sampling position in view `j` for each pixel of view `i` (`None` where masked).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Correspondence {
+    /// Width of view `i`, in pixels.
     pub width: usize,
+    /// Height of view `i`, in pixels.
     pub height: usize,
     /// Per pixel of `i`: the top-left neighbour in `j` and the bilinear weights.
     pub samples: Vec<Option<(usize, usize, f64, f64)>>,
@@ -325,9 +330,14 @@ fn level_distance(
 /// Consistency of one pair.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct PairMetrics {
+    /// Pixels of view `i` with a valid warp (the mask).
     pub valid_pixels: usize,
+    /// Sum of squared differences over the masked pixels and the three channels, on clamped
+    /// images.
     pub squared_error: f64,
+    /// Masked RMSE (`None` when no pixel is valid).
     pub rmse: Option<f64>,
+    /// Perceptual distance (`None` without an encoder, valid pixels or a valid position).
     pub perceptual: Option<f64>,
 }
 
@@ -378,6 +388,7 @@ pub fn compare_pair(
 /// Consistency over the pairs `(i, i + offset)` of a sequence.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]
 pub struct RangeMetrics {
+    /// Distance between the compared views in the sequence (1: short range, 7: long range).
     pub offset: usize,
     /// Pairs compared.
     pub pairs: usize,

@@ -70,15 +70,21 @@ the demo needs, under the shared folder (--shared, DSGS_SHARED or ../shared):
 /// Settings of a demo run.
 #[derive(Clone, Debug)]
 pub struct DemoSettings {
+    /// The shared data folder holding the scene, styles and weights (`--shared`, else the
+    /// `DSGS_SHARED` environment variable, else `../shared`).
     pub shared: PathBuf,
+    /// Output directory of the stages (`--output`); a rerun skips the stages whose results are
+    /// there.
     pub out_dir: PathBuf,
     /// Canonical weights to use instead of importing the shared checkpoints.
     pub weights: Option<PathBuf>,
     /// A decoder to use instead of the one in the weights (e.g. a fine-tuned fullres decoder).
     pub decoder: Option<PathBuf>,
+    /// Network variant (`--variant`).
     pub variant: Variant,
     /// Downscale factor of the 800 x 800 lego images.
     pub downscale: f64,
+    /// Iterations of the geometry stage (`--geometry-iterations`).
     pub geometry_iterations: u64,
     /// Alignment-only feature iterations before the full loss.
     pub align_warmup: u64,
@@ -93,10 +99,16 @@ pub struct DemoSettings {
 /// What a demo run produced.
 #[derive(Clone, Debug)]
 pub struct DemoReport {
+    /// Held-out PSNR (dB) at the geometry stage's last evaluation (`None` when the stage was
+    /// skipped or evaluated nothing).
     pub geometry_psnr: Option<f64>,
+    /// Gaussians in the scene bundle.
     pub gaussians: usize,
+    /// What the stylization of the orbit wrote.
     pub stylized: StylizeOutput,
+    /// The evaluation of the stylized orbit.
     pub eval: EvalReport,
+    /// Where the evaluation report was written (`OUT/eval.json`).
     pub eval_json: PathBuf,
     /// Seconds of each stage run now (`None`: skipped, its output was already there).
     pub seconds: Vec<(&'static str, Option<f64>)>,

@@ -25,7 +25,9 @@ pub enum Error {
     /// What was being done when `source` failed; displays only `context`.
     #[error("{context}")]
     Context {
+        /// What was being done, e.g. `writing out/a.png`.
         context: String,
+        /// The error that it explains.
         #[source]
         source: Box<dyn std::error::Error + Send + Sync + 'static>,
     },

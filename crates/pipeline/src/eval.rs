@@ -31,30 +31,49 @@ use crate::render::{render_colour, ColourRender, SceneInput};
 use crate::stylize::{self, StageSeconds, COLOUR_VIEWS};
 use crate::{Sink, Stage, Tally};
 
-/// Offsets along the sequence of the short- and long-range comparisons.
+/// Offsets along the sequence of the short- and long-range comparisons: short range compares
+/// view `i` with `i + 1`.
 pub const SHORT_RANGE: usize = 1;
+/// The long-range offset: view `i` is compared with `i + 7`.
 pub const LONG_RANGE: usize = 7;
 
 /// The metrics of one output sequence.
 #[derive(Clone, Debug, Serialize)]
 pub struct OutputReport {
+    /// The output: `colour` (the plain colour render), a style's name, `mix` (a mixture), or
+    /// the name of an evaluated frames directory.
     pub name: String,
+    /// Consistency of the pairs `(i, i + SHORT_RANGE)`.
     pub short_range: RangeMetrics,
+    /// Consistency of the pairs `(i, i + LONG_RANGE)`.
     pub long_range: RangeMetrics,
+    /// Style loss against the target's statistics, averaged over views (stylized outputs only).
     pub style_loss: Option<f64>,
+    /// Content loss against the plain colour render's deepest features, averaged over views
+    /// (stylized outputs only).
     pub content_loss: Option<f64>,
 }
 
 /// The report of `dsgs eval`.
 #[derive(Clone, Debug, Serialize)]
 pub struct EvalReport {
+    /// The evaluated scene: the bundle's name, or the path of the `.ply` or bundle whose
+    /// geometry the frames were evaluated against.
     pub scene: String,
+    /// The network variant of the stylization (`None` for existing frames).
     pub variant: Option<String>,
+    /// The style strength (`None` for existing frames).
     pub alpha: Option<f64>,
+    /// Views in the sequence.
     pub frames: usize,
+    /// Image width of the views, in pixels.
     pub width: u32,
+    /// Image height of the views, in pixels.
     pub height: u32,
+    /// The masking thresholds of the warps.
     pub warp: WarpOptions,
+    /// The metrics of each output sequence: for a bundle the colour render first, then each
+    /// style or the mixture.
     pub outputs: Vec<OutputReport>,
     /// Mean seconds per view of each stage (stylized outputs only).
     pub seconds_per_view: Option<StageSeconds>,
@@ -63,11 +82,17 @@ pub struct EvalReport {
 /// Settings of a bundle evaluation.
 #[derive(Clone, Debug)]
 pub struct EvalSettings {
+    /// The style images (`--style`, repeated).
     pub styles: Vec<PathBuf>,
+    /// Mix the styles with these weights into one output, one per style (`--weights`).
     pub weights: Option<Vec<f64>>,
+    /// Style strength: 0 reconstructs the scene, 1 is the full style (`--alpha`).
     pub alpha: f64,
+    /// Match the style images' colours to the colour renders (`--preserve-colour`).
     pub preserve_colour: bool,
+    /// Longest side of the style images after loading (`--style-size`).
     pub style_side: u32,
+    /// Masking thresholds of the warps (`--alpha-threshold`, `--depth-tolerance`).
     pub warp: WarpOptions,
 }
 

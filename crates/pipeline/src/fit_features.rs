@@ -33,7 +33,9 @@ use train::RunOutcome;
 pub struct FitFeaturesConfig {
     /// The RGB background of the geometry (RGBA images are composited onto it).
     pub background: [f32; 3],
+    /// How the dataset is read: the `[dataset]` table, as in `dsgs fit-geometry`.
     pub dataset: DatasetConfig,
+    /// The training configuration: the keys of `train::FeatureTrainConfig`, at the top level.
     #[serde(flatten)]
     pub features: FeatureTrainConfig,
 }
@@ -55,19 +57,33 @@ impl FitFeaturesConfig {
 /// Command-line values that override the configuration.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct FeatureOverrides {
+    /// Total iterations (`--iterations`; key `iterations`).
     pub iterations: Option<u64>,
+    /// Channels of each Gaussian's feature (`--feature-dim`; key `feature_dim`).
     pub feature_dim: Option<usize>,
+    /// Resize the images by `1 / F` on load (`--downscale`; key `dataset.downscale`); clears
+    /// `dataset.images_folder`.
     pub downscale: Option<f64>,
-    /// Alignment loss only (both the content and the style weight 0).
+    /// Alignment loss only (`--align-only`: keys `lambda_content` and `lambda_style` set to 0).
     pub align_only: bool,
-    /// Iterations of alignment-only warm-up.
+    /// Iterations of alignment-only warm-up (`--align-warmup`; key `align_warmup`).
     pub align_warmup: Option<u64>,
+    /// Seed of every random choice (`--seed`; key `seed`).
     pub seed: Option<u64>,
+    /// Side of the feature-map window run through the networks, in feature pixels (`--crop`;
+    /// key `crop`).
     pub crop: Option<u32>,
+    /// Network variant (`--variant`; key `variant`).
     pub variant: Option<Variant>,
+    /// White background, for NeRF-synthetic scenes (`--white`; key `background`). `false`
+    /// leaves the configuration's background.
     pub white: bool,
+    /// Train on every image, no held-out split (`--no-eval`; key `dataset.eval = false`).
     pub no_eval: bool,
+    /// Iterations between log lines (`--log-every`; key `log_interval`).
     pub log_every: Option<u64>,
+    /// Iterations between checkpoints, 0 for only when stopped (`--checkpoint-every`; key
+    /// `checkpoint_interval`).
     pub checkpoint_every: Option<u64>,
 }
 
@@ -125,19 +141,28 @@ pub struct FitFeaturesSettings {
     pub dataset: PathBuf,
     /// Style image folders and/or files.
     pub styles: Vec<PathBuf>,
+    /// The frozen encoder and decoder: `--weights`, and `--decoder` to replace its decoder.
     pub networks: NetworkFiles,
+    /// Output directory (`--output`); the bundle goes to `OUT/bundle`.
     pub out_dir: PathBuf,
+    /// Base configuration file (`--config`): [`FitFeaturesConfig`] keys.
     pub config: Option<PathBuf>,
+    /// Continue from this checkpoint of a stopped run (`--resume`).
     pub resume: Option<PathBuf>,
+    /// Command-line values applied on top of the configuration.
     pub overrides: FeatureOverrides,
 }
 
 /// What a run did.
 #[derive(Clone, Debug)]
 pub struct FitFeaturesReport {
+    /// The effective configuration, as saved to `OUT/config.toml`.
     pub config: FitFeaturesConfig,
+    /// Gaussians of the geometry.
     pub gaussians: usize,
+    /// Training views of the dataset.
     pub train_views: usize,
+    /// Style images trained on.
     pub style_images: usize,
     /// How the run ended; its output is `OUT/bundle` when it completed.
     pub run: RunOutcome,

@@ -52,7 +52,9 @@ impl Default for DatasetConfig {
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct FitGeometryConfig {
+    /// How the dataset is read: the `[dataset]` table.
     pub dataset: DatasetConfig,
+    /// The training configuration: the keys of `train::GeometryConfig`, at the top level.
     #[serde(flatten)]
     pub geometry: GeometryConfig,
 }
@@ -84,17 +86,37 @@ impl FitGeometryConfig {
 /// Command-line values that override the configuration.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct GeometryOverrides {
+    /// Total iterations (`--iterations`; key `iterations`), also adjusting the test, save and
+    /// checkpoint iterations (see [`apply`](Self::apply)).
     pub iterations: Option<u64>,
+    /// Resize the images by `1 / F` on load (`--downscale`; key `dataset.downscale`); clears
+    /// `dataset.images_folder`.
     pub downscale: Option<f64>,
+    /// Read the images from the `images_N` folder (`--resolution`; key
+    /// `dataset.images_folder`); resets `dataset.downscale` to 1.
     pub images_folder: Option<u32>,
+    /// White background, for NeRF-synthetic scenes (`--white`; key `background`). `false`
+    /// leaves the configuration's background.
     pub white: bool,
+    /// Train on every image, no held-out split (`--no-eval`; key `dataset.eval = false`).
     pub no_eval: bool,
+    /// Iterations at which to evaluate the held-out views and save the scene
+    /// (`--test-iterations`; key `test_iterations`, and `save_iterations` unless given).
     pub test_iterations: Option<Vec<u64>>,
+    /// Iterations at which to save the scene, when they differ from the test iterations
+    /// (`--save-iterations`; key `save_iterations`).
     pub save_iterations: Option<Vec<u64>>,
+    /// Iterations at which to write a resumable `chkpnt_N.safetensors`
+    /// (`--checkpoint-iterations`; key `checkpoint_iterations`).
     pub checkpoint_iterations: Option<Vec<u64>>,
+    /// Seed of every random choice (`--seed`; key `seed`).
     pub seed: Option<u64>,
+    /// Maximum SH degree, 0..=3 (`--sh-degree`; key `sh_degree`).
     pub sh_degree: Option<usize>,
+    /// Iterations between log lines (`--log-every`; key `log_interval`).
     pub log_every: Option<u64>,
+    /// Iterations between writes of `OUT/checkpoint.safetensors`, 0 for only when stopped
+    /// (`--checkpoint-every`; key `checkpoint_interval`).
     pub checkpoint_every: Option<u64>,
 }
 
@@ -157,25 +179,38 @@ impl GeometryOverrides {
 /// What to run.
 #[derive(Clone, Debug)]
 pub struct FitSettings {
+    /// Dataset directory in COLMAP, NeRF-synthetic or LLFF layout (the `DATASET` argument).
     pub dataset: PathBuf,
+    /// Output directory (`--output`).
     pub out_dir: PathBuf,
+    /// Base configuration file (`--config`): [`FitGeometryConfig`] keys.
     pub config: Option<PathBuf>,
+    /// Continue from this checkpoint of a stopped run (`--resume`).
     pub resume: Option<PathBuf>,
+    /// Command-line values applied on top of the configuration.
     pub overrides: GeometryOverrides,
 }
 
 /// What a run did.
 #[derive(Clone, Debug)]
 pub struct FitReport {
+    /// The effective configuration, as saved to `OUT/config.toml`.
     pub config: FitGeometryConfig,
+    /// Training views.
     pub train_views: usize,
+    /// Held-out views.
     pub test_views: usize,
+    /// Image width of the first training view, in pixels.
     pub width: u32,
+    /// Image height of the first training view, in pixels.
     pub height: u32,
+    /// Gaussians when the run started (the initial point cloud, or the resumed checkpoint's).
     pub initial_gaussians: usize,
     /// How the run ended (iterations, time, interruption, the stop checkpoint).
     pub run: RunOutcome,
+    /// Gaussians at the end of the run.
     pub gaussians: usize,
+    /// The held-out evaluations at the test iterations reached by this run.
     pub evaluations: Vec<Evaluation>,
     /// `OUT/point_cloud.ply`.
     pub ply: PathBuf,

@@ -76,6 +76,8 @@
 //! # Ok::<(), pipeline::Error>(())
 //! ```
 
+#![warn(missing_docs)]
+
 pub mod bake;
 pub mod cameras;
 pub mod config;
@@ -105,7 +107,9 @@ use std::time::Instant;
 /// and report themselves interrupted ([`RunOutcome::interrupted`]); the other stages ignore it.
 #[derive(Clone, Copy)]
 pub struct Control<'a> {
+    /// Where the stage's events go.
     pub sink: &'a dyn Sink,
+    /// The stop flag of the training stages (`None`: never stopped).
     pub stop: Option<&'a AtomicBool>,
 }
 

@@ -30,8 +30,13 @@ use train::RunOutcome;
 /// canonical or PyTorch checkpoints) that take precedence over it.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct NetworkFiles {
+    /// Canonical weights (`.safetensors`) holding the encoder and decoder (`--weights`).
     pub weights: Option<PathBuf>,
+    /// Encoder file, a PyTorch checkpoint or `.safetensors`, instead of the one in `weights`
+    /// (`--encoder`).
     pub encoder: Option<PathBuf>,
+    /// Decoder file, a PyTorch checkpoint or `.safetensors`, instead of the one in `weights`
+    /// (`--decoder`).
     pub decoder: Option<PathBuf>,
 }
 
@@ -66,15 +71,26 @@ impl NetworkFiles {
 /// Command-line values that override the configuration.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct DecoderOverrides {
+    /// Total iterations (`--iterations`; key `iterations`).
     pub iterations: Option<u64>,
+    /// Content (and style) images per iteration (`--batch-size`; key `batch_size`).
     pub batch_size: Option<usize>,
+    /// Side of the square random crop (`--crop`; key `crop`).
     pub crop: Option<u32>,
+    /// Short side the images are resized to before cropping (`--resize`; key `resize`).
     pub resize: Option<u32>,
+    /// Weight of the style loss (`--style-weight`; key `style_weight`).
     pub style_weight: Option<f64>,
+    /// Initial learning rate (`--lr`; key `lr`).
     pub lr: Option<f64>,
+    /// Seed of every random choice (`--seed`; key `seed`).
     pub seed: Option<u64>,
+    /// Network variant (`--variant`; key `variant`).
     pub variant: Option<Variant>,
+    /// Iterations between log lines (`--log-every`; key `log_interval`).
     pub log_every: Option<u64>,
+    /// Iterations between checkpoints, 0 for only when stopped (`--checkpoint-every`; key
+    /// `checkpoint_interval`).
     pub checkpoint_every: Option<u64>,
 }
 
@@ -123,23 +139,32 @@ pub struct PretrainSettings {
     pub styles: Vec<PathBuf>,
     /// Search the folders recursively.
     pub recursive: bool,
+    /// The frozen encoder and the starting decoder (`--weights`, `--encoder`, `--decoder`).
     pub networks: NetworkFiles,
     /// Start from a seeded initialisation instead of a decoder file.
     pub from_scratch: bool,
+    /// Output directory (`--output`).
     pub out_dir: PathBuf,
+    /// Base configuration file (`--config`): `train::DecoderTrainConfig` keys.
     pub config: Option<PathBuf>,
+    /// Continue from this checkpoint of a stopped run (`--resume`).
     pub resume: Option<PathBuf>,
+    /// Command-line values applied on top of the configuration.
     pub overrides: DecoderOverrides,
 }
 
 /// What a run did.
 #[derive(Clone, Debug)]
 pub struct PretrainReport {
+    /// The effective configuration, as saved to `OUT/config.toml`.
     pub config: DecoderTrainConfig,
+    /// Content images found.
     pub content_images: usize,
+    /// Style images found.
     pub style_images: usize,
     /// How the run ended; its output is `OUT/decoder.safetensors` when it completed.
     pub run: RunOutcome,
+    /// The held-out evaluations of this run (every `eval_interval` iterations and at the end).
     pub evaluations: Vec<DecoderEvaluation>,
     /// `OUT/checkpoint.safetensors`.
     pub checkpoint: PathBuf,

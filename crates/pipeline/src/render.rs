@@ -24,12 +24,18 @@ use crate::image_io::{colour_map, RgbImage};
 
 /// A scene to render: a `.ply` file or a scene bundle directory.
 pub enum SceneInput {
+    /// A 3DGS `.ply` file: Gaussians without cameras, rendered over black.
     Ply {
+        /// The file it was read from.
         path: PathBuf,
+        /// The Gaussians.
         scene: FeatureGaussians<f32>,
     },
+    /// A scene bundle directory: Gaussians with features, cameras, backgrounds and networks.
     Bundle {
+        /// The directory it was loaded from.
         path: PathBuf,
+        /// The loaded bundle.
         bundle: Box<train::SceneBundle>,
     },
 }
@@ -107,8 +113,11 @@ impl SceneInput {
 /// depth (camera z of the visible surface, 0 where alpha is 0).
 #[derive(Clone, Debug)]
 pub struct ColourRender {
+    /// The colour image, row-major RGB, unclamped.
     pub image: RgbImage,
+    /// Accumulated opacity per pixel.
     pub alpha: Vec<f32>,
+    /// Normalised depth per pixel: camera z of the visible surface, 0 where alpha is 0.
     pub depth: Vec<f32>,
 }
 
@@ -225,6 +234,7 @@ pub fn symmetric_eigen(a: &[f64], n: usize) -> (Vec<f64>, Vec<Vec<f64>>) {
 /// each mapped to `[0, 1]` by a fixed range.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Pca {
+    /// Mean feature vector of the fitted pixels, subtracted before projecting.
     pub mean: Vec<f64>,
     /// Unit components, largest variance first (fewer than 3 when `F < 3`); each one's sign is
     /// fixed so that its largest-magnitude entry is positive.
@@ -333,9 +343,13 @@ impl Pca {
 /// What `dsgs render` draws.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum RenderKind {
+    /// SH colour over the background (`color`).
     Color,
+    /// Normalised depth, as a colour map or grey ([`DepthStyle`]; `depth`).
     Depth,
+    /// Accumulated opacity as grey (`alpha`).
     Alpha,
+    /// The feature map projected onto three principal components (`features-pca`).
     FeaturesPca,
 }
 

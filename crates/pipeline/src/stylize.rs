@@ -69,8 +69,11 @@ pub fn load_bundle(
 /// A loaded style image with its output name.
 #[derive(Clone, Debug)]
 pub struct StyleImage {
+    /// The output name: the file stem, made unique ([`style_names`]).
     pub name: String,
+    /// The file it was read from.
     pub path: PathBuf,
+    /// The image, longer side at most the requested maximum.
     pub image: RgbImage,
 }
 
@@ -116,7 +119,9 @@ pub fn load_styles(paths: &[PathBuf], max_side: u32) -> Result<Vec<StyleImage>> 
 /// One stylization target: an output name and the statistics of every encoder level.
 #[derive(Clone, Debug)]
 pub struct StyleTarget {
+    /// The output name: the style's name, or `mix` for a mixture.
     pub name: String,
+    /// Per-channel mean and std of the style's encoder features at every level.
     pub stats: StyleFeatureStats<f32>,
 }
 
@@ -202,8 +207,11 @@ pub fn style_targets(
 /// A camera's rasterized feature map (`[1, F, h, w]` at the feature resolution).
 #[derive(Clone, Debug)]
 pub struct FeatureView {
+    /// The camera.
     pub camera: Camera,
+    /// The rasterized feature map, `[1, F, h, w]`.
     pub features: Array4<f32>,
+    /// Wall time of the rasterization, in seconds.
     pub raster_seconds: f64,
 }
 
@@ -221,8 +229,11 @@ pub fn render_feature_view(bundle: &SceneBundle, camera: &Camera) -> Result<Feat
 /// Wall time of the stages of one decoded view, in seconds.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct StageSeconds {
+    /// Rasterizing the feature map.
     pub raster: f64,
+    /// Lifting the feature map and transforming it to the style's statistics.
     pub lift_transform: f64,
+    /// Decoding the transformed features into an image.
     pub decode: f64,
 }
 
@@ -250,16 +261,27 @@ pub fn stylize_view(
 /// Settings of `dsgs stylize`.
 #[derive(Clone, Debug)]
 pub struct StylizeSettings {
+    /// The style images (`--style`, repeated; at least one).
     pub styles: Vec<PathBuf>,
+    /// Mix the styles with these weights into one output, one per style (`--weights`).
     pub weights: Option<Vec<f64>>,
+    /// Style strength: 0 reconstructs the scene, 1 is the full style (`--alpha`).
     pub alpha: f64,
+    /// Keep the scene's colours: the style images are colour-matched to the colour renders
+    /// (`--preserve-colour`).
     pub preserve_colour: bool,
+    /// Longest side of the style images after loading (`--style-size`).
     pub style_side: u32,
+    /// Output directory (`--output`): a folder of `frame_XXXX.png` per output, the animations
+    /// and `contact_sheet.png`.
     pub out_dir: PathBuf,
+    /// Also write an animated GIF per output (`--gif`).
     pub gif: bool,
+    /// Also write an MP4 per output, through `ffmpeg` on `PATH` (`--mp4`).
     pub mp4: bool,
+    /// Frames per second of the animations (`--fps`).
     pub fps: f64,
-    /// Columns of the contact sheet (views, evenly spaced).
+    /// Columns of the contact sheet (views, evenly spaced; `--sheet-views`).
     pub sheet_views: usize,
 }
 
@@ -268,8 +290,11 @@ pub struct StylizeSettings {
 pub struct StylizeOutput {
     /// Per output: its name and frame paths.
     pub outputs: Vec<(String, Vec<PathBuf>)>,
+    /// The animated GIFs, one per output (with `gif`).
     pub gifs: Vec<PathBuf>,
+    /// The MP4 videos, one per output (with `mp4`).
     pub mp4s: Vec<PathBuf>,
+    /// The contact sheet: a row per output under the colour row, its style in the first column.
     pub contact_sheet: Option<PathBuf>,
     /// Mean stage seconds per view.
     pub seconds: StageSeconds,

@@ -14,7 +14,9 @@ use nets::{Decoder, Encoder, Lifter, NetWeights};
 
 /// The networks a single PyTorch checkpoint can hold.
 pub enum Network {
+    /// An encoder (e.g. `vgg_normalised.pth`).
     Encoder(Encoder),
+    /// A decoder (e.g. `decoder.pth`).
     Decoder(Decoder),
 }
 

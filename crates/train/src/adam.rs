@@ -31,7 +31,9 @@ const PAR_CHUNK: usize = 1 << 14;
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct AdamConfig {
+    /// Decay rate of the first-moment (mean) estimate; PyTorch and 3DGS: 0.9.
     pub beta1: f64,
+    /// Decay rate of the second-moment (uncentred variance) estimate; PyTorch and 3DGS: 0.999.
     pub beta2: f64,
     /// Added to `sqrt(v_hat)`. PyTorch's default is 1e-8; the 3DGS trainer uses 1e-15.
     pub eps: f64,
@@ -171,6 +173,7 @@ impl<T: Real> ParamState<T> {
 /// Adam over a list of parameter tensors, each with its own learning rate and state.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Adam<T: Real> {
+    /// The hyper-parameters shared by every parameter tensor.
     pub config: AdamConfig,
     params: Vec<ParamState<T>>,
 }

@@ -209,7 +209,9 @@ impl BakeConfig {
 /// A named target camera.
 #[derive(Clone, Debug, PartialEq)]
 pub struct NamedCamera {
+    /// The view's name, carried by its stylized target.
     pub name: String,
+    /// The camera the target is rendered from and the bake is fitted at.
     pub camera: Camera,
 }
 
@@ -525,15 +527,19 @@ pub struct BakeReport {
     /// How the optimisation ended: iterations, time, interruption (`scene` is then the partial
     /// bake) and the stop checkpoint.
     pub run: RunOutcome,
-    /// Training and held-out target counts.
+    /// Number of training targets.
     pub train_views: usize,
+    /// Number of held-out targets.
     pub held_out_views: usize,
     /// Mean PSNR of the baked scene against the training targets.
     pub train_psnr: f64,
     /// Mean PSNR of the baked scene against the held-out targets (`None` without held-out views).
     pub held_out_psnr: Option<f64>,
-    /// The same for the bundle's own colours (its SH at its degree), before baking.
+    /// Mean PSNR of the bundle's own colours (its SH at its degree) against the training targets,
+    /// before baking.
     pub unbaked_train_psnr: f64,
+    /// Mean PSNR of the bundle's own colours against the held-out targets, before baking
+    /// (`None` without held-out views).
     pub unbaked_held_out_psnr: Option<f64>,
     /// Wall time of the target rendering, in seconds.
     pub target_seconds: f64,

@@ -38,9 +38,12 @@ use style::ChannelStats;
 use crate::checkpoint::Fnv1a;
 use crate::error::TrainError;
 
-/// File names inside a bundle directory.
+/// The scene inside a bundle directory: the official 3DGS PLY layout plus the `f_feat_*`
+/// feature properties.
 pub const SCENE_FILE: &str = "scene.ply";
+/// The networks inside a bundle directory: encoder, decoder and lifter weights (safetensors).
 pub const NETS_FILE: &str = "nets.safetensors";
+/// The description ([`BundleInfo`]) inside a bundle directory, as JSON.
 pub const INFO_FILE: &str = "bundle.json";
 
 /// The value of [`BundleInfo::format`].
@@ -93,13 +96,22 @@ impl std::str::FromStr for Variant {
 /// `camera_from_world` (OpenCV axes, see `gaussian::camera`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CameraRecord {
+    /// The view's name (the dataset image name).
     pub name: String,
+    /// Image width in pixels.
     pub width: u32,
+    /// Image height in pixels.
     pub height: u32,
+    /// Focal length along x, in pixels.
     pub fx: f64,
+    /// Focal length along y, in pixels.
     pub fy: f64,
+    /// Principal point x, in pixels from the left image edge.
     pub cx: f64,
+    /// Principal point y, in pixels from the top image edge.
     pub cy: f64,
+    /// The world-to-camera rigid transform, row-major (`camera_from_world[row][col]`), to
+    /// OpenCV camera axes (x right, y down, z forward).
     pub camera_from_world: [[f64; 4]; 4],
     /// Whether the view was held out of training.
     pub held_out: bool,
@@ -145,6 +157,7 @@ impl CameraRecord {
 pub struct BundleInfo {
     /// Always [`BUNDLE_FORMAT`].
     pub format: String,
+    /// The network variant the features were trained for.
     pub variant: Variant,
     /// Per-Gaussian feature width `F` (the lifter's input width).
     pub feature_dim: usize,
@@ -225,9 +238,14 @@ impl BundleInfo {
 pub struct SceneBundle {
     /// Geometry plus features (`feature_dim = info.feature_dim`).
     pub scene: FeatureGaussians<f32>,
+    /// The frozen encoder the features were aligned to (fingerprint
+    /// [`BundleInfo::encoder_fingerprint`]).
     pub encoder: Encoder<f32>,
+    /// The decoder that turns style-transformed lifted features into images.
     pub decoder: Decoder<f32>,
+    /// The lifter `l = relu(W r + b)` from `F` feature channels to the encoder's deepest width.
     pub lifter: Lifter<f32>,
+    /// The bundle's description (`bundle.json`).
     pub info: BundleInfo,
 }
 

@@ -60,12 +60,16 @@ pub const FORMAT: &str = "dsgs-geometry-checkpoint-v1";
 pub struct GeometryCheckpoint {
     /// Completed iterations.
     pub step: u64,
+    /// The scene with its Adam state and densification statistics.
     pub model: GaussianModel,
     /// Training-view indices not yet visited in the current pass.
     pub view_stack: Vec<usize>,
-    /// Exponential moving averages of the loss and PSNR (progress display only).
+    /// Exponential moving average of the training loss (progress display only).
     pub ema_loss: f64,
+    /// Exponential moving average of the training PSNR in dB (progress display only).
     pub ema_psnr: f64,
+    /// The run seed ([`GeometryConfig::seed`](crate::GeometryConfig::seed)); the random choices
+    /// of every iteration follow from it and the iteration number.
     pub seed: u64,
     /// The scene extent (3DGS `cameras_extent`).
     pub extent: f64,

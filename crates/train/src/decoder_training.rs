@@ -56,8 +56,10 @@ use crate::image_folder::{stack, ImageSet};
 /// The `format` metadata of a decoder-training checkpoint.
 pub const DECODER_CHECKPOINT_FORMAT: &str = "dsgs-decoder-checkpoint-v1";
 
-/// File names inside a decoder-training output folder.
+/// The checkpoint inside a decoder-training output folder, replaced each time one is written.
 pub const DECODER_CHECKPOINT_FILE: &str = crate::driver::CHECKPOINT_FILE;
+/// The final weights inside a decoder-training output folder (encoder and decoder), written
+/// when training completes.
 pub const DECODER_WEIGHTS_FILE: &str = "decoder.safetensors";
 
 /// Settings of a decoder training run. The defaults are the AdaIN paper's, scaled down for a CPU
@@ -160,7 +162,11 @@ pub struct DecoderStepReport {
     pub step: u64,
     /// The learning rate used.
     pub lr: f64,
+    /// The content term: MSE between the deepest encoder features of the decoded image and the
+    /// AdaIN target `t`.
     pub loss_content: f64,
+    /// The unweighted style term: summed over encoder levels, MSE of the per-channel means plus
+    /// MSE of the per-channel standard deviations.
     pub loss_style: f64,
     /// `loss_content + style_weight * loss_style`.
     pub loss: f64,
@@ -171,9 +177,13 @@ pub struct DecoderStepReport {
 pub struct DecoderEvaluation {
     /// Completed iterations when evaluated.
     pub step: u64,
+    /// Number of (content, style) pairs averaged.
     pub pairs: usize,
+    /// Mean content term.
     pub loss_content: f64,
+    /// Mean unweighted style term.
     pub loss_style: f64,
+    /// Mean total, `loss_content + style_weight * loss_style`.
     pub loss: f64,
 }
 
@@ -183,6 +193,8 @@ pub struct DecoderTrainSummary {
     /// How the run ended; its output is the final weights, when training completed with an
     /// output folder.
     pub run: RunOutcome,
+    /// The evaluations made during this call, in order: before the first iteration of a fresh
+    /// run, every `eval_interval` iterations and at the end.
     pub evaluations: Vec<DecoderEvaluation>,
 }
 
@@ -209,6 +221,7 @@ struct EvalPair {
 
 /// An AdaIN decoder training run.
 pub struct DecoderTrainer {
+    /// The run's settings.
     pub config: DecoderTrainConfig,
     encoder: Encoder<f32>,
     decoder: Decoder<f32>,

@@ -122,11 +122,17 @@ impl DensifyConfig {
 /// What one density-control pass did.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct DensifyReport {
+    /// Gaussians before the pass.
     pub before: usize,
+    /// Gaussians that were cloned (gradient at or above `densify_grad_threshold`, largest scale
+    /// at most `percent_dense` times the extent); each adds one copy.
     pub cloned: usize,
     /// Gaussians that were split (each replaced by `split_count` new ones).
     pub split: usize,
+    /// Gaussians removed after cloning and splitting: opacity below `min_opacity` or, when
+    /// large-Gaussian pruning is on, too large in the world (or on screen, if configured).
     pub pruned: usize,
+    /// Gaussians after the pass.
     pub after: usize,
 }
 

@@ -80,6 +80,7 @@ pub struct Run<'a> {
     pub out_dir: Option<&'a Path>,
     /// Raised (by a signal handler, a button) to end the run after the current iteration.
     pub stop: Option<&'a AtomicBool>,
+    /// Where the run's events go.
     pub sink: &'a dyn Sink,
 }
 

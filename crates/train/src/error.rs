@@ -14,13 +14,23 @@ pub enum TrainError {
     /// Reading or writing a file failed.
     #[error("{}: {source}", path.display())]
     Io {
+        /// The file or directory that could not be read, written or created.
         path: PathBuf,
+        /// The underlying I/O error.
         #[source]
         source: std::io::Error,
     },
-    /// A checkpoint that is not what this trainer writes.
+    /// A checkpoint, weights file or scene bundle that is not what this crate writes (no
+    /// safetensors header, wrong format tag, missing or malformed metadata or tensors, a bundle
+    /// whose parts do not fit together or whose encoder fingerprint differs), or weights or a
+    /// bundle description that could not be written.
     #[error("checkpoint {}: {message}", path.display())]
-    Checkpoint { path: PathBuf, message: String },
+    Checkpoint {
+        /// The file or bundle directory rejected, or the file being written.
+        path: PathBuf,
+        /// What is wrong with it.
+        message: String,
+    },
     /// The dataset has nothing to train on, or an image does not fit its camera.
     #[error("dataset: {0}")]
     Dataset(String),

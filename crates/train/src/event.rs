@@ -52,7 +52,9 @@ impl Stage {
 /// One named value of an evaluation.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Metric {
+    /// Short lowercase name, e.g. `"psnr"` or `"loss"`.
     pub name: &'static str,
+    /// The value; counts such as `"views"` are given as floats.
     pub value: f64,
 }
 
@@ -61,48 +63,77 @@ pub struct Metric {
 pub enum Event {
     /// `stage` begins: `total` units of work (iterations or views), of which `done` are already
     /// complete (a resumed run).
-    StageStarted { stage: Stage, total: u64, done: u64 },
+    StageStarted {
+        /// The stage that begins.
+        stage: Stage,
+        /// Units of work of the whole stage.
+        total: u64,
+        /// Units already complete (non-zero when resumed).
+        done: u64,
+    },
     /// `done` units of `stage` are complete; `status` sums up its running averages (may be
     /// empty).
     Progress {
+        /// The stage reporting.
         stage: Stage,
+        /// Units of work complete so far.
         done: u64,
+        /// Running averages (e.g. loss and PSNR) as text; may be empty.
         status: String,
     },
     /// A line for the log: a periodic summary of a training run, or a note.
-    Log { stage: Stage, message: String },
+    Log {
+        /// The stage the line belongs to.
+        stage: Stage,
+        /// The text of the line.
+        message: String,
+    },
     /// Something the user should know that does not stop the run (e.g. a skipped dataset image).
     Warning(String),
     /// A held-out evaluation of `stage` after `step` iterations.
     Evaluation {
+        /// The stage evaluated.
         stage: Stage,
+        /// Completed iterations when evaluated.
         step: u64,
+        /// The measured values.
         metrics: Vec<Metric>,
     },
     /// A resumable checkpoint of `stage` after `step` iterations was written to `path`.
     CheckpointWritten {
+        /// The stage the checkpoint resumes.
         stage: Stage,
+        /// Completed iterations the checkpoint holds.
         step: u64,
+        /// The checkpoint file.
         path: PathBuf,
     },
     /// A result of `stage` (`what`: "scene", "decoder", "bundle", ...) was written to `path`.
     OutputWritten {
+        /// The stage that produced the result.
         stage: Stage,
+        /// What was written: `"scene"`, `"decoder"`, `"bundle"`, ...
         what: &'static str,
+        /// The file or folder written.
         path: PathBuf,
     },
     /// `stage` ended after `done` units, `seconds` after it started; `interrupted` when a stop
     /// request ended it early.
     StageFinished {
+        /// The stage that ended.
         stage: Stage,
+        /// Units of work complete at the end.
         done: u64,
+        /// Wall time since the stage started, in seconds.
         seconds: f64,
+        /// Whether a stop request ended the stage early.
         interrupted: bool,
     },
 }
 
 /// Where events go. Implemented by every `Fn(Event) + Sync` closure.
 pub trait Sink: Sync {
+    /// Handles one event; nothing the sink does changes the run.
     fn emit(&self, event: Event);
 }
 

@@ -74,8 +74,10 @@ use crate::image_folder::{to_tensor, ImageSet};
 /// The `format` metadata of a feature-training checkpoint.
 pub const FEATURE_CHECKPOINT_FORMAT: &str = "dsgs-feature-checkpoint-v1";
 
-/// Names inside a feature-training output folder: the checkpoint file and the bundle folder.
+/// The checkpoint inside a feature-training output folder, replaced each time one is written.
 pub const FEATURE_CHECKPOINT_FILE: &str = crate::driver::CHECKPOINT_FILE;
+/// The scene bundle folder inside a feature-training output folder, written when training
+/// completes.
 pub const BUNDLE_DIR: &str = "bundle";
 
 /// Settings of a feature training run.
@@ -209,9 +211,13 @@ impl FeatureTrainConfig {
 /// A window of a feature map, in feature pixels.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct CropWindow {
+    /// Left column of the window.
     pub x: usize,
+    /// Top row of the window.
     pub y: usize,
+    /// Width of the window.
     pub width: usize,
+    /// Height of the window.
     pub height: usize,
 }
 
@@ -230,11 +236,15 @@ impl CropWindow {
 /// The frozen networks and fixed settings of the 3D stylization loss.
 #[derive(Clone, Copy, Debug)]
 pub struct Stage3Setup<'a, T: Real> {
+    /// The lifter being trained, from `F` feature channels to the encoder's deepest width.
     pub lifter: &'a Lifter<T>,
+    /// The frozen decoder.
     pub decoder: &'a Decoder<T>,
+    /// The frozen encoder that measures the content and style terms.
     pub encoder: &'a Encoder<T>,
     /// The feature-map background, one value per feature channel.
     pub feature_background: &'a [T],
+    /// The loss weights `lambda_c`, `lambda_s` and the alignment penalty.
     pub weights: Stage3Weights,
 }
 
@@ -247,15 +257,20 @@ pub struct Stage3Sample<'a, T> {
     pub feature_size: (u32, u32),
     /// The whole view's target `[1, C, height, width]`.
     pub align_target: &'a Array4<T>,
+    /// The style's per-level encoder statistics (per-channel mean and standard deviation).
     pub style: &'a StyleFeatureStats<T>,
+    /// The part of the feature map the loss is evaluated on.
     pub window: CropWindow,
 }
 
 /// The loss terms of one sample and the gradients of the total.
 #[derive(Clone, Debug)]
 pub struct Stage3Gradients<T: Real> {
+    /// The alignment term `align(l(r), target)` on the window.
     pub loss_align: f64,
+    /// The content term; 0 when both lambdas are 0 (the networks are then not run).
     pub loss_content: f64,
+    /// The unweighted style term; 0 when both lambdas are 0.
     pub loss_style: f64,
     /// `loss_align + lambda_c loss_content + lambda_s loss_style`.
     pub loss: f64,
@@ -382,8 +397,9 @@ pub struct FeatureInputs {
     pub cameras: Vec<CameraRecord>,
     /// The style images.
     pub styles: ImageSet,
-    /// The frozen encoder and decoder.
+    /// The frozen encoder the features are aligned to.
     pub encoder: Encoder<f32>,
+    /// The frozen decoder that turns style-transformed lifted features into images.
     pub decoder: Decoder<f32>,
     /// The RGB background the geometry was trained on (recorded in the bundle).
     pub background: [f32; 3],
@@ -423,24 +439,39 @@ struct CachedView {
 pub struct FeatureStepReport {
     /// The iteration number (from 1).
     pub step: u64,
-    /// Index of the training view and of the style image used.
+    /// Index of the training view used.
     pub view: usize,
+    /// Index of the style image used.
     pub style: usize,
+    /// The crop window in feature pixels (the whole map when the iteration has no content and
+    /// style terms).
     pub window: CropWindow,
+    /// The alignment term on the window.
     pub loss_align: f64,
+    /// The content term (0 when not evaluated).
     pub loss_content: f64,
+    /// The unweighted style term (0 when not evaluated).
     pub loss_style: f64,
+    /// The total, `loss_align + lambda_c loss_content + lambda_s loss_style` with the weights of
+    /// this iteration.
     pub loss: f64,
 }
 
 /// Mean loss terms over (view, style) pairs on whole feature maps.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct FeatureEvaluation {
+    /// Completed iterations when evaluated.
     pub step: u64,
+    /// Number of (view, style) pairs averaged.
     pub pairs: usize,
+    /// Mean alignment term.
     pub loss_align: f64,
+    /// Mean content term (0 when the next iteration has no content and style terms: the
+    /// alignment warm-up or the alignment-only ablation).
     pub loss_content: f64,
+    /// Mean unweighted style term (0 likewise).
     pub loss_style: f64,
+    /// Mean total, with the loss weights of the next iteration.
     pub loss: f64,
 }
 
@@ -456,6 +487,7 @@ pub struct FeatureTrainSummary {
 
 /// A feature training run.
 pub struct FeatureTrainer {
+    /// The run's settings.
     pub config: FeatureTrainConfig,
     /// Extra provenance entries for the bundle.
     pub provenance: Vec<(String, String)>,
@@ -687,14 +719,17 @@ impl FeatureTrainer {
         &self.scene
     }
 
+    /// The lifter being trained.
     pub fn lifter(&self) -> &Lifter<f32> {
         &self.lifter
     }
 
+    /// The frozen encoder.
     pub fn encoder(&self) -> &Encoder<f32> {
         &self.encoder
     }
 
+    /// The frozen decoder.
     pub fn decoder(&self) -> &Decoder<f32> {
         &self.decoder
     }

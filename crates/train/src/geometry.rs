@@ -59,9 +59,11 @@ pub struct GeometryConfig {
     pub random_init_points: usize,
     /// Half side of the cube the random points fill.
     pub random_init_half_extent: f64,
+    /// Adam learning rates per parameter group and the position schedule.
     pub learning_rates: LearningRates,
     /// Adam hyper-parameters; 3DGS uses eps 1e-15.
     pub adam: AdamConfig,
+    /// Density control: cloning, splitting, pruning and opacity resets.
     pub densify: DensifyConfig,
     /// Iterations after which the held-out views are evaluated.
     pub test_iterations: Vec<u64>,
@@ -127,8 +129,11 @@ impl GeometryConfig {
 /// A posed image: the camera and its RGB image (row-major, `height * width * 3`, in [0, 1]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct View {
+    /// The image's name in the dataset.
     pub name: String,
+    /// The camera the image was taken with.
     pub camera: Camera,
+    /// RGB values, row-major `[height, width, 3]`, in [0, 1].
     pub image: Vec<f32>,
 }
 
@@ -193,23 +198,33 @@ pub fn initial_points(dataset: &Dataset, config: &GeometryConfig) -> PointCloud 
 pub struct StepReport {
     /// The iteration number (from 1).
     pub step: u64,
+    /// The photometric loss terms of this iteration's render.
     pub loss: LossTerms,
     /// PSNR of the (unclamped) render against the training image.
     pub psnr: f64,
     /// Gaussians after the iteration.
     pub gaussians: usize,
+    /// What density control did, when it ran at this iteration (the Adam step is then skipped).
     pub densified: Option<DensifyReport>,
+    /// Whether the opacities were reset at this iteration (the opacity group then skips its Adam
+    /// step).
     pub opacity_reset: bool,
 }
 
 /// Held-out image quality, averaged over views (per-view PSNR averaged, as 3DGS reports it).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Evaluation {
+    /// Completed iterations when evaluated.
     pub step: u64,
+    /// Number of views averaged.
     pub views: usize,
+    /// Mean per-view PSNR in dB, of the render clamped to [0, 1].
     pub psnr: f64,
+    /// Mean per-view SSIM.
     pub ssim: f64,
+    /// Mean per-view mean absolute error.
     pub l1: f64,
+    /// Gaussians in the scene when evaluated.
     pub gaussians: usize,
 }
 
@@ -233,19 +248,25 @@ impl Evaluation {
 pub struct TrainSummary {
     /// How the run ended (iterations, time, interruption, stop checkpoint).
     pub run: RunOutcome,
+    /// The held-out evaluations made during this call, at the test iterations.
     pub evaluations: Vec<Evaluation>,
+    /// Gaussians in the final scene.
     pub gaussians: usize,
 }
 
 /// A geometry training run.
 pub struct GeometryTrainer {
+    /// The run's settings.
     pub config: GeometryConfig,
+    /// The scene with its Adam state and densification statistics.
     pub model: GaussianModel,
     /// Completed iterations.
     pub step: u64,
     /// The scene extent (3DGS `cameras_extent`, from the training cameras).
     pub extent: f64,
+    /// The views trained on.
     pub train_views: Vec<View>,
+    /// The held-out views, evaluated at the test iterations.
     pub test_views: Vec<View>,
     view_stack: Vec<usize>,
     ema_loss: f64,

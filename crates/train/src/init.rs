@@ -32,7 +32,9 @@ pub const SCALE_NEIGHBOURS: usize = 3;
 /// A coloured point cloud: positions and RGB colours in [0, 1].
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct PointCloud {
+    /// Point positions, one `[x, y, z]` per point.
     pub positions: Vec<[f32; 3]>,
+    /// RGB colour of each point, in [0, 1]; as long as `positions`.
     pub colors: Vec<[f32; 3]>,
 }
 

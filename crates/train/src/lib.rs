@@ -92,6 +92,8 @@
 //! # Ok::<(), train::TrainError>(())
 //! ```
 
+#![warn(missing_docs)]
+
 pub mod adam;
 pub mod bake;
 pub mod bundle;

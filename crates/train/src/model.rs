@@ -56,9 +56,13 @@ pub struct LearningRates {
     pub position_lr_max_steps: u64,
     /// SH DC rate; higher SH coefficients use `feature_lr / feature_rest_divisor`.
     pub feature_lr: f64,
+    /// Divisor of `feature_lr` for the higher-order SH coefficients (`f_rest`); 3DGS: 20.
     pub feature_rest_divisor: f64,
+    /// Rate of the opacity logits: 0.05 as in the paper code (later 3DGS releases: 0.025).
     pub opacity_lr: f64,
+    /// Rate of the log-scales; 3DGS: 0.005.
     pub scaling_lr: f64,
+    /// Rate of the rotation quaternions; 3DGS: 0.001.
     pub rotation_lr: f64,
 }
 
@@ -97,11 +101,17 @@ impl LearningRates {
 /// active degree), in which case the missing ones are zero.
 #[derive(Clone, Copy, Debug)]
 pub struct GaussianGrads<'a> {
+    /// `dL/d(means)`, one `[x, y, z]` per Gaussian.
     pub means: &'a [[f32; 3]],
+    /// `dL/d(quats)`, one `(w, x, y, z)` per Gaussian.
     pub quats: &'a [[f32; 4]],
+    /// `dL/d(log_scales)`, one `[x, y, z]` per Gaussian.
     pub log_scales: &'a [[f32; 3]],
+    /// `dL/d(opacity_logits)`, one per Gaussian.
     pub opacity_logits: &'a [f32],
+    /// `dL/d(sh)`: `coeffs_per_gaussian` RGB coefficients per Gaussian, Gaussian-major.
     pub sh: &'a [[f32; 3]],
+    /// SH coefficients per Gaussian in `sh`, `(d + 1)^2` for some degree `d` up to the scene's.
     pub coeffs_per_gaussian: usize,
 }
 
@@ -112,7 +122,11 @@ pub struct GaussianModel {
     pub scene: FeatureGaussians<f32>,
     /// The SH degree used for rendering, `<= scene.sh_degree`.
     pub active_sh_degree: usize,
+    /// One Adam state per parameter group ([`XYZ`], [`F_DC`], [`F_REST`] when the maximum SH
+    /// degree is above 0, [`OPACITY`], [`SCALING`], [`ROTATION`]), with one row per Gaussian.
     pub adam: Adam<f32>,
+    /// Densification statistics since the last densification (gradient-norm sums, visibility
+    /// counts, largest screen radii), one entry per Gaussian.
     pub stats: DensificationStats,
 }
 

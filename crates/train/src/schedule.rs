@@ -10,7 +10,9 @@ use serde::{Deserialize, Serialize};
 /// A log-linear learning-rate decay with an optional sine warm-up.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ExponentialLr {
+    /// Learning rate at step 0 (before the warm-up factor).
     pub lr_init: f64,
+    /// Learning rate from `max_steps` on.
     pub lr_final: f64,
     /// Steps of warm-up; 0 disables it (the 3DGS default).
     pub delay_steps: u64,

@@ -36,8 +36,11 @@ const HALF: usize = WINDOW_SIZE / 2;
 /// Width, height and channel count of an interleaved image.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ImageShape {
+    /// Pixels per row.
     pub width: usize,
+    /// Number of rows.
     pub height: usize,
+    /// Values per pixel (3 for RGB).
     pub channels: usize,
 }
 

@@ -156,7 +156,7 @@ pub fn evaluate_bundle(
     for c in cameras {
         colour.push(render_colour(&bundle.scene, c, bundle.info.background)?);
         features.push(stylize::render_feature_view(bundle, c)?);
-        tally.tick("render");
+        tally.advance(1, "render");
     }
     let content = if settings.preserve_colour {
         let imgs: Vec<&RgbImage> = evenly_spaced(cameras.len(), COLOUR_VIEWS)
@@ -207,7 +207,7 @@ pub fn evaluate_bundle(
             content_sum +=
                 style::content_loss(f.last().expect("encoder depth >= 1"), colour_feat)? as f64;
             frames.push(img);
-            tally.tick("decode");
+            tally.advance(1, "decode");
         }
         let (short, long) = ranges(&frames, &views, &settings.warp, Some(encoder))?;
         let n = frames.len() as f64;
@@ -287,7 +287,7 @@ pub fn evaluate_frames(
         }
         frames.push(img);
         geometry.push(render_colour(scene.gaussians(), c, scene.background())?);
-        tally.tick("render");
+        tally.advance(1, "render");
     }
     let views = depth_views(cameras, &geometry);
     let encoder = match scene {

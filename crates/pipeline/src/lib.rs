@@ -94,12 +94,11 @@ pub mod stylize;
 pub mod weights;
 
 pub use error::{Error, Result};
-pub use train::event::{Event, Metric, Quiet, Sink, Stage};
+pub use train::event::{Event, Metric, Quiet, Sink, Stage, Tally};
 pub use train::RunOutcome;
 
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
-use std::time::Instant;
 
 /// How a caller follows and steers a stage: where its [`Event`]s go and what stops it.
 ///
@@ -141,50 +140,6 @@ impl Control<'_> {
         self.sink.emit(Event::Log {
             stage,
             message: message.into(),
-        });
-    }
-}
-
-/// The progress of a stage counted in units of work (views, frames): reported as
-/// [`Event::StageStarted`], one [`Event::Progress`] per unit and [`Event::StageFinished`].
-pub(crate) struct Tally<'a> {
-    stage: Stage,
-    sink: &'a dyn Sink,
-    done: u64,
-    start: Instant,
-}
-
-impl<'a> Tally<'a> {
-    pub(crate) fn start(stage: Stage, total: usize, sink: &'a dyn Sink) -> Self {
-        sink.emit(Event::StageStarted {
-            stage,
-            total: total as u64,
-            done: 0,
-        });
-        Tally {
-            stage,
-            sink,
-            done: 0,
-            start: Instant::now(),
-        }
-    }
-
-    /// One more unit done; `status` says which kind (may be empty).
-    pub(crate) fn tick(&mut self, status: &str) {
-        self.done += 1;
-        self.sink.emit(Event::Progress {
-            stage: self.stage,
-            done: self.done,
-            status: status.to_string(),
-        });
-    }
-
-    pub(crate) fn finish(self) {
-        self.sink.emit(Event::StageFinished {
-            stage: self.stage,
-            done: self.done,
-            seconds: self.start.elapsed().as_secs_f64(),
-            interrupted: false,
         });
     }
 }

@@ -507,7 +507,7 @@ pub fn render_views(
         let path = out_dir.join(format!("frame_{i:04}.png"));
         crate::image_io::write_png(&path, &img)?;
         written.push(path);
-        tally.tick("");
+        tally.advance(1, "");
     }
     tally.finish();
     Ok(written)

@@ -360,7 +360,7 @@ pub fn run(
     let mut views = Vec::with_capacity(cameras.len());
     for c in cameras {
         views.push(render_feature_view(bundle, c)?);
-        tally.tick("rasterize");
+        tally.advance(1, "rasterize");
     }
     let mut out = StylizeOutput::default();
     // The sheet's first column shows each row's style (white for the colour row, black for a
@@ -402,7 +402,7 @@ pub fn run(
             if settings.gif {
                 gif_frames.push(img);
             }
-            tally.tick("decode");
+            tally.advance(1, "decode");
         }
         if settings.gif {
             let p = settings.out_dir.join(format!("{}.gif", target.name));

@@ -48,7 +48,6 @@
 //! reproducible bit for bit.
 
 use std::path::Path;
-use std::time::Instant;
 
 use gaussian::camera_path::{interpolate_pair, look_at_point, mean_up, orbit_from};
 use gaussian::{Camera, FeatureGaussians};
@@ -64,7 +63,7 @@ use crate::bundle::SceneBundle;
 use crate::checkpoint::{Fnv1a, StateReader, StateWriter};
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 use crate::error::TrainError;
-use crate::event::{Event, Stage};
+use crate::event::{Quiet, Stage, Tally};
 use crate::geometry::View;
 use crate::loss::{photometric_loss_with_grad, psnr};
 use crate::model::{F_DC, F_REST, OPACITY, SCALING};
@@ -392,8 +391,8 @@ pub fn stylized_view(
 }
 
 /// The stylized views of `cameras` ([`stylized_view`]), `batch` at a time in parallel, each
-/// batch reported as [`Event::Progress`] of [`Stage::BakeTargets`] counting from `done`.
-/// Returns `Ok(None)` when the run's stop flag is raised (checked between batches).
+/// batch counted on `tally`. Returns `Ok(None)` when the run's stop flag is raised (checked
+/// between batches).
 pub fn render_targets(
     bundle: &SceneBundle,
     stats: &ChannelStats<f32>,
@@ -401,7 +400,7 @@ pub fn render_targets(
     composite: bool,
     batch: usize,
     run: &Run,
-    done: u64,
+    tally: &mut Tally,
 ) -> Result<Option<Vec<View>>, TrainError> {
     let mut views = Vec::with_capacity(cameras.len());
     for chunk in cameras.chunks(batch.max(1)) {
@@ -419,11 +418,7 @@ pub fn render_targets(
                 image,
             });
         }
-        run.sink.emit(Event::Progress {
-            stage: Stage::BakeTargets,
-            done: done + views.len() as u64,
-            status: String::new(),
-        });
+        tally.advance(chunk.len(), "");
     }
     Ok(Some(views))
 }
@@ -474,7 +469,7 @@ pub fn evaluate_baked(
         config.composite_background,
         config.render_batch,
         &Run::in_memory(),
-        0,
+        &mut Tally::start(Stage::BakeTargets, named.len(), &Quiet),
     )?
     .unwrap_or_default();
     mean_psnr(baked, baked.sh_degree, bundle.info.background, &views)
@@ -580,35 +575,17 @@ pub fn bake(
     let cameras = bake_cameras(&bundle.cameras(), config)?;
     let background = bundle.info.background;
 
-    let start = Instant::now();
-    let total = (cameras.train.len() + cameras.held_out.len()) as u64;
-    run.sink.emit(Event::StageStarted {
-        stage: Stage::BakeTargets,
-        total,
-        done: 0,
-    });
+    let total = cameras.train.len() + cameras.held_out.len();
+    let mut tally = Tally::start(Stage::BakeTargets, total, run.sink);
     let interrupted = || TrainError::Interrupted("rendering the stylized targets".into());
-    let render = |cams: &[NamedCamera], done: u64| {
+    let mut render = |cams: &[NamedCamera]| {
         let composite = config.composite_background;
-        render_targets(
-            bundle,
-            stats,
-            cams,
-            composite,
-            config.render_batch,
-            run,
-            done,
-        )
+        let batch = config.render_batch;
+        render_targets(bundle, stats, cams, composite, batch, run, &mut tally)
     };
-    let held_out = render(&cameras.held_out, 0)?.ok_or_else(interrupted)?;
-    let train = render(&cameras.train, held_out.len() as u64)?.ok_or_else(interrupted)?;
-    let target_seconds = start.elapsed().as_secs_f64();
-    run.sink.emit(Event::StageFinished {
-        stage: Stage::BakeTargets,
-        done: total,
-        seconds: target_seconds,
-        interrupted: false,
-    });
+    let held_out = render(&cameras.held_out)?.ok_or_else(interrupted)?;
+    let train = render(&cameras.train)?.ok_or_else(interrupted)?;
+    let target_seconds = tally.finish();
     if train.is_empty() {
         return Err(TrainError::Config("no training targets to bake".into()));
     }

@@ -11,6 +11,7 @@
 //! shown, so the results of a run are the same with any sink.
 
 use std::path::PathBuf;
+use std::time::Instant;
 
 /// A stage of the pipeline.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -140,6 +141,55 @@ pub trait Sink: Sync {
 impl<F: Fn(Event) + Sync> Sink for F {
     fn emit(&self, event: Event) {
         self(event)
+    }
+}
+
+/// The progress of a stage counted in units of work (views, frames) rather than iterations of a
+/// [driver](crate::driver)-run loop: [`Event::StageStarted`] when made,
+/// [`Event::Progress`] as units complete and [`Event::StageFinished`] at the end.
+pub struct Tally<'a> {
+    stage: Stage,
+    sink: &'a dyn Sink,
+    done: u64,
+    start: Instant,
+}
+
+impl<'a> Tally<'a> {
+    /// Starts `stage` with `total` units, reporting to `sink`.
+    pub fn start(stage: Stage, total: usize, sink: &'a dyn Sink) -> Self {
+        sink.emit(Event::StageStarted {
+            stage,
+            total: total as u64,
+            done: 0,
+        });
+        Tally {
+            stage,
+            sink,
+            done: 0,
+            start: Instant::now(),
+        }
+    }
+
+    /// `units` more are done; `status` says which kind (may be empty).
+    pub fn advance(&mut self, units: usize, status: &str) {
+        self.done += units as u64;
+        self.sink.emit(Event::Progress {
+            stage: self.stage,
+            done: self.done,
+            status: status.to_string(),
+        });
+    }
+
+    /// Ends the stage; returns its wall time in seconds.
+    pub fn finish(self) -> f64 {
+        let seconds = self.start.elapsed().as_secs_f64();
+        self.sink.emit(Event::StageFinished {
+            stage: self.stage,
+            done: self.done,
+            seconds,
+            interrupted: false,
+        });
+        seconds
     }
 }
 

@@ -9,7 +9,9 @@
 //! With `NETS_CONV_TABLE=1` it first prints a table of every shape and pass with both backends,
 //! timed alternately in the same process (best of `NETS_CONV_REPS`, default 3, runs each), and
 //! the ratio of the `gemm` time to the `matrixmultiply` time (`NETS_CONV_PASSES=fwd,dw` restricts
-//! it to some passes). Criterion then times
+//! it to some passes). With `NETS_CONV_TABLE=algorithms` it prints the same kind of table for the
+//! two 3x3 algorithms (`nets::conv::ConvAlgorithm`: direct implicit GEMM and Winograd F(4x4, 3x3)),
+//! forward and input gradient, with the default backend. Criterion then times
 //! `conv3x3_256/{fwd,dx,dw}_{in}_{out}/{gemm,mm}`, `conv_{in}_{out}` (the forward with the default
 //! backend) and `sgemm_{in}_{out}`.
 
@@ -23,6 +25,7 @@ use ndarray::{Array1, Array4};
 use nets::conv::{
     conv3x3_reflect, conv3x3_reflect_backward_input, conv3x3_reflect_backward_params,
 };
+use nets::conv::{with_algorithm, ConvAlgorithm};
 use nets::matmul::{with_backend, GemmBackend};
 use rayon::prelude::*;
 
@@ -134,6 +137,42 @@ fn seconds<F: FnOnce()>(f: F) -> f64 {
     t.elapsed().as_secs_f64()
 }
 
+/// The table of both 3x3 algorithms (default backend) for the forward pass and the input
+/// gradient, alternating runs of the two.
+fn algorithm_table(rng: &mut Lcg) {
+    let reps: usize = std::env::var("NETS_CONV_REPS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(3);
+    println!(
+        "shape     pass  direct s  GFLOP/s  winograd s  GFLOP/s  winograd/direct time  (best of {reps}, alternating)"
+    );
+    for (ci, co) in shapes() {
+        let case = Case::new(rng, ci, co);
+        let flop = 2.0 * (co * ci * 9 * SIZE * SIZE) as f64 / 1e9;
+        for pass in ["fwd", "dx"] {
+            let mut best = [f64::INFINITY; 2];
+            for _ in 0..reps {
+                for (i, algorithm) in [ConvAlgorithm::Direct, ConvAlgorithm::Winograd]
+                    .into_iter()
+                    .enumerate()
+                {
+                    let t = seconds(|| with_algorithm(algorithm, || case.run(pass)));
+                    best[i] = best[i].min(t);
+                }
+            }
+            println!(
+                "{ci:>3}->{co:<3}  {pass:<4}  {:8.4}  {:7.1}  {:10.4}  {:7.1}  {:20.3}",
+                best[0],
+                flop / best[0],
+                best[1],
+                flop / best[1],
+                best[1] / best[0]
+            );
+        }
+    }
+}
+
 /// The table of both backends, alternating runs of the two.
 fn table(rng: &mut Lcg) {
     let reps: usize = std::env::var("NETS_CONV_REPS")
@@ -169,8 +208,10 @@ fn table(rng: &mut Lcg) {
 
 fn conv(c: &mut Criterion) {
     let mut rng = Lcg::new(2);
-    if std::env::var("NETS_CONV_TABLE").is_ok_and(|v| v == "1") {
-        table(&mut rng);
+    match std::env::var("NETS_CONV_TABLE").as_deref() {
+        Ok("1") => table(&mut rng),
+        Ok("algorithms") => algorithm_table(&mut rng),
+        _ => {}
     }
     let mut group = c.benchmark_group("conv3x3_256");
     group.sample_size(10);

@@ -27,6 +27,18 @@
 //! the padded width by zero columns, `dW[:, :, i, j] += dY_tile (O x tile) * shifted input^T
 //! (tile x C)` for each tap, tile by tile.
 //!
+//! For `f32` layers with at least [`WINOGRAD_MIN_CHANNELS`] channels on both sides, the valid 3x3
+//! correlation of the forward pass and of the input gradient runs as Winograd F(4x4, 3x3) instead
+//! ([`crate::winograd`]: a quarter of the multiply-adds, bounded extra rounding); `f64`, the
+//! precision of the oracle and gradient tests, always runs the implicit GEMM above, the reference.
+//! A forward pass that records a tape for a backward pass runs the reference too: its ReLU
+//! decisions become the masks of the gradient, which is discontinuous where they change, and the
+//! direct sum's smaller rounding flips fewer of the decisions that sit within rounding of zero
+//! (measured: one Winograd forward of the fullres relu4_1 encoder on the oracle fixture flipped
+//! one of 65,536 relu4_1 decisions, an element 1e-5 from zero, and moved a gradient by 1e-4 of
+//! its largest element). [`with_algorithm`] forces either for the convolutions started on the
+//! calling thread, taped or not.
+//!
 //! # Memory bound
 //! Forward (and input-gradient) tiles are whole output rows of one image, with an accumulator of
 //! at most [`ACC_BUDGET_BYTES`] (256 KiB) unless one padded row alone is larger
@@ -67,16 +79,80 @@ pub const ACC_BUDGET_BYTES: usize = 256 << 10;
 /// `[K*K, O, C]` accumulator (see `weight_grad_implicit`).
 const DW_GROUPS: usize = 4;
 
+/// How a 3x3 convolution (forward or input gradient) is computed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ConvAlgorithm {
+    /// The implicit GEMM of nine taps described above: the reference, in any precision.
+    Direct,
+    /// Winograd F(4x4, 3x3) ([`crate::winograd`]): a quarter of the multiply-adds, a slightly
+    /// larger rounding error.
+    Winograd,
+}
+
+/// Smallest input and output channel count for which [`ConvAlgorithm::Winograd`] is the default:
+/// below it the transforms cost more than the products they save (the first and last layers of
+/// the networks, with 3 channels on one side, measured in `docs/performance.md`).
+pub const WINOGRAD_MIN_CHANNELS: usize = 16;
+
+thread_local! {
+    static ALGORITHM: std::cell::Cell<Option<ConvAlgorithm>> = const { std::cell::Cell::new(None) };
+}
+
+impl ConvAlgorithm {
+    /// The default for a 3x3 convolution of `c` input and `o` output channels in precision `T`:
+    /// Winograd for `f32` when both counts reach [`WINOGRAD_MIN_CHANNELS`], direct otherwise.
+    /// `f64`, the reference precision of the oracle and gradient tests, always runs direct.
+    pub fn default_for<T: Real>(c: usize, o: usize) -> ConvAlgorithm {
+        let is_f32 = T::as_f32_slice(&[]).is_some();
+        if is_f32 && c.min(o) >= WINOGRAD_MIN_CHANNELS {
+            ConvAlgorithm::Winograd
+        } else {
+            ConvAlgorithm::Direct
+        }
+    }
+}
+
+/// Runs `f` with every 3x3 convolution it starts on this thread (forward and input gradient)
+/// computed by `algorithm`, whatever the precision and channel counts (restoring the previous
+/// choice afterwards, also on panic). Convolutions started on other threads keep their own.
+pub fn with_algorithm<R>(algorithm: ConvAlgorithm, f: impl FnOnce() -> R) -> R {
+    struct Restore(Option<ConvAlgorithm>);
+    impl Drop for Restore {
+        fn drop(&mut self) {
+            ALGORITHM.with(|a| a.set(self.0));
+        }
+    }
+    let _restore = Restore(ALGORITHM.with(|a| a.replace(Some(algorithm))));
+    f()
+}
+
+/// Runs `f` like [`with_algorithm`] unless a choice is already in force on this thread, which
+/// then stays.
+pub(crate) fn with_default_algorithm<R>(algorithm: ConvAlgorithm, f: impl FnOnce() -> R) -> R {
+    if ALGORITHM.with(|a| a.get()).is_some() {
+        f()
+    } else {
+        with_algorithm(algorithm, f)
+    }
+}
+
+/// The algorithm a 3x3 convolution of `c` to `o` channels started on this thread uses.
+pub fn algorithm_for<T: Real>(c: usize, o: usize) -> ConvAlgorithm {
+    ALGORITHM
+        .with(|a| a.get())
+        .unwrap_or_else(|| ConvAlgorithm::default_for::<T>(c, o))
+}
+
 /// A raw pointer that may be sent to other threads; users guarantee disjoint writes.
 #[derive(Clone, Copy)]
-struct SyncPtr<T>(*mut T);
+pub(crate) struct SyncPtr<T>(pub(crate) *mut T);
 // SAFETY: only used to write disjoint regions from parallel tasks (see each use).
 unsafe impl<T> Send for SyncPtr<T> {}
 // SAFETY: as above.
 unsafe impl<T> Sync for SyncPtr<T> {}
 
 impl<T> SyncPtr<T> {
-    fn get(self) -> *mut T {
+    pub(crate) fn get(self) -> *mut T {
         self.0
     }
 }
@@ -139,6 +215,17 @@ pub(crate) fn conv_valid<T: Real>(
             o,
             "conv: bias has {} entries for {o} outputs",
             b.len()
+        );
+    }
+    if k == 3 && algorithm_for::<T>(c, o) == ConvAlgorithm::Winograd {
+        return crate::winograd::conv3x3_valid(
+            xs,
+            [n, c, hp, wp],
+            ws,
+            o,
+            bias.as_deref(),
+            relu,
+            backend,
         );
     }
     let ckk = c * k * k;
@@ -225,7 +312,7 @@ pub(crate) fn conv_valid<T: Real>(
 
 /// `v + b`, through a ReLU when `relu`.
 #[inline]
-fn bias_relu<T: Real>(v: T, b: T, relu: bool) -> T {
+pub(crate) fn bias_relu<T: Real>(v: T, b: T, relu: bool) -> T {
     let t = v + b;
     if !relu || t > T::zero() {
         t

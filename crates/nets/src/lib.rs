@@ -112,6 +112,7 @@ mod sequential;
 pub mod state_dict;
 pub mod upsample;
 pub mod weights_file;
+pub mod winograd;
 
 pub use decoder::{Decoder, DecoderGrads, DecoderTape};
 pub use encoder::{Encoder, EncoderTape};

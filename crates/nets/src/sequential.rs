@@ -5,6 +5,7 @@
 use base::Real;
 use ndarray::{Array4, ArrayView4};
 
+use crate::conv;
 use crate::error::NetError;
 use crate::layer::{ConvGrad, ConvLayer};
 use crate::mask::ReluMask;
@@ -109,7 +110,15 @@ pub(crate) fn forward<T: Real>(
         let view = cur.as_ref().map_or(x.view(), |a| a.view());
         match step {
             Step::Conv { layer, relu } => {
-                let y = layer.forward(view, *relu);
+                // A taped forward runs the reference algorithm (see `crate::conv`): its ReLU
+                // decisions are the masks of the backward pass.
+                let y = if tape {
+                    conv::with_default_algorithm(conv::ConvAlgorithm::Direct, || {
+                        layer.forward(view, *relu)
+                    })
+                } else {
+                    layer.forward(view, *relu)
+                };
                 if tape {
                     let input = keep_conv_inputs.then(|| view.to_owned());
                     let mask = relu.then(|| ReluMask::of_output(y.as_slice().expect("fresh")));

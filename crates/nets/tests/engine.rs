@@ -1,6 +1,6 @@
 //! The convolution engine on shapes that span several tiles and images: against a direct
 //! (quadruple-loop) convolution in `f64`, and bitwise identical for any number of threads, with
-//! each GEMM backend.
+//! each GEMM backend and each 3x3 algorithm.
 
 mod common;
 
@@ -73,6 +73,41 @@ fn check_multi_tile_convolution() {
     assert!(dsgs_testkit::max_rel_err(&db.to_vec(), &db_want) <= 1e-13);
 }
 
+/// Winograd F(2x2, 3x3), forced in `f64`, on odd sizes (partial edge tiles) and enough channels
+/// that an image splits into several jobs, one of them starting inside a tile row: the forward
+/// pass (with bias and ReLU) equals the direct convolution, and the input gradient is its adjoint.
+/// The transforms only add up to four terms per axis and the kernel transform is rounded once,
+/// so in `f64` an output carries a few more roundings of its partial sums than the direct
+/// sum's; 1e-13 of the largest output bounds that with a margin of about 70 at these sizes
+/// (measured 1.4e-15).
+#[test]
+fn winograd_matches_the_direct_convolution() {
+    let mut rng = TestRng::new(5);
+    let x = rng.array4((2, 48, 69, 39));
+    let w = rng.array4((64, 48, 3, 3));
+    let b = rng.array1(64);
+    assert!(nets::winograd::tiles_per_job::<f64>(48, 64) < 35 * 20);
+    let want = direct_conv3x3(&x, &w, &b);
+    for backend in BACKENDS {
+        with_backend(backend, || {
+            with_algorithm(ConvAlgorithm::Winograd, || {
+                let y = conv3x3_reflect(x.view(), w.view(), b.view(), true);
+                let relu = want.mapv(|v| v.max(0.0));
+                let err = dsgs_testkit::max_rel_err(&to_f64(&y), &to_f64(&relu));
+                assert!(err <= 1e-13, "{backend:?}: winograd conv error {err:.2e}");
+                let y = conv3x3_reflect(x.view(), w.view(), b.view(), false);
+                let dy = rng.array4(y.dim());
+                let dx = conv3x3_reflect_backward_input(dy.view(), w.view());
+                let lin = dot(
+                    &(&y - &b.view().into_shape_with_order((1, 64, 1, 1)).unwrap()),
+                    &dy,
+                );
+                assert!((lin - dot(&dx, &x)).abs() <= 1e-11 * lin.abs().max(1.0));
+            })
+        });
+    }
+}
+
 fn run_all(x: &Array4<f32>, w: &Array4<f32>, b: &Array1<f32>, dy: &Array4<f32>) -> Vec<Vec<f32>> {
     let y = conv3x3_reflect(x.view(), w.view(), b.view(), true);
     let dx = conv3x3_reflect_backward_input(dy.view(), w.view());
@@ -101,14 +136,22 @@ fn results_are_bitwise_identical_for_any_thread_count() {
             .build()
             .unwrap()
     };
-    for backend in BACKENDS {
-        let run = |n| pool(n).install(|| with_backend(backend, || run_all(&x, &w, &b, &dy)));
-        let (one, three) = (run(1), run(3));
-        for (i, (a, c)) in one.iter().zip(&three).enumerate() {
-            assert!(
-                a.iter().zip(c).all(|(p, q)| p.to_bits() == q.to_bits()),
-                "{backend:?}: output {i} differs between 1 and 3 threads"
-            );
+    for algorithm in [ConvAlgorithm::Direct, ConvAlgorithm::Winograd] {
+        for backend in BACKENDS {
+            let run = |n| {
+                pool(n).install(|| {
+                    with_algorithm(algorithm, || {
+                        with_backend(backend, || run_all(&x, &w, &b, &dy))
+                    })
+                })
+            };
+            let (one, three) = (run(1), run(3));
+            for (i, (a, c)) in one.iter().zip(&three).enumerate() {
+                assert!(
+                    a.iter().zip(c).all(|(p, q)| p.to_bits() == q.to_bits()),
+                    "{algorithm:?}, {backend:?}: output {i} differs between 1 and 3 threads"
+                );
+            }
         }
     }
 }

@@ -27,7 +27,7 @@
 //! the padded width by zero columns, `dW[:, :, i, j] += dY_tile (O x tile) * shifted input^T
 //! (tile x C)` for each tap, tile by tile.
 //!
-//! For `f32` layers with at least [`WINOGRAD_MIN_CHANNELS`] channels on both sides, the valid 3x3
+//! For `f32` layers wide enough ([`ConvAlgorithm::default_for`]), the valid 3x3
 //! correlation of the forward pass and of the input gradient runs as Winograd F(4x4, 3x3) instead
 //! ([`crate::winograd`]: a quarter of the multiply-adds, bounded extra rounding); `f64`, the
 //! precision of the oracle and gradient tests, always runs the implicit GEMM above, the reference.
@@ -91,8 +91,15 @@ pub enum ConvAlgorithm {
 
 /// Smallest input and output channel count for which [`ConvAlgorithm::Winograd`] is the default:
 /// below it the transforms cost more than the products they save (the first and last layers of
-/// the networks, with 3 channels on one side, measured in `docs/performance.md`).
+/// the networks, with 3 channels on one side).
 pub const WINOGRAD_MIN_CHANNELS: usize = 16;
+
+/// Smallest sum of the input and output channel counts for which [`ConvAlgorithm::Winograd`] is
+/// the default. Measured at 256x256 on the development machine (`NETS_CONV_TABLE=algorithms
+/// cargo bench -p dsgs-nets --bench conv`, see `docs/performance.md`): Winograd took 0.79 to 0.90
+/// of the direct time from 64->128 and 128->64 upwards, and down to 0.57 on the widest layers,
+/// but 1.03 to 1.19 at 64->64.
+pub const WINOGRAD_MIN_CHANNEL_SUM: usize = 192;
 
 thread_local! {
     static ALGORITHM: std::cell::Cell<Option<ConvAlgorithm>> = const { std::cell::Cell::new(None) };
@@ -100,11 +107,12 @@ thread_local! {
 
 impl ConvAlgorithm {
     /// The default for a 3x3 convolution of `c` input and `o` output channels in precision `T`:
-    /// Winograd for `f32` when both counts reach [`WINOGRAD_MIN_CHANNELS`], direct otherwise.
+    /// Winograd for `f32` when both counts reach [`WINOGRAD_MIN_CHANNELS`] and their sum reaches
+    /// [`WINOGRAD_MIN_CHANNEL_SUM`], direct otherwise.
     /// `f64`, the reference precision of the oracle and gradient tests, always runs direct.
     pub fn default_for<T: Real>(c: usize, o: usize) -> ConvAlgorithm {
         let is_f32 = T::as_f32_slice(&[]).is_some();
-        if is_f32 && c.min(o) >= WINOGRAD_MIN_CHANNELS {
+        if is_f32 && c.min(o) >= WINOGRAD_MIN_CHANNELS && c + o >= WINOGRAD_MIN_CHANNEL_SUM {
             ConvAlgorithm::Winograd
         } else {
             ConvAlgorithm::Direct

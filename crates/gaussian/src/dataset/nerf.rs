@@ -8,8 +8,26 @@
 //! `camera_angle_y` when present); the principal point is the image centre. The optional
 //! instant-ngp keys `fl_x`, `fl_y`, `cx`, `cy` (with `w`, `h`) override these. Images are RGBA
 //! and are composited onto [`LoadOptions::background`](super::LoadOptions::background).
+//!
+//! # Validation
+//! [`parse_transforms`] and the loader refuse, with a [`DatasetError::Malformed`] naming the
+//! JSON file (and the frame or key at fault), a file that:
+//! - is not valid JSON of this shape, or has no frames;
+//! - gives neither `camera_angle_x` nor `fl_x`, or an angle outside `(0, pi)`;
+//! - has an `fl_x`, `fl_y`, `w` or `h` that is not finite and positive, or a `cx`, `cy` that
+//!   is not finite;
+//! - has a `w` or `h` that does not round to a whole number of pixels from 1 to `u32::MAX`
+//!   (e.g. `w: 0.3`, which would otherwise divide by a zero width);
+//! - has a frame whose `transform_matrix` is not a finite rigid 4x4 (or 3x4) matrix;
+//! - has a frame whose `file_path` is empty, absolute (a root or, on Windows, a drive or UNC
+//!   prefix) or leaves the scene folder through `..` (judged on the path's components:
+//!   `./train/../train/r_0` stays inside, `./train/../../r_0` does not; symbolic links are
+//!   not followed for this check);
+//! - has a frame whose image file is missing, or whose intrinsics at the image file's size
+//!   (focal lengths, principal point) are not finite with positive focal lengths, e.g. an
+//!   angle so small that the focal length overflows.
 
-use std::path::{Path, PathBuf};
+use std::path::{Component, Path, PathBuf};
 
 use glam::DMat4;
 use serde::Deserialize;
@@ -89,11 +107,102 @@ pub fn parse_transforms(text: &str, path: &Path) -> Result<Transforms, DatasetEr
             }
         }
     }
+    let size = |key, v: Option<f64>| {
+        v.map(|x| pixel_count(key, x))
+            .transpose()
+            .map_err(|p| malformed(path, p))
+    };
+    let (w, h) = (size("w", t.w)?, size("h", t.h)?);
+    for (key, v) in [("cx", t.cx), ("cy", t.cy)] {
+        if let Some(x) = v {
+            if !x.is_finite() {
+                return Err(malformed(path, format!("`{key}` = {x} is not finite")));
+            }
+        }
+    }
+    if let (Some(w), Some(h)) = (w, h) {
+        // The intrinsics at the size the JSON states; the loader checks them again at each
+        // image file's size.
+        t.checked_intrinsics(w, h)
+            .map_err(|p| malformed(path, format!("at the size `w` x `h`: {p}")))?;
+    }
     for (i, f) in t.frames.iter().enumerate() {
+        relative_image_path(&f.file_path)
+            .map_err(|p| malformed(path, format!("frame {i}: {p}")))?;
         frame_matrix(f)
             .map_err(|p| malformed(path, format!("frame {i} (`{}`): {p}", f.file_path)))?;
     }
     Ok(t)
+}
+
+/// The whole number of pixels a `w` or `h` value of the JSON stands for: the value rounded,
+/// which must be at least 1 and fit the `u32` of [`Intrinsics`].
+fn pixel_count(key: &str, x: f64) -> Result<u32, String> {
+    let n = x.round();
+    if n < 1.0 {
+        return Err(format!(
+            "`{key}` = {x} rounds to {n} pixels; the image size must be at least 1 pixel"
+        ));
+    }
+    if n > u32::MAX as f64 {
+        return Err(format!("`{key}` = {x} is more than {} pixels", u32::MAX));
+    }
+    Ok(n as u32)
+}
+
+/// A frame's `file_path` as a path relative to the scene folder, with `.` components dropped
+/// and `..` components applied, or why it is refused: it is empty, absolute (a root, or on
+/// Windows a drive or UNC prefix) or leaves the scene folder.
+fn relative_image_path(file_path: &str) -> Result<PathBuf, String> {
+    let p = Path::new(file_path);
+    let mut rel = PathBuf::new();
+    let mut depth = 0usize;
+    for c in p.components() {
+        match c {
+            Component::Prefix(_) | Component::RootDir => {
+                return Err(format!(
+                    "file_path {file_path:?} is absolute; it must be relative to the scene folder"
+                ))
+            }
+            Component::CurDir => {}
+            Component::ParentDir => {
+                if depth == 0 {
+                    return Err(format!("file_path {file_path:?} leaves the scene folder"));
+                }
+                depth -= 1;
+                rel.pop();
+            }
+            Component::Normal(name) => {
+                depth += 1;
+                rel.push(name);
+            }
+        }
+    }
+    if depth == 0 {
+        return Err(format!("file_path {file_path:?} names no file"));
+    }
+    Ok(rel)
+}
+
+/// Checks that intrinsics have finite, positive focal lengths, a finite principal point and a
+/// non-zero size.
+fn check_intrinsics(k: &Intrinsics) -> Result<(), String> {
+    let Intrinsics {
+        fx,
+        fy,
+        cx,
+        cy,
+        width,
+        height,
+    } = *k;
+    let focal_ok = fx > 0.0 && fx.is_finite() && fy > 0.0 && fy.is_finite();
+    if !(focal_ok && cx.is_finite() && cy.is_finite()) || width == 0 || height == 0 {
+        return Err(format!(
+            "intrinsics fx = {fx}, fy = {fy}, cx = {cx}, cy = {cy} at {width}x{height} pixels \
+             are not finite with positive focal lengths"
+        ));
+    }
+    Ok(())
 }
 
 /// The frame's camera-to-world matrix (3x4 or 4x4 rows), checked to be rigid.
@@ -113,20 +222,24 @@ pub fn frame_matrix(frame: &Frame) -> Result<DMat4, String> {
     Ok(m)
 }
 
-/// The image file of a frame: `dir/file_path` if it names a file with an extension, else
-/// `dir/file_path.png`.
-fn frame_image(dir: &Path, frame: &Frame) -> Option<PathBuf> {
-    let rel = frame.file_path.trim_start_matches("./");
+/// The image file of a frame whose `file_path` is `rel` (see [`relative_image_path`]):
+/// `dir/rel` if it names a file with an extension, else `dir/rel.png`.
+fn frame_image(dir: &Path, rel: &Path) -> Option<PathBuf> {
     let p = dir.join(rel);
     if p.extension().is_some() && p.is_file() {
         return Some(p);
     }
-    let png = dir.join(format!("{rel}.png"));
+    let mut png = p.into_os_string();
+    png.push(".png");
+    let png = PathBuf::from(png);
     png.is_file().then_some(png)
 }
 
 impl Transforms {
-    /// The intrinsics for an image file of `width x height` pixels.
+    /// The intrinsics for an image file of `width x height` pixels, unchecked: for transforms
+    /// accepted by [`parse_transforms`] and a non-empty image they are finite except in
+    /// extreme cases (e.g. an angle so small that the focal length overflows), which
+    /// [`Transforms::checked_intrinsics`] reports.
     pub fn intrinsics(&self, width: u32, height: u32) -> Intrinsics {
         // Sizes the JSON's own intrinsics refer to (the image size unless `w`, `h` are given).
         let (w, h) = match (self.w, self.h) {
@@ -156,6 +269,22 @@ impl Transforms {
         } else {
             at_json_size.resized(width, height)
         }
+    }
+
+    /// [`Transforms::intrinsics`], or why they are unusable: the image is empty, `w` or `h`
+    /// does not round to a positive `u32` pixel count, or the focal lengths are not finite and
+    /// positive or the principal point is not finite.
+    pub fn checked_intrinsics(&self, width: u32, height: u32) -> Result<Intrinsics, String> {
+        if width == 0 || height == 0 {
+            return Err(format!("the image is {width}x{height} pixels"));
+        }
+        if let (Some(w), Some(h)) = (self.w, self.h) {
+            pixel_count("w", w)?;
+            pixel_count("h", h)?;
+        }
+        let k = self.intrinsics(width, height);
+        check_intrinsics(&k)?;
+        Ok(k)
     }
 }
 
@@ -191,7 +320,9 @@ pub(super) fn load(
     let mut paths = Vec::with_capacity(t.frames.len());
     let mut names = Vec::with_capacity(t.frames.len());
     for (i, frame) in t.frames.iter().enumerate() {
-        let path = frame_image(dir, frame).ok_or_else(|| {
+        let rel = relative_image_path(&frame.file_path)
+            .map_err(|p| malformed(&json, format!("frame {i}: {p}")))?;
+        let path = frame_image(dir, &rel).ok_or_else(|| {
             malformed(
                 &json,
                 format!(
@@ -203,7 +334,10 @@ pub(super) fn load(
         let (w, h) = images::image_size(&path)?;
         let world_from_gl_camera =
             frame_matrix(frame).map_err(|p| malformed(&json, format!("frame {i}: {p}")))?;
-        let cam = Camera::from_opengl_world_from_camera(t.intrinsics(w, h), world_from_gl_camera);
+        let k = t
+            .checked_intrinsics(w, h)
+            .map_err(|p| malformed(&json, format!("frame {i} (`{}`): {p}", frame.file_path)))?;
+        let cam = Camera::from_opengl_world_from_camera(k, world_from_gl_camera);
         cameras.push(if factor == 1.0 {
             cam
         } else {

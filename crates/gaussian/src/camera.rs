@@ -6,6 +6,15 @@
 
 use glam::{DMat3, DMat4, DVec3};
 
+/// The largest image width or height, in pixels, that the project accepts for a camera read
+/// from a file.
+///
+/// Every render from a camera allocates `width * height` pixels of colour or of feature
+/// channels, so an unchecked size such as `u32::MAX` would abort on allocation; 16384 pixels per
+/// side is far above the resolutions a scene is trained at on a CPU (a single 16384 x 16384 RGB
+/// `f32` image already takes 3 GiB) while leaving every real camera through.
+pub const MAX_IMAGE_SIDE: u32 = 16_384;
+
 /// Pinhole intrinsics in pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Intrinsics {

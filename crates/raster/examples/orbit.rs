@@ -16,6 +16,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
+use gaussian::camera::MAX_IMAGE_SIDE;
 use gaussian::camera_path::{look_at, orbit, orbit_from};
 use gaussian::{load_ply, Camera, FeatureGaussians, Intrinsics};
 use glam::DVec3;
@@ -106,9 +107,10 @@ fn parse_args(raw: &[String]) -> Result<Args, String> {
                 let (w, h) = value.split_once(['x', 'X']).ok_or_else(bad)?;
                 args.width = w.parse().map_err(|_| bad())?;
                 args.height = h.parse().map_err(|_| bad())?;
-                if !(1..=16_384).contains(&args.width) || !(1..=16_384).contains(&args.height) {
+                let side = 1..=MAX_IMAGE_SIDE;
+                if !side.contains(&args.width) || !side.contains(&args.height) {
                     return Err(format!(
-                        "--size must lie within 1x1 ..= 16384x16384, got {value}"
+                        "--size must lie within 1x1 ..= {MAX_IMAGE_SIDE}x{MAX_IMAGE_SIDE}, got {value}"
                     ));
                 }
             }

@@ -10,6 +10,14 @@
 //! bundle.json        BundleInfo: variant, widths, background, scene statistics, cameras
 //! ```
 //!
+//! [`BundleInfo::load`] checks every camera of `bundle.json` ([`CameraRecord::check`]) before
+//! anything is allocated or rendered from it: width and height between 1 and
+//! [`MAX_IMAGE_SIDE`], focal lengths finite and positive, principal point finite, every entry of
+//! `camera_from_world` finite, its last row `0 0 0 1` and its rotation part orthonormal with
+//! determinant +1 (a rigid transform, as the dataset loaders of `gaussian::dataset` require).
+//! A bad camera is reported as a [`TrainError::Checkpoint`] naming `bundle.json`, the camera's
+//! index and name, and the problem.
+//!
 //! Rendering a stylized view (the module's convention, shared by training and stylization):
 //!
 //! 1. Rasterize the features at the *feature resolution*: the image size reduced by the
@@ -28,7 +36,7 @@ use std::time::Instant;
 
 use gaussian::ply::{load_ply, save_ply};
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
-use glam::DMat4;
+use glam::{DMat3, DMat4};
 use ndarray::{s, Array2, Array4};
 use nets::{Decoder, Encoder, Lifter, NetWeights, Resolution};
 use raster::{render, Channels, RenderOptions};
@@ -48,6 +56,25 @@ pub const INFO_FILE: &str = "bundle.json";
 
 /// The value of [`BundleInfo::format`].
 pub const BUNDLE_FORMAT: &str = "dsgs-bundle-1";
+
+/// The largest image width or height a bundle camera may have (the project's one image-size
+/// limit, defined with the cameras).
+pub use gaussian::camera::MAX_IMAGE_SIDE;
+
+/// How far the rotation part `R` of a bundle camera's `camera_from_world` may be from
+/// orthonormal: the largest entry of `|R^T R - I|`.
+///
+/// The dataset loaders of `gaussian::dataset` accept rotations within `1e-3` of orthonormal and
+/// training records their cameras unchanged (`f64` matrices, written to JSON in full and read
+/// back to within an ulp), so the bundle check uses the same `1e-3`: anything stricter could
+/// refuse a bundle trained from a dataset the project loads. Rounding errors stay far below it
+/// (about `1e-16` in `f64`, `1e-7` had the matrices passed through `f32`), while a scale of 1%
+/// (`|R^T R - I| ~ 2e-2`) or any reflection is caught.
+const ROTATION_TOLERANCE: f64 = 1e-3;
+
+/// How far the last row of a bundle camera's `camera_from_world` may be from `0 0 0 1` (the
+/// dataset loaders' tolerance; the row is exact for every camera they make).
+const LAST_ROW_TOLERANCE: f64 = 1e-6;
 
 /// Which network variant the features were trained for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -94,6 +121,10 @@ impl std::str::FromStr for Variant {
 
 /// A camera as stored in `bundle.json`: pinhole intrinsics and the row-major 4x4
 /// `camera_from_world` (OpenCV axes, see `gaussian::camera`).
+///
+/// JSON has no NaN or infinity (`serde_json` writes them as `null`); a `null` focal length,
+/// principal point or matrix entry is read back as NaN, so that [`CameraRecord::check`] names
+/// the field instead of the load failing on a bare type error.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CameraRecord {
     /// The view's name (the dataset image name).
@@ -103,15 +134,20 @@ pub struct CameraRecord {
     /// Image height in pixels.
     pub height: u32,
     /// Focal length along x, in pixels.
+    #[serde(deserialize_with = "null_as_nan::number")]
     pub fx: f64,
     /// Focal length along y, in pixels.
+    #[serde(deserialize_with = "null_as_nan::number")]
     pub fy: f64,
     /// Principal point x, in pixels from the left image edge.
+    #[serde(deserialize_with = "null_as_nan::number")]
     pub cx: f64,
     /// Principal point y, in pixels from the top image edge.
+    #[serde(deserialize_with = "null_as_nan::number")]
     pub cy: f64,
     /// The world-to-camera rigid transform, row-major (`camera_from_world[row][col]`), to
     /// OpenCV camera axes (x right, y down, z forward).
+    #[serde(deserialize_with = "null_as_nan::matrix")]
     pub camera_from_world: [[f64; 4]; 4],
     /// Whether the view was held out of training.
     pub held_out: bool,
@@ -135,7 +171,79 @@ impl CameraRecord {
         }
     }
 
-    /// The camera.
+    /// Checks that the record describes a camera that can be rendered from: width and height
+    /// between 1 and [`MAX_IMAGE_SIDE`], `fx` and `fy` finite and positive, `cx` and `cy`
+    /// finite, every entry of `camera_from_world` finite, its last row `0 0 0 1` (within
+    /// `1e-6`) and its rotation part orthonormal (`|R^T R - I| <= 1e-3` entrywise, the dataset
+    /// loaders' tolerance) with determinant +1. The error says which field is wrong and why.
+    pub fn check(&self) -> Result<(), String> {
+        for (field, v) in [("width", self.width), ("height", self.height)] {
+            if !(1..=MAX_IMAGE_SIDE).contains(&v) {
+                return Err(format!(
+                    "{field} is {v}; the image size must be 1 to {MAX_IMAGE_SIDE} pixels per side"
+                ));
+            }
+        }
+        for (field, v) in [("fx", self.fx), ("fy", self.fy)] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!(
+                    "{field} is {}; the focal length must be finite and positive",
+                    number(v)
+                ));
+            }
+        }
+        for (field, v) in [("cx", self.cx), ("cy", self.cy)] {
+            if !v.is_finite() {
+                return Err(format!(
+                    "{field} is {}; the principal point must be finite",
+                    number(v)
+                ));
+            }
+        }
+        let rows = &self.camera_from_world;
+        for (r, row) in rows.iter().enumerate() {
+            for (c, &v) in row.iter().enumerate() {
+                if !v.is_finite() {
+                    return Err(format!(
+                        "camera_from_world[{r}][{c}] is {}; every matrix entry must be finite",
+                        number(v)
+                    ));
+                }
+            }
+        }
+        let last = rows[3];
+        if last
+            .iter()
+            .zip([0.0, 0.0, 0.0, 1.0])
+            .any(|(v, want)| (v - want).abs() > LAST_ROW_TOLERANCE)
+        {
+            return Err(format!(
+                "the last row of camera_from_world is {last:?}; it must be [0, 0, 0, 1]"
+            ));
+        }
+        let rot = DMat3::from_mat4(DMat4::from_cols_array_2d(rows).transpose());
+        let err = (rot.transpose() * rot - DMat3::IDENTITY)
+            .to_cols_array()
+            .iter()
+            .fold(0.0f64, |acc, v| acc.max(v.abs()));
+        if err > ROTATION_TOLERANCE {
+            return Err(format!(
+                "the rotation part of camera_from_world is not orthonormal \
+                 (max |R^T R - I| = {err:.3e}, tolerance {ROTATION_TOLERANCE:e}); \
+                 camera_from_world must be a rigid transform"
+            ));
+        }
+        let det = rot.determinant();
+        if det <= 0.0 {
+            return Err(format!(
+                "the rotation part of camera_from_world has determinant {det:.4} (a reflection); \
+                 camera_from_world must be a rigid transform with determinant +1"
+            ));
+        }
+        Ok(())
+    }
+
+    /// The camera (not checked: see [`CameraRecord::check`], which [`BundleInfo::load`] runs).
     pub fn camera(&self) -> Camera {
         let m = DMat4::from_cols_array_2d(&self.camera_from_world).transpose();
         Camera::new(
@@ -210,6 +318,11 @@ impl BundleInfo {
 
     /// Reads and checks the description (`bundle.json`) of the bundle directory `dir`, without
     /// its scene or networks (enough for its cameras).
+    ///
+    /// Checked: the JSON, the format tag, and every camera ([`CameraRecord::check`]). A bad
+    /// camera gives a [`TrainError::Checkpoint`] on `bundle.json` whose message names the
+    /// camera by index and name and says what is wrong, e.g. `camera 3 (r_12): fx is 0; the
+    /// focal length must be finite and positive`.
     pub fn load(dir: &Path) -> Result<BundleInfo, TrainError> {
         let info_path = dir.join(INFO_FILE);
         let bytes = std::fs::read(&info_path).map_err(|source| TrainError::Io {
@@ -224,10 +337,19 @@ impl BundleInfo {
                 format!("format `{}`, expected `{BUNDLE_FORMAT}`", info.format),
             ));
         }
+        for (i, camera) in info.cameras.iter().enumerate() {
+            camera.check().map_err(|problem| {
+                bundle_err(
+                    &info_path,
+                    format!("camera {i} ({}): {problem}", camera.name),
+                )
+            })?;
+        }
         Ok(info)
     }
 
-    /// The cameras recorded in the description.
+    /// The cameras recorded in the description (checked by [`BundleInfo::load`] when read from
+    /// disk).
     pub fn cameras(&self) -> Vec<Camera> {
         self.cameras.iter().map(CameraRecord::camera).collect()
     }
@@ -263,6 +385,33 @@ pub fn weights_fingerprint(encoder: &Encoder<f32>) -> String {
         }
     }
     h.hex()
+}
+
+/// `v` for a camera check's message; NaN is what a JSON `null` reads as.
+fn number(v: f64) -> String {
+    if v.is_nan() {
+        "NaN (null in JSON)".to_string()
+    } else {
+        v.to_string()
+    }
+}
+
+/// Reading `null` as NaN: `serde_json` writes NaN and the infinities as `null`, and a camera
+/// whose numbers are not finite should be refused by [`CameraRecord::check`], with the field
+/// named, rather than by the JSON parser.
+mod null_as_nan {
+    use serde::{Deserialize, Deserializer};
+
+    /// A number, or NaN for `null`.
+    pub(super) fn number<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+        Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
+    }
+
+    /// A 4x4 matrix of numbers, each `null` read as NaN.
+    pub(super) fn matrix<'de, D: Deserializer<'de>>(d: D) -> Result<[[f64; 4]; 4], D::Error> {
+        let m = <[[Option<f64>; 4]; 4]>::deserialize(d)?;
+        Ok(m.map(|row| row.map(|v| v.unwrap_or(f64::NAN))))
+    }
 }
 
 fn bundle_err(path: &Path, message: impl Into<String>) -> TrainError {

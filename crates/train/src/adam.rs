@@ -27,51 +27,6 @@ use crate::error::TrainError;
 /// bit-identical results; the size only balances scheduling overhead.
 const PAR_CHUNK: usize = 1 << 14;
 
-/// The scalars of one Adam step of one tensor, in the parameter type.
-#[derive(Clone, Copy)]
-struct UpdateConstants<T> {
-    one_minus_beta1: T,
-    beta2: T,
-    one_minus_beta2: T,
-    bc2_sqrt: T,
-    eps: T,
-    neg_step_size: T,
-}
-
-/// The element-wise update of a run of parameters `p` with gradients `g` and moments `m`, `v`
-/// (all the same length), as a `pulp` operation so that it is compiled for each instruction set.
-struct Update<'a, T> {
-    p: &'a mut [T],
-    g: &'a [T],
-    m: &'a mut [T],
-    v: &'a mut [T],
-    k: UpdateConstants<T>,
-}
-
-impl<T: Real> pulp::WithSimd for Update<'_, T> {
-    type Output = ();
-
-    #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, _simd: S) {
-        let k = self.k;
-        for (((pi, &gi), mi), vi) in self
-            .p
-            .iter_mut()
-            .zip(self.g)
-            .zip(self.m.iter_mut())
-            .zip(self.v.iter_mut())
-        {
-            let m_new = *mi + k.one_minus_beta1 * (gi - *mi);
-            let v_new = k.beta2 * *vi + k.one_minus_beta2 * gi * gi;
-            *mi = m_new;
-            *vi = v_new;
-            let denom = v_new.sqrt() / k.bc2_sqrt + k.eps;
-            // torch addcdiv_: p + (value * m) / denom, value = -step_size
-            *pi += (k.neg_step_size * m_new) / denom;
-        }
-    }
-}
-
 /// The hyper-parameters shared by all parameter tensors.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
@@ -309,26 +264,17 @@ impl<T: Real> Adam<T> {
         let rows_per_chunk = (PAR_CHUNK / stride).max(1);
         // One element's update; the same operations in the same order for every layout, so a
         // contiguous tensor updated as one flat run (which vectorises) gives the same bits as
-        // row by row. The run is compiled for the instruction set `pulp` finds at run time;
-        // every operation in it (add, multiply, divide, square root) is correctly rounded in
-        // every instruction set, so all of them give the same bits.
-        let constants = UpdateConstants {
-            one_minus_beta1,
-            beta2,
-            one_minus_beta2,
-            bc2_sqrt,
-            eps,
-            neg_step_size,
-        };
-        let arch = pulp::Arch::new();
+        // row by row.
         let update = |p: &mut [T], g: &[T], m: &mut [T], v: &mut [T]| {
-            arch.dispatch(Update {
-                p,
-                g,
-                m,
-                v,
-                k: constants,
-            })
+            for (((pi, &gi), mi), vi) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
+                let m_new = *mi + one_minus_beta1 * (gi - *mi);
+                let v_new = beta2 * *vi + one_minus_beta2 * gi * gi;
+                *mi = m_new;
+                *vi = v_new;
+                let denom = v_new.sqrt() / bc2_sqrt + eps;
+                // torch addcdiv_: p + (value * m) / denom, value = -step_size
+                *pi += (neg_step_size * m_new) / denom;
+            }
         };
         params
             .par_chunks_mut(rows_per_chunk * stride)

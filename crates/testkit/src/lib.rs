@@ -297,6 +297,15 @@ mod tests {
         let f = Fixture::shared("oracle/fixtures/raster.safetensors");
         let k = f.get("basic.K");
         assert_eq!(k.shape, vec![3, 3]);
-        assert_eq!(k.data[0], 40.0);
+        // The fixture convention (the docstring of gen_fixtures.py): K = [[fx, 0, cx], [0, fy,
+        // cy], [0, 0, 1]] with positive focal lengths, whatever the seed and size.
+        let d = &k.data;
+        assert!(d.iter().all(|v| v.is_finite()), "K has a non-finite entry");
+        assert!(d[0] > 0.0 && d[4] > 0.0, "K has a non-positive focal length");
+        assert_eq!([d[1], d[3], d[6], d[7], d[8]], [0.0, 0.0, 0.0, 0.0, 1.0]);
+        // The image size the camera belongs to has two positive entries.
+        let wh = f.get("basic.size_wh");
+        assert_eq!(wh.shape, vec![2]);
+        assert!(wh.data.iter().all(|&v| v >= 1.0));
     }
 }

@@ -301,7 +301,10 @@ mod tests {
         // cy], [0, 0, 1]] with positive focal lengths, whatever the seed and size.
         let d = &k.data;
         assert!(d.iter().all(|v| v.is_finite()), "K has a non-finite entry");
-        assert!(d[0] > 0.0 && d[4] > 0.0, "K has a non-positive focal length");
+        assert!(
+            d[0] > 0.0 && d[4] > 0.0,
+            "K has a non-positive focal length"
+        );
         assert_eq!([d[1], d[3], d[6], d[7], d[8]], [0.0, 0.0, 0.0, 0.0, 1.0]);
         // The image size the camera belongs to has two positive entries.
         let wh = f.get("basic.size_wh");

@@ -97,7 +97,87 @@ impl Camera {
     }
 }
 
+/// How far a camera's rotation `R` may be from orthonormal (the largest entry of
+/// `|R^T R - I|`) for [`check_rigid`]: loose enough for poses written by other tools in single
+/// precision (rounding leaves about `1e-7`), tight enough to refuse a 1% scale (about `2e-2`).
+pub const RIGID_TOLERANCE: f64 = 1e-3;
+
+/// How far the last row of a 4x4 camera matrix may be from `0 0 0 1` for [`check_rigid`].
+pub const LAST_ROW_TOLERANCE: f64 = 1e-6;
+
+/// Checks that a 4x4 matrix (either direction between camera and world) is a finite rigid
+/// transform: finite entries, last row `0 0 0 1` within [`LAST_ROW_TOLERANCE`], a rotation part
+/// orthonormal within [`RIGID_TOLERANCE`] with determinant +1 (no reflection). Returns the
+/// first problem found.
+pub fn check_rigid(m: &DMat4) -> Result<(), String> {
+    let rows = m.transpose().to_cols_array_2d();
+    for (r, row) in rows.iter().enumerate() {
+        for (c, &v) in row.iter().enumerate() {
+            if !v.is_finite() {
+                return Err(format!(
+                    "matrix entry [{r}][{c}] is {v}; every matrix entry must be finite"
+                ));
+            }
+        }
+    }
+    let last = rows[3];
+    if last
+        .iter()
+        .zip([0.0, 0.0, 0.0, 1.0])
+        .any(|(v, want)| (v - want).abs() > LAST_ROW_TOLERANCE)
+    {
+        return Err(format!("the last row is {last:?}; it must be [0, 0, 0, 1]"));
+    }
+    let rot = DMat3::from_mat4(*m);
+    let err = (rot.transpose() * rot - DMat3::IDENTITY)
+        .to_cols_array()
+        .iter()
+        .fold(0.0f64, |acc, v| acc.max(v.abs()));
+    if err > RIGID_TOLERANCE {
+        return Err(format!(
+            "the rotation part is not orthonormal (max |R^T R - I| = {err:.3e}, tolerance \
+             {RIGID_TOLERANCE:e}); it must be a rigid transform"
+        ));
+    }
+    let det = rot.determinant();
+    if det <= 0.0 {
+        return Err(format!(
+            "the rotation part has determinant {det:.4} (a reflection); it must be a rigid \
+             transform with determinant +1"
+        ));
+    }
+    Ok(())
+}
+
 impl Intrinsics {
+    /// Checks that the intrinsics describe a usable camera: width and height from 1 to
+    /// [`MAX_IMAGE_SIDE`], finite positive focal lengths, a finite principal point. Returns the
+    /// first problem found.
+    pub fn check(&self) -> Result<(), String> {
+        for (field, v) in [("width", self.width), ("height", self.height)] {
+            if !(1..=MAX_IMAGE_SIDE).contains(&v) {
+                return Err(format!(
+                    "{field} is {v}; the image size must be 1 to {MAX_IMAGE_SIDE} pixels per side"
+                ));
+            }
+        }
+        for (field, v) in [("fx", self.fx), ("fy", self.fy)] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!(
+                    "{field} is {v}; the focal length must be finite and positive"
+                ));
+            }
+        }
+        for (field, v) in [("cx", self.cx), ("cy", self.cy)] {
+            if !v.is_finite() {
+                return Err(format!(
+                    "{field} is {v}; the principal point must be finite"
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// Horizontal field of view in radians: `2 atan(width / (2 fx))`.
     pub fn fov_x(&self) -> f64 {
         2.0 * (0.5 * self.width as f64 / self.fx).atan()

@@ -34,9 +34,10 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use gaussian::camera::check_rigid;
 use gaussian::ply::{load_ply, save_ply};
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
-use glam::{DMat3, DMat4};
+use glam::DMat4;
 use ndarray::{s, Array2, Array4};
 use nets::{Decoder, Encoder, Lifter, NetWeights, Resolution};
 use raster::{render, Channels, RenderOptions};
@@ -60,21 +61,6 @@ pub const BUNDLE_FORMAT: &str = "dsgs-bundle-1";
 /// The largest image width or height a bundle camera may have (the project's one image-size
 /// limit, defined with the cameras).
 pub use gaussian::camera::MAX_IMAGE_SIDE;
-
-/// How far the rotation part `R` of a bundle camera's `camera_from_world` may be from
-/// orthonormal: the largest entry of `|R^T R - I|`.
-///
-/// The dataset loaders of `gaussian::dataset` accept rotations within `1e-3` of orthonormal and
-/// training records their cameras unchanged (`f64` matrices, written to JSON in full and read
-/// back to within an ulp), so the bundle check uses the same `1e-3`: anything stricter could
-/// refuse a bundle trained from a dataset the project loads. Rounding errors stay far below it
-/// (about `1e-16` in `f64`, `1e-7` had the matrices passed through `f32`), while a scale of 1%
-/// (`|R^T R - I| ~ 2e-2`) or any reflection is caught.
-const ROTATION_TOLERANCE: f64 = 1e-3;
-
-/// How far the last row of a bundle camera's `camera_from_world` may be from `0 0 0 1` (the
-/// dataset loaders' tolerance; the row is exact for every camera they make).
-const LAST_ROW_TOLERANCE: f64 = 1e-6;
 
 /// Which network variant the features were trained for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
@@ -171,92 +157,36 @@ impl CameraRecord {
         }
     }
 
-    /// Checks that the record describes a camera that can be rendered from: width and height
-    /// between 1 and [`MAX_IMAGE_SIDE`], `fx` and `fy` finite and positive, `cx` and `cy`
-    /// finite, every entry of `camera_from_world` finite, its last row `0 0 0 1` (within
-    /// `1e-6`) and its rotation part orthonormal (`|R^T R - I| <= 1e-3` entrywise, the dataset
-    /// loaders' tolerance) with determinant +1. The error says which field is wrong and why.
+    /// Checks that the record describes a camera that can be rendered from: its intrinsics pass
+    /// [`Intrinsics::check`] (sizes up to [`MAX_IMAGE_SIDE`], finite positive focal lengths,
+    /// finite principal point) and `camera_from_world` passes
+    /// [`gaussian::camera::check_rigid`] (finite, last row `0 0 0 1`, orthonormal rotation with
+    /// determinant +1), the same checks as the dataset loaders'. The error says which field is
+    /// wrong and why.
     pub fn check(&self) -> Result<(), String> {
-        for (field, v) in [("width", self.width), ("height", self.height)] {
-            if !(1..=MAX_IMAGE_SIDE).contains(&v) {
-                return Err(format!(
-                    "{field} is {v}; the image size must be 1 to {MAX_IMAGE_SIDE} pixels per side"
-                ));
-            }
-        }
-        for (field, v) in [("fx", self.fx), ("fy", self.fy)] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(format!(
-                    "{field} is {}; the focal length must be finite and positive",
-                    number(v)
-                ));
-            }
-        }
-        for (field, v) in [("cx", self.cx), ("cy", self.cy)] {
-            if !v.is_finite() {
-                return Err(format!(
-                    "{field} is {}; the principal point must be finite",
-                    number(v)
-                ));
-            }
-        }
-        let rows = &self.camera_from_world;
-        for (r, row) in rows.iter().enumerate() {
-            for (c, &v) in row.iter().enumerate() {
-                if !v.is_finite() {
-                    return Err(format!(
-                        "camera_from_world[{r}][{c}] is {}; every matrix entry must be finite",
-                        number(v)
-                    ));
-                }
-            }
-        }
-        let last = rows[3];
-        if last
-            .iter()
-            .zip([0.0, 0.0, 0.0, 1.0])
-            .any(|(v, want)| (v - want).abs() > LAST_ROW_TOLERANCE)
-        {
-            return Err(format!(
-                "the last row of camera_from_world is {last:?}; it must be [0, 0, 0, 1]"
-            ));
-        }
-        let rot = DMat3::from_mat4(DMat4::from_cols_array_2d(rows).transpose());
-        let err = (rot.transpose() * rot - DMat3::IDENTITY)
-            .to_cols_array()
-            .iter()
-            .fold(0.0f64, |acc, v| acc.max(v.abs()));
-        if err > ROTATION_TOLERANCE {
-            return Err(format!(
-                "the rotation part of camera_from_world is not orthonormal \
-                 (max |R^T R - I| = {err:.3e}, tolerance {ROTATION_TOLERANCE:e}); \
-                 camera_from_world must be a rigid transform"
-            ));
-        }
-        let det = rot.determinant();
-        if det <= 0.0 {
-            return Err(format!(
-                "the rotation part of camera_from_world has determinant {det:.4} (a reflection); \
-                 camera_from_world must be a rigid transform with determinant +1"
-            ));
-        }
-        Ok(())
+        self.intrinsics().check()?;
+        check_rigid(&self.matrix()).map_err(|p| format!("camera_from_world: {p}"))
     }
 
     /// The camera (not checked: see [`CameraRecord::check`], which [`BundleInfo::load`] runs).
     pub fn camera(&self) -> Camera {
-        let m = DMat4::from_cols_array_2d(&self.camera_from_world).transpose();
-        Camera::new(
-            Intrinsics {
-                fx: self.fx,
-                fy: self.fy,
-                cx: self.cx,
-                cy: self.cy,
-                width: self.width,
-                height: self.height,
-            },
-            m,
-        )
+        Camera::new(self.intrinsics(), self.matrix())
+    }
+
+    fn intrinsics(&self) -> Intrinsics {
+        Intrinsics {
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+            width: self.width,
+            height: self.height,
+        }
+    }
+
+    /// `camera_from_world` as a matrix (the record stores its rows).
+    fn matrix(&self) -> DMat4 {
+        DMat4::from_cols_array_2d(&self.camera_from_world).transpose()
     }
 }
 
@@ -385,15 +315,6 @@ pub fn weights_fingerprint(encoder: &Encoder<f32>) -> String {
         }
     }
     h.hex()
-}
-
-/// `v` for a camera check's message; NaN is what a JSON `null` reads as.
-fn number(v: f64) -> String {
-    if v.is_nan() {
-        "NaN (null in JSON)".to_string()
-    } else {
-        v.to_string()
-    }
 }
 
 /// Reading `null` as NaN: `serde_json` writes NaN and the infinities as `null`, and a camera

@@ -193,7 +193,13 @@ fn a_non_finite_matrix_entry_is_rejected() {
     let dir = edited("matrix-nan", |json| {
         bad_camera(json)["camera_from_world"][1][3] = Value::Null
     });
-    assert_rejected(&dir, &["camera_from_world[1][3] is NaN", "must be finite"]);
+    assert_rejected(
+        &dir,
+        &[
+            "camera_from_world: matrix entry [1][3] is NaN",
+            "must be finite",
+        ],
+    );
 }
 
 #[test]

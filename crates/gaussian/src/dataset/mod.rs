@@ -531,31 +531,7 @@ fn colmap_pose(qvec: [f64; 4], tvec: [f64; 3]) -> Result<DMat4, String> {
     Ok(m)
 }
 
-/// Checks that a 4x4 matrix is a finite rigid transform (orthonormal rotation within `1e-3`,
-/// last row `0 0 0 1`).
-pub(crate) fn check_rigid(m: &DMat4) -> Result<(), String> {
-    let a = m.to_cols_array();
-    if a.iter().any(|v| !v.is_finite()) {
-        return Err("matrix has non-finite entries".into());
-    }
-    let row3 = m.row(3);
-    if (row3 - glam::DVec4::new(0.0, 0.0, 0.0, 1.0))
-        .abs()
-        .max_element()
-        > 1e-6
-    {
-        return Err(format!("last row is {row3:?}, not [0, 0, 0, 1]"));
-    }
-    let r = DMat3::from_mat4(*m);
-    let e = (r.transpose() * r - DMat3::IDENTITY).to_cols_array();
-    let err = e.iter().fold(0.0f64, |acc, v| acc.max(v.abs()));
-    if err > 1e-3 {
-        return Err(format!(
-            "rotation part is not orthonormal (max |R^T R - I| = {err:.3e})"
-        ));
-    }
-    Ok(())
-}
+pub(crate) use crate::camera::check_rigid;
 
 /// Image files and resized cameras for a list of image names.
 struct Resolved {

@@ -16,7 +16,8 @@
 //! - gives neither `camera_angle_x` nor `fl_x`, or an angle outside `(0, pi)`;
 //! - has an `fl_x`, `fl_y`, `w` or `h` that is not finite and positive, or a `cx`, `cy` that
 //!   is not finite;
-//! - has a `w` or `h` that does not round to a whole number of pixels from 1 to `u32::MAX`
+//! - has a `w` or `h` that does not round to a whole number of pixels from 1 to
+//!   [`MAX_IMAGE_SIDE`](crate::camera::MAX_IMAGE_SIDE)
 //!   (e.g. `w: 0.3`, which would otherwise divide by a zero width);
 //! - has a frame whose `transform_matrix` is not a finite rigid 4x4 (or 3x4) matrix;
 //! - has a frame whose `file_path` is empty, absolute (a root or, on Windows, a drive or UNC
@@ -33,6 +34,7 @@ use glam::DMat4;
 use serde::Deserialize;
 
 use super::{check_rigid, images, Dataset, DatasetError, DatasetKind, LoadOptions, Resolution};
+use crate::camera::MAX_IMAGE_SIDE;
 use crate::{Camera, Intrinsics};
 
 /// The contents of a `transforms_*.json` file.
@@ -136,7 +138,7 @@ pub fn parse_transforms(text: &str, path: &Path) -> Result<Transforms, DatasetEr
 }
 
 /// The whole number of pixels a `w` or `h` value of the JSON stands for: the value rounded,
-/// which must be at least 1 and fit the `u32` of [`Intrinsics`].
+/// which must be at least 1 and at most [`MAX_IMAGE_SIDE`].
 fn pixel_count(key: &str, x: f64) -> Result<u32, String> {
     let n = x.round();
     if n < 1.0 {
@@ -144,8 +146,10 @@ fn pixel_count(key: &str, x: f64) -> Result<u32, String> {
             "`{key}` = {x} rounds to {n} pixels; the image size must be at least 1 pixel"
         ));
     }
-    if n > u32::MAX as f64 {
-        return Err(format!("`{key}` = {x} is more than {} pixels", u32::MAX));
+    if n > MAX_IMAGE_SIDE as f64 {
+        return Err(format!(
+            "`{key}` = {x} is more than {MAX_IMAGE_SIDE} pixels (the image-size limit)"
+        ));
     }
     Ok(n as u32)
 }
@@ -182,27 +186,6 @@ fn relative_image_path(file_path: &str) -> Result<PathBuf, String> {
         return Err(format!("file_path {file_path:?} names no file"));
     }
     Ok(rel)
-}
-
-/// Checks that intrinsics have finite, positive focal lengths, a finite principal point and a
-/// non-zero size.
-fn check_intrinsics(k: &Intrinsics) -> Result<(), String> {
-    let Intrinsics {
-        fx,
-        fy,
-        cx,
-        cy,
-        width,
-        height,
-    } = *k;
-    let focal_ok = fx > 0.0 && fx.is_finite() && fy > 0.0 && fy.is_finite();
-    if !(focal_ok && cx.is_finite() && cy.is_finite()) || width == 0 || height == 0 {
-        return Err(format!(
-            "intrinsics fx = {fx}, fy = {fy}, cx = {cx}, cy = {cy} at {width}x{height} pixels \
-             are not finite with positive focal lengths"
-        ));
-    }
-    Ok(())
 }
 
 /// The frame's camera-to-world matrix (3x4 or 4x4 rows), checked to be rigid.
@@ -283,7 +266,7 @@ impl Transforms {
             pixel_count("h", h)?;
         }
         let k = self.intrinsics(width, height);
-        check_intrinsics(&k)?;
+        k.check()?;
         Ok(k)
     }
 }

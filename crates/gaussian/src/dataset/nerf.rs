@@ -17,7 +17,7 @@
 //! - has an `fl_x`, `fl_y`, `w` or `h` that is not finite and positive, or a `cx`, `cy` that
 //!   is not finite;
 //! - has a `w` or `h` that does not round to a whole number of pixels from 1 to
-//!   [`MAX_IMAGE_SIDE`](crate::camera::MAX_IMAGE_SIDE)
+//!   [`MAX_IMAGE_SIDE`]
 //!   (e.g. `w: 0.3`, which would otherwise divide by a zero width);
 //! - has a frame whose `transform_matrix` is not a finite rigid 4x4 (or 3x4) matrix;
 //! - has a frame whose `file_path` is empty, absolute (a root or, on Windows, a drive or UNC

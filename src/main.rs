@@ -1,23 +1,37 @@
 //! The `dsgs` command-line program.
+//!
+//! Flag conventions, the same in every command:
+//! * a flag naming several paths (`--style`, `--content`) takes one path per occurrence and is
+//!   repeated (`--style a.jpg --style b.jpg`);
+//! * `--weights` always names a network weights file; the weights of a style mixture are `--mix`;
+//! * `--help` shows every flag's default (for flags overriding a `--config` file, the
+//!   configuration's default, taken from its `Default`) and its allowed values; out-of-range
+//!   numbers are refused while the arguments are parsed, naming the flag and the range;
+//! * every long-running command takes `--no-progress`.
 
+use std::fmt::Display;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::str::FromStr;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{bail, Context, Result};
-use clap::builder::{PossibleValuesParser, TypedValueParser};
-use clap::{Args, Parser, Subcommand};
+use clap::builder::{PossibleValuesParser, StyledStr, TypedValueParser};
+use clap::error::{ContextKind, ContextValue, ErrorKind};
+use clap::{Args, CommandFactory, FromArgMatches, Parser, Subcommand};
+use gaussian::camera::MAX_IMAGE_SIDE;
 use glam::DVec3;
 use pipeline::bake::{BakeOverrides, BakeSettings};
 use pipeline::cameras::{CameraRequest, CameraSource, KnownCameras};
 use pipeline::consistency::WarpOptions;
-use pipeline::fit_features::{FeatureOverrides, FitFeaturesSettings};
-use pipeline::fit_geometry::{FitSettings, GeometryOverrides};
+use pipeline::fit_features::{FeatureOverrides, FitFeaturesConfig, FitFeaturesSettings};
+use pipeline::fit_geometry::{FitGeometryConfig, FitSettings, GeometryOverrides};
 use pipeline::pretrain_decoder::{DecoderOverrides, NetworkFiles, PretrainSettings};
 use pipeline::render::{DepthStyle, RenderKind, SceneInput};
 use pipeline::{Control, RunOutcome};
 use terminal::Terminal;
-use train::Variant;
+use train::bake::STORED_SH_DEGREE;
+use train::{BakeConfig, DecoderTrainConfig, Variant};
 
 mod terminal;
 
@@ -53,19 +67,167 @@ enum Command {
     Demo(DemoArgs),
 }
 
-/// How a training command runs: resume, checkpoints, logs and bars.
+// ---- Help texts and value parsers ----
+
+/// `text` followed by its default in clap's `[default: VALUE]` form. Flags that override a
+/// `--config` file have no clap default (absent, they leave the file's value); their help takes
+/// the configuration's default from its `Default` through this, so it cannot drift.
+fn with_default(text: &str, default: impl Display) -> String {
+    format!("{text} [default: {default}]")
+}
+
+/// A comma-separated list, or `none`.
+fn list<T: Display>(values: &[T]) -> String {
+    if values.is_empty() {
+        return "none".into();
+    }
+    let v: Vec<String> = values.iter().map(T::to_string).collect();
+    v.join(",")
+}
+
+/// A parser accepting exactly `names`, listed in `--help` and in the error for any other value.
+fn one_of<T>(names: impl IntoIterator<Item = &'static str>) -> impl TypedValueParser<Value = T>
+where
+    T: FromStr<Err = String> + Clone + Send + Sync + 'static,
+{
+    PossibleValuesParser::new(names).try_map(|s| s.parse::<T>())
+}
+
+/// The `--variant` parser: `standard` or `fullres`, listed in `--help`.
+fn variant() -> impl TypedValueParser<Value = Variant> {
+    // The match makes a new variant fail to compile here until it is listed.
+    let listed = |v: Variant| match v {
+        Variant::Standard | Variant::Fullres => v.as_str(),
+    };
+    one_of([listed(Variant::Standard), listed(Variant::Fullres)])
+}
+
+/// A whole number in `min..=max`; the message names the range (clap adds the flag).
+fn whole_in<T>(min: T, max: T) -> impl Fn(&str) -> Result<T, String> + Clone + Send + Sync
+where
+    T: FromStr + PartialOrd + Display + Copy + Send + Sync + 'static,
+{
+    move |s: &str| {
+        let v: T = s
+            .trim()
+            .parse()
+            .map_err(|_| format!("`{s}` is not a whole number"))?;
+        if v < min || v > max {
+            return Err(format!("must be between {min} and {max}"));
+        }
+        Ok(v)
+    }
+}
+
+/// A whole number of at least 1 (a count where 0 means nothing: iterations, frames, sizes).
+fn at_least_one<T>() -> impl Fn(&str) -> Result<T, String> + Clone + Send + Sync
+where
+    T: FromStr + PartialOrd + Display + Copy + From<u8> + Send + Sync + 'static,
+{
+    |s: &str| {
+        let v: T = s
+            .trim()
+            .parse()
+            .map_err(|_| format!("`{s}` is not a whole number"))?;
+        if v < T::from(1) {
+            return Err("must be at least 1".into());
+        }
+        Ok(v)
+    }
+}
+
+/// A finite number.
+fn finite(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{s}` is not a number"))?;
+    if !v.is_finite() {
+        return Err("must be a finite number".into());
+    }
+    Ok(v)
+}
+
+/// A finite number above 0 (a factor, a rate of frames, a tolerance).
+fn positive(s: &str) -> Result<f64, String> {
+    let v = finite(s)?;
+    if v <= 0.0 {
+        return Err("must be a finite number above 0".into());
+    }
+    Ok(v)
+}
+
+/// A finite number of 0 or more (a weight, a learning rate).
+fn non_negative(s: &str) -> Result<f64, String> {
+    let v = finite(s)?;
+    if v < 0.0 {
+        return Err("must be a finite number, 0 or more".into());
+    }
+    Ok(v)
+}
+
+/// A number in [0, 1] (a strength, an alpha level).
+fn fraction(s: &str) -> Result<f64, String> {
+    let v = finite(s)?;
+    if !(0.0..=1.0).contains(&v) {
+        return Err("must be in [0, 1]".into());
+    }
+    Ok(v)
+}
+
+/// An `x,y,z` direction: three finite numbers, not all zero.
+fn direction(s: &str) -> Result<DVec3, String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| {
+            x.trim()
+                .parse::<f64>()
+                .map_err(|_| format!("`{x}` is not a number"))
+        })
+        .collect::<Result<_, _>>()?;
+    let d = match v.as_slice() {
+        [x, y, z] => DVec3::new(*x, *y, *z),
+        _ => return Err(format!("expected three comma-separated numbers, got `{s}`")),
+    };
+    if !d.is_finite() || d == DVec3::ZERO {
+        return Err(format!("`{s}` is not a direction (finite and not zero)"));
+    }
+    Ok(d)
+}
+
+/// `--weights` where it used to mean the weights of a style mixture (stylize, eval, bake):
+/// always refused, pointing to `--mix`.
+fn renamed_to_mix(_: &str) -> Result<String, String> {
+    Err(
+        "the weights of a style mixture are given with --mix (comma-separated, one per \
+         --style); --weights names a network weights file, which this command does not take"
+            .into(),
+    )
+}
+
+/// The tip added to an unexpected positional argument: most likely a second value given to a
+/// one-value path flag.
+const REPEAT_TIP: &str = "a flag takes one path per occurrence: repeat it for several, as in \
+                          '--style a.jpg --style b.jpg'";
+
+// ---- Arguments ----
+
+/// How a training command runs: resume, checkpoints, logs and bars. The defaults of
+/// `--checkpoint-every` and `--log-every` are each command's configuration's, added to their help
+/// by [`command`].
 #[derive(Args)]
 struct RunArgs {
-    /// Continue from the checkpoint of a stopped run (the path it printed).
+    /// Continue from the checkpoint of a stopped run (the path it printed) [default: none, a
+    /// fresh run]
     #[arg(long)]
     resume: Option<PathBuf>,
-    /// Iterations between checkpoints [default: 500; 0: only when stopped].
+    /// Iterations between checkpoints (0: only when stopped)
     #[arg(long)]
     checkpoint_every: Option<u64>,
-    /// Print a progress line every N iterations (for logs).
+    /// Print a progress line every N iterations, for logs (0: none)
     #[arg(long)]
     log_every: Option<u64>,
-    /// No progress bars.
+    /// No progress bars (a plain progress line at least every minute instead)
     #[arg(long)]
     no_progress: bool,
 }
@@ -79,22 +241,22 @@ struct DemoArgs {
     /// interrupted one
     #[arg(short, long, default_value = "dsgs-demo")]
     output: PathBuf,
-    /// Canonical weights (.safetensors, encoder and decoder) instead of importing
-    /// SHARED/weights/wct-relu1_1-3_1
+    /// Canonical network weights (.safetensors, encoder and decoder) [default: imported from
+    /// SHARED/weights/wct-relu1_1-3_1]
     #[arg(long)]
     weights: Option<PathBuf>,
-    /// A decoder (PyTorch checkpoint or .safetensors) instead of the one in the weights, e.g.
-    /// one fine-tuned by `dsgs pretrain-decoder` for the fullres variant
+    /// A decoder (PyTorch checkpoint or .safetensors) replacing the one of the weights, e.g. one
+    /// fine-tuned by `dsgs pretrain-decoder` for the fullres variant [default: the weights']
     #[arg(long)]
     decoder: Option<PathBuf>,
     /// Network variant (fullres needs a decoder fine-tuned for it to stylize strongly)
-    #[arg(long, default_value = "standard")]
+    #[arg(long, default_value = "standard", value_parser = variant())]
     variant: Variant,
-    /// Downscale factor of the 800x800 lego images
-    #[arg(long, default_value_t = 8.0)]
+    /// Downscale factor of the 800x800 lego images (above 0)
+    #[arg(long, default_value_t = 8.0, value_parser = positive)]
     downscale: f64,
-    /// Geometry iterations
-    #[arg(long, default_value_t = 1000)]
+    /// Geometry iterations (at least 1)
+    #[arg(long, default_value_t = 1000, value_parser = at_least_one::<u64>())]
     geometry_iterations: u64,
     /// Alignment-only feature iterations (cheap) before the full loss
     #[arg(long, default_value_t = 1500)]
@@ -102,13 +264,14 @@ struct DemoArgs {
     /// Feature iterations with the full loss (alignment, content, style)
     #[arg(long, default_value_t = 300)]
     feature_iterations: u64,
-    /// Style images (default: four paintings of SHARED/data/styles never used in training)
-    #[arg(long = "style", num_args = 1..)]
+    /// Style image; repeat for several [default: four paintings of SHARED/data/styles never
+    /// used in training]
+    #[arg(long = "style")]
     styles: Vec<PathBuf>,
-    /// Frames of the orbit
-    #[arg(long, default_value_t = 24)]
+    /// Frames of the orbit (at least 1)
+    #[arg(long, default_value_t = 24, value_parser = at_least_one::<usize>())]
     frames: usize,
-    /// No progress bars
+    /// No progress bars (a plain progress line at least every minute instead)
     #[arg(long)]
     no_progress: bool,
 }
@@ -117,10 +280,12 @@ struct DemoArgs {
 enum WeightsCommand {
     /// Convert PyTorch checkpoints (legacy pickle or zip) to one canonical safetensors file.
     Import {
-        /// Encoder checkpoint (e.g. vgg_normalised.pth, vgg_normalised_conv3_1.pth, 4SE.pth).
+        /// Encoder checkpoint (e.g. vgg_normalised.pth, vgg_normalised_conv3_1.pth, 4SE.pth)
+        /// [default: none]
         #[arg(long)]
         encoder: Option<PathBuf>,
-        /// Decoder checkpoint (e.g. decoder.pth, feature_invertor_conv3_1.pth, 4SD.pth).
+        /// Decoder checkpoint (e.g. decoder.pth, feature_invertor_conv3_1.pth, 4SD.pth)
+        /// [default: none]
         #[arg(long)]
         decoder: Option<PathBuf>,
         /// Output file (.safetensors).
@@ -134,28 +299,13 @@ enum WeightsCommand {
     },
 }
 
-/// A parser accepting exactly `names`, listed in `--help` and in the error for any other value.
-fn one_of<T>(names: &'static [&'static str]) -> impl TypedValueParser<Value = T>
-where
-    T: std::str::FromStr<Err = String> + Clone + Send + Sync + 'static,
-{
-    PossibleValuesParser::new(names).try_map(|s| s.parse::<T>())
-}
+/// The help of `--config` of the commands that save their configuration as `OUT/config.toml`.
+const CONFIG_HELP: &str = "TOML configuration (keys: docs/configuration.md); flags override it \
+                           [default: none: the built-in defaults, or OUT/config.toml when resuming]";
 
-fn vector3(s: &str) -> Result<DVec3, String> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|x| {
-            x.trim()
-                .parse::<f64>()
-                .map_err(|_| format!("`{x}` is not a number"))
-        })
-        .collect::<Result<_, _>>()?;
-    match v.as_slice() {
-        [x, y, z] => Ok(DVec3::new(*x, *y, *z)),
-        _ => Err(format!("expected three comma-separated numbers, got `{s}`")),
-    }
-}
+/// The help of `bake --config` (a bake records its configuration in its JSON report).
+const BAKE_CONFIG_HELP: &str = "TOML configuration (keys: docs/configuration.md); flags override \
+                                it [default: none: the built-in defaults]";
 
 #[derive(Args)]
 struct FitGeometryArgs {
@@ -164,38 +314,56 @@ struct FitGeometryArgs {
     /// Output directory.
     #[arg(short, long)]
     output: PathBuf,
-    /// TOML configuration (train::GeometryConfig keys plus a `[dataset]` table); flags override it.
-    #[arg(long)]
+    #[arg(long, help = CONFIG_HELP)]
     config: Option<PathBuf>,
-    /// Total iterations.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one::<u64>(), help = with_default(
+        "Total iterations (at least 1); the configuration's schedule (learning-rate decay, \
+         densification, opacity resets, SH degree steps, test, save and checkpoint iterations) \
+         is stretched or compressed to it",
+        FitGeometryConfig::default().geometry.iterations,
+    ))]
     iterations: Option<u64>,
-    /// Resize the images by 1/F on load.
-    #[arg(long, conflicts_with = "resolution")]
+    #[arg(long, conflicts_with = "resolution", value_parser = positive, help = with_default(
+        "Resize the images by 1/F on load (above 0)",
+        FitGeometryConfig::default().dataset.downscale,
+    ))]
     downscale: Option<f64>,
-    /// Read the images from the images_N folder.
-    #[arg(long)]
+    /// Read the images from the images_N folder (at least 1) [default: none: the images folder]
+    #[arg(long, value_parser = at_least_one::<u32>())]
     resolution: Option<u32>,
     /// White background (NeRF-synthetic scenes).
     #[arg(long)]
     white: bool,
-    /// Iterations at which to evaluate the held-out views and save the scene (comma-separated).
-    #[arg(long, value_delimiter = ',')]
+    #[arg(long, value_delimiter = ',', help = with_default(
+        "Iterations at which to evaluate the held-out views and save the scene (comma-separated; \
+         used as given)",
+        format!(
+            "{}, scaled with --iterations",
+            list(&FitGeometryConfig::default().geometry.test_iterations)
+        ),
+    ))]
     test_iterations: Option<Vec<u64>>,
-    /// Iterations at which to save the scene, when they differ from the test iterations.
+    /// Iterations at which to save the scene, when they differ from the test iterations
+    /// (comma-separated) [default: the test iterations]
     #[arg(long, value_delimiter = ',')]
     save_iterations: Option<Vec<u64>>,
-    /// Iterations at which to write a resumable checkpoint (comma-separated).
-    #[arg(long, value_delimiter = ',')]
+    #[arg(long, value_delimiter = ',', help = with_default(
+        "Iterations at which to write a resumable checkpoint (comma-separated)",
+        list(&FitGeometryConfig::default().geometry.checkpoint_iterations),
+    ))]
     checkpoint_iterations: Option<Vec<u64>>,
     /// Train on every image (no held-out split).
     #[arg(long)]
     no_eval: bool,
-    /// Seed of every random choice.
-    #[arg(long)]
+    #[arg(long, help = with_default(
+        "Seed of every random choice",
+        FitGeometryConfig::default().geometry.seed,
+    ))]
     seed: Option<u64>,
-    /// Maximum SH degree (0..=3).
-    #[arg(long)]
+    #[arg(long, value_parser = whole_in(0, STORED_SH_DEGREE), help = with_default(
+        "Maximum SH degree (0 to 3)",
+        FitGeometryConfig::default().geometry.sh_degree,
+    ))]
     sh_degree: Option<usize>,
     #[command(flatten)]
     run: RunArgs,
@@ -203,54 +371,69 @@ struct FitGeometryArgs {
 
 #[derive(Args)]
 struct PretrainDecoderArgs {
-    /// Content image folders or files.
-    #[arg(long, required = true, num_args = 1..)]
+    /// Content image folder or file; repeat for several (at least one).
+    #[arg(long, required = true)]
     content: Vec<PathBuf>,
-    /// Style image folders or files.
-    #[arg(long = "style", required = true, num_args = 1..)]
+    /// Style image folder or file; repeat for several (at least one).
+    #[arg(long = "style", required = true)]
     styles: Vec<PathBuf>,
     /// Search the image folders recursively.
     #[arg(long)]
     recursive: bool,
-    /// Canonical weights (.safetensors) holding the encoder and, unless --from-scratch or
-    /// --decoder, the starting decoder.
+    /// Canonical network weights (.safetensors) holding the encoder and, unless --from-scratch
+    /// or --decoder, the starting decoder [default: none: give --encoder and --decoder]
     #[arg(long)]
     weights: Option<PathBuf>,
-    /// Encoder file (PyTorch checkpoint or .safetensors), instead of the one in --weights.
+    /// Encoder file (PyTorch checkpoint or .safetensors) [default: the one in --weights]
     #[arg(long)]
     encoder: Option<PathBuf>,
-    /// Starting decoder (PyTorch checkpoint or .safetensors), instead of the one in --weights.
+    /// Starting decoder (PyTorch checkpoint or .safetensors) [default: the one in --weights]
     #[arg(long, conflicts_with = "from_scratch")]
     decoder: Option<PathBuf>,
     /// Start from a seeded initialisation of the encoder's mirror image.
     #[arg(long)]
     from_scratch: bool,
-    /// Network variant.
-    #[arg(long)]
+    #[arg(long, value_parser = variant(), help = with_default(
+        "Network variant",
+        DecoderTrainConfig::default().variant.as_str(),
+    ))]
     variant: Option<Variant>,
-    /// TOML configuration (train::DecoderTrainConfig keys); flags override it.
-    #[arg(long)]
+    #[arg(long, help = CONFIG_HELP)]
     config: Option<PathBuf>,
-    /// Total iterations.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one::<u64>(), help = with_default(
+        "Total iterations (at least 1)",
+        DecoderTrainConfig::default().iterations,
+    ))]
     iterations: Option<u64>,
-    /// Content (and style) images per iteration.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one::<usize>(), help = with_default(
+        "Content (and style) images per iteration (at least 1)",
+        DecoderTrainConfig::default().batch_size,
+    ))]
     batch_size: Option<usize>,
-    /// Side of the square random crop.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one::<u32>(), help = with_default(
+        "Side of the square random crop, in pixels (at least 1, at most --resize)",
+        DecoderTrainConfig::default().crop,
+    ))]
     crop: Option<u32>,
-    /// Short side the images are resized to before cropping.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one::<u32>(), help = with_default(
+        "Short side the images are resized to before cropping, in pixels (at least 1)",
+        DecoderTrainConfig::default().resize,
+    ))]
     resize: Option<u32>,
-    /// Weight of the style loss.
-    #[arg(long)]
+    #[arg(long, value_parser = non_negative, help = with_default(
+        "Weight of the style loss (0 or more)",
+        DecoderTrainConfig::default().style_weight,
+    ))]
     style_weight: Option<f64>,
-    /// Initial learning rate.
-    #[arg(long)]
+    #[arg(long, value_parser = non_negative, help = with_default(
+        "Initial learning rate (0 or more)",
+        DecoderTrainConfig::default().lr,
+    ))]
     lr: Option<f64>,
-    /// Seed of every random choice.
-    #[arg(long)]
+    #[arg(long, help = with_default(
+        "Seed of every random choice",
+        DecoderTrainConfig::default().seed,
+    ))]
     seed: Option<u64>,
     #[command(flatten)]
     run: RunArgs,
@@ -267,43 +450,53 @@ struct FitFeaturesArgs {
     /// The dataset the geometry was trained on (COLMAP, NeRF-synthetic or LLFF layout).
     #[arg(long)]
     dataset: PathBuf,
-    /// Style image folders or files.
-    #[arg(long = "style", required = true, num_args = 1..)]
+    /// Style image folder or file; repeat for several (at least one).
+    #[arg(long = "style", required = true)]
     styles: Vec<PathBuf>,
-    /// Canonical weights (.safetensors) holding the encoder and decoder.
+    /// Canonical network weights (.safetensors) holding the encoder and decoder.
     #[arg(long)]
     weights: PathBuf,
-    /// Use this decoder (PyTorch checkpoint or .safetensors) instead of the one in --weights.
+    /// A decoder (PyTorch checkpoint or .safetensors) replacing the one in --weights [default:
+    /// the one in --weights]
     #[arg(long)]
     decoder: Option<PathBuf>,
-    /// Network variant.
-    #[arg(long)]
+    #[arg(long, value_parser = variant(), help = with_default(
+        "Network variant",
+        FitFeaturesConfig::default().features.variant.as_str(),
+    ))]
     variant: Option<Variant>,
-    /// TOML configuration (train::FeatureTrainConfig keys, `background` and a `[dataset]` table);
-    /// flags override it.
-    #[arg(long)]
+    #[arg(long, help = CONFIG_HELP)]
     config: Option<PathBuf>,
-    /// Total iterations.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one::<u64>(), help = with_default(
+        "Total iterations, the warm-up included (at least 1)",
+        FitFeaturesConfig::default().features.iterations,
+    ))]
     iterations: Option<u64>,
-    /// Channels of each Gaussian's feature.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one::<usize>(), help = with_default(
+        "Channels of each Gaussian's feature (at least 1)",
+        FitFeaturesConfig::default().features.feature_dim,
+    ))]
     feature_dim: Option<usize>,
-    /// Resize the images by 1/F on load.
-    #[arg(long)]
+    #[arg(long, value_parser = positive, help = with_default(
+        "Resize the images by 1/F on load (above 0)",
+        FitFeaturesConfig::default().dataset.downscale,
+    ))]
     downscale: Option<f64>,
     /// Train with the alignment loss only (no content and style terms).
     #[arg(long)]
     align_only: bool,
-    /// Iterations at the start with the alignment loss only (cheap; gives the features the
-    /// scene's content before the content and style terms join).
-    #[arg(long)]
+    #[arg(long, help = with_default(
+        "Iterations at the start with the alignment loss only (cheap; gives the features the \
+         scene's content before the content and style terms join)",
+        FitFeaturesConfig::default().features.align_warmup,
+    ))]
     align_warmup: Option<u64>,
-    /// Seed of every random choice.
-    #[arg(long)]
+    #[arg(long, help = with_default(
+        "Seed of every random choice",
+        FitFeaturesConfig::default().features.seed,
+    ))]
     seed: Option<u64>,
-    /// Side of the feature-map window run through the networks, in feature pixels.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one::<u32>(), help = feature_crop_help())]
     crop: Option<u32>,
     /// White background (NeRF-synthetic scenes).
     #[arg(long)]
@@ -318,54 +511,85 @@ struct FitFeaturesArgs {
     output: PathBuf,
 }
 
+/// The help of `fit-features --crop`, with the default of each variant.
+fn feature_crop_help() -> String {
+    let side = |variant| {
+        train::FeatureTrainConfig {
+            variant,
+            ..FitFeaturesConfig::default().features
+        }
+        .crop_side()
+    };
+    format!(
+        "Side of the feature-map window run through the networks, in feature pixels (at least 1) \
+         [default: {} for standard, {} for fullres networks]",
+        side(Variant::Standard),
+        side(Variant::Fullres)
+    )
+}
+
 #[derive(Args)]
 struct BakeArgs {
     /// Scene bundle directory.
     bundle: PathBuf,
-    /// Style image (repeat and give --weights to bake a mixture).
+    /// Style image; repeat for several, mixed with --mix into one (at least one).
     #[arg(long = "style", required = true)]
     styles: Vec<PathBuf>,
-    /// Mix the styles with these weights (comma-separated, one per style).
-    #[arg(long, value_delimiter = ',')]
-    weights: Option<Vec<f64>>,
-    /// Style strength: 0 reconstructs the scene, 1 is the full style.
-    #[arg(long, default_value_t = 1.0)]
+    /// Mix the styles with these weights (comma-separated, one per --style, each 0 or more, not
+    /// all 0) [default: none; needed with several styles]
+    #[arg(long, value_delimiter = ',', value_parser = non_negative)]
+    mix: Option<Vec<f64>>,
+    #[arg(long = "weights", hide = true, value_parser = renamed_to_mix)]
+    _weights: Option<String>,
+    /// Style strength, in [0, 1]: 0 reconstructs the scene, 1 is the full style.
+    #[arg(long, default_value_t = 1.0, value_parser = fraction)]
     alpha: f64,
-    /// Longest side of the style images after loading.
-    #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE)]
+    /// Longest side of the style images after loading, in pixels (at least 1).
+    #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE, value_parser = at_least_one::<u32>())]
     style_size: u32,
-    /// Network variant (default: the bundle's).
-    #[arg(long)]
+    /// Network variant [default: the bundle's]
+    #[arg(long, value_parser = variant())]
     variant: Option<Variant>,
-    /// Replace the bundle's decoder (.safetensors or a PyTorch checkpoint).
+    /// Replace the bundle's decoder (.safetensors or a PyTorch checkpoint) [default: the
+    /// bundle's]
     #[arg(long)]
     decoder: Option<PathBuf>,
-    /// TOML configuration (train::BakeConfig keys); flags override it.
-    #[arg(long)]
+    #[arg(long, help = BAKE_CONFIG_HELP)]
     config: Option<PathBuf>,
-    /// Optimisation iterations.
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one::<u64>(), help = with_default(
+        "Optimisation iterations (at least 1)",
+        BakeConfig::default().iterations,
+    ))]
     iterations: Option<u64>,
-    /// SH degree that is optimised (0..=3; the .ply always stores degree 3).
-    #[arg(long)]
+    #[arg(long, value_parser = whole_in(0, STORED_SH_DEGREE), help = with_default(
+        "SH degree that is optimised (0 to 3; the .ply always stores degree 3)",
+        BakeConfig::default().sh_degree,
+    ))]
     sh_degree: Option<usize>,
     /// Also adapt opacities and scales, within small budgets.
     #[arg(long)]
     adapt_geometry: bool,
-    /// Adam rate of the SH DC coefficients.
-    #[arg(long)]
+    #[arg(long, value_parser = non_negative, help = with_default(
+        "Adam rate of the SH DC coefficients (0 or more)",
+        BakeConfig::default().feature_lr,
+    ))]
     lr: Option<f64>,
-    /// Number of training target views (0: all candidates).
-    #[arg(long)]
+    #[arg(long, help = with_default(
+        "Number of training target views (0: all candidates)",
+        BakeConfig::default().target_views,
+    ))]
     target_views: Option<usize>,
-    /// Interpolated views held out for evaluation.
-    #[arg(long)]
+    #[arg(long, help = with_default(
+        "Interpolated views held out for evaluation",
+        BakeConfig::default().held_out,
+    ))]
     held_out: Option<usize>,
-    /// Image size of the targets relative to the bundle's cameras.
-    #[arg(long)]
+    #[arg(long, value_parser = positive, help = with_default(
+        "Image size of the targets relative to the bundle's cameras (above 0)",
+        BakeConfig::default().resolution_scale,
+    ))]
     resolution_scale: Option<f64>,
-    /// Seed of the view order.
-    #[arg(long)]
+    #[arg(long, help = with_default("Seed of the view order", BakeConfig::default().seed))]
     seed: Option<u64>,
     #[command(flatten)]
     run: RunArgs,
@@ -378,26 +602,37 @@ struct BakeArgs {
 struct CameraArgs {
     /// Camera source: the dataset's or bundle's cameras, the held-out ones, a path through
     /// them, or an orbit.
-    #[arg(long, default_value = "orbit", value_parser = one_of::<CameraSource>(CameraSource::NAMES))]
+    #[arg(long, default_value = "orbit", value_parser = one_of::<CameraSource>(CameraSource::NAMES.iter().copied()))]
     cameras: CameraSource,
-    /// Number of frames (path and orbit), or at most this many cameras (dataset and test).
-    #[arg(long)]
+    #[arg(long, value_parser = at_least_one::<usize>(), help = format!(
+        "Number of frames (path and orbit), or at most this many cameras (dataset and test); at \
+         least 1 [default: {} for path and orbit, every camera for dataset and test]",
+        pipeline::cameras::DEFAULT_FRAMES,
+    ))]
     frames: Option<usize>,
-    /// Image width (alone: keeps the aspect ratio).
-    #[arg(long)]
+    #[arg(long, value_parser = whole_in(1, MAX_IMAGE_SIDE), help = format!(
+        "Image width, 1 to {MAX_IMAGE_SIDE} (alone: keeps the aspect ratio) [default: the \
+         cameras' width; {} for an orbit without cameras]",
+        pipeline::cameras::DEFAULT_SIDE,
+    ))]
     width: Option<u32>,
-    /// Image height (alone: keeps the aspect ratio).
-    #[arg(long)]
+    #[arg(long, value_parser = whole_in(1, MAX_IMAGE_SIDE), help = format!(
+        "Image height, 1 to {MAX_IMAGE_SIDE} (alone: keeps the aspect ratio) [default: the \
+         cameras' height; {} for an orbit without cameras]",
+        pipeline::cameras::DEFAULT_SIDE,
+    ))]
     height: Option<u32>,
-    /// Scale every camera's image by this factor.
-    #[arg(long)]
+    /// Scale every camera's image by this factor (above 0) [default: 1]
+    #[arg(long, value_parser = positive)]
     scale: Option<f64>,
     /// Take the cameras from this directory instead of the scene: a dataset, or a scene bundle
-    /// (its cameras at its training size, e.g. to render a baked `.ply` from them).
+    /// (its cameras at its training size, e.g. to render a baked `.ply` from them) [default:
+    /// the scene's own cameras]
     #[arg(long)]
     dataset: Option<PathBuf>,
-    /// World up axis of orbits, as x,y,z (default: from the cameras, else -y).
-    #[arg(long, value_parser = vector3, allow_hyphen_values = true)]
+    /// World up axis of orbits, as x,y,z (finite, not zero) [default: the cameras' mean
+    /// image-up, else 0,-1,0]
+    #[arg(long, value_parser = direction, allow_hyphen_values = true)]
     up: Option<DVec3>,
 }
 
@@ -429,40 +664,44 @@ struct RenderArgs {
     #[command(flatten)]
     cameras: CameraArgs,
     /// What to draw.
-    #[arg(long, default_value = "color", value_parser = one_of::<RenderKind>(RenderKind::NAMES))]
+    #[arg(long, default_value = "color", value_parser = one_of::<RenderKind>(RenderKind::NAMES.iter().copied()))]
     what: RenderKind,
     /// How depth is drawn.
-    #[arg(long, default_value = "colour", value_parser = one_of::<DepthStyle>(DepthStyle::NAMES))]
+    #[arg(long, default_value = "colour", value_parser = one_of::<DepthStyle>(DepthStyle::NAMES.iter().copied()))]
     depth_style: DepthStyle,
     /// Output directory (frame_XXXX.png).
     #[arg(short, long)]
     output: PathBuf,
-    /// No progress bar.
+    /// No progress bar (a plain progress line at least every minute instead)
     #[arg(long)]
     no_progress: bool,
 }
 
 #[derive(Args)]
 struct StyleArgs {
-    /// Style image (repeat for several styles; at least one).
+    /// Style image; repeat for several (at least one).
     #[arg(long = "style")]
     styles: Vec<PathBuf>,
-    /// Mix the styles with these weights into one output (comma-separated, one per style).
-    #[arg(long, value_delimiter = ',')]
-    weights: Option<Vec<f64>>,
-    /// Style strength: 0 reconstructs the scene, 1 is the full style.
-    #[arg(long, default_value_t = 1.0)]
+    /// Mix the styles into one output with these weights (comma-separated, one per --style,
+    /// each 0 or more, not all 0) [default: none: one output per style]
+    #[arg(long, value_delimiter = ',', value_parser = non_negative)]
+    mix: Option<Vec<f64>>,
+    #[arg(long = "weights", hide = true, value_parser = renamed_to_mix)]
+    _weights: Option<String>,
+    /// Style strength, in [0, 1]: 0 reconstructs the scene, 1 is the full style.
+    #[arg(long, default_value_t = 1.0, value_parser = fraction)]
     alpha: f64,
     /// Keep the scene's colours (the style images are colour-matched to the colour renders).
     #[arg(long)]
     preserve_colour: bool,
-    /// Longest side of the style images after loading.
-    #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE)]
+    /// Longest side of the style images after loading, in pixels (at least 1).
+    #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE, value_parser = at_least_one::<u32>())]
     style_size: u32,
-    /// Network variant (default: the bundle's).
-    #[arg(long)]
+    /// Network variant [default: the bundle's]
+    #[arg(long, value_parser = variant())]
     variant: Option<Variant>,
-    /// Replace the bundle's decoder (.safetensors or a PyTorch checkpoint).
+    /// Replace the bundle's decoder (.safetensors or a PyTorch checkpoint) [default: the
+    /// bundle's]
     #[arg(long)]
     decoder: Option<PathBuf>,
 }
@@ -484,13 +723,13 @@ struct StylizeArgs {
     /// Also write an MP4 per style (needs ffmpeg on PATH).
     #[arg(long)]
     mp4: bool,
-    /// Frames per second of the animations.
-    #[arg(long, default_value_t = 10.0)]
+    /// Frames per second of the animations (above 0).
+    #[arg(long, default_value_t = 10.0, value_parser = positive)]
     fps: f64,
-    /// Views (columns) in the contact sheet.
-    #[arg(long, default_value_t = 4)]
+    /// Views (columns) in the contact sheet (at least 1).
+    #[arg(long, default_value_t = 4, value_parser = at_least_one::<usize>())]
     sheet_views: usize,
-    /// No progress bar.
+    /// No progress bar (a plain progress line at least every minute instead)
     #[arg(long)]
     no_progress: bool,
 }
@@ -504,29 +743,89 @@ struct EvalArgs {
     #[command(flatten)]
     cameras: CameraArgs,
     /// Evaluate the existing frames (*.png in name order) of this directory instead, against
-    /// the geometry of --scene (or of BUNDLE).
+    /// the geometry of --scene (or of BUNDLE) [default: none: render BUNDLE's frames]
     #[arg(long)]
     frames_dir: Option<PathBuf>,
-    /// The geometry for --frames-dir: a .ply file or a bundle directory.
+    /// The geometry for --frames-dir: a .ply file or a bundle directory [default: BUNDLE]
     #[arg(long)]
     scene: Option<PathBuf>,
-    /// Pixels with alpha at or below this are not compared.
-    #[arg(long, default_value_t = 0.5)]
+    /// Pixels with alpha at or below this, in [0, 1], are not compared.
+    #[arg(long, default_value_t = 0.5, value_parser = fraction.map(|v| v as f32))]
     alpha_threshold: f32,
-    /// Relative depth tolerance of the occlusion test.
-    #[arg(long, default_value_t = 0.02)]
+    /// Relative depth tolerance of the occlusion test (above 0).
+    #[arg(long, default_value_t = 0.02, value_parser = positive)]
     depth_tolerance: f64,
-    /// Write the report as JSON.
+    /// Write the report as JSON [default: none: the table only]
     #[arg(short, long)]
     output: Option<PathBuf>,
-    /// No progress bar.
+    /// No progress bar (a plain progress line at least every minute instead)
     #[arg(long)]
     no_progress: bool,
 }
 
+/// The training commands' run flags whose defaults come from the command's configuration:
+/// (subcommand, checkpoint interval, log interval).
+fn run_defaults() -> [(&'static str, u64, u64); 4] {
+    let g = FitGeometryConfig::default().geometry;
+    let d = DecoderTrainConfig::default();
+    let f = FitFeaturesConfig::default().features;
+    let b = BakeConfig::default();
+    [
+        ("fit-geometry", g.checkpoint_interval, g.log_interval),
+        ("pretrain-decoder", d.checkpoint_interval, d.log_interval),
+        ("fit-features", f.checkpoint_interval, f.log_interval),
+        ("bake", b.checkpoint_interval, b.log_interval),
+    ]
+}
+
+/// The command line: the derived one, with each training command's defaults of
+/// `--checkpoint-every` and `--log-every` added to their help.
+fn command() -> clap::Command {
+    let mut cmd = Cli::command();
+    for (name, checkpoint, log) in run_defaults() {
+        cmd = cmd.mut_subcommand(name, |sub| {
+            let add = |arg: clap::Arg, default: u64| {
+                let help = arg.get_help().map(|h| h.to_string()).unwrap_or_default();
+                arg.help(with_default(&help, default))
+            };
+            sub.mut_arg("checkpoint_every", |a| add(a, checkpoint))
+                .mut_arg("log_every", |a| add(a, log))
+        });
+    }
+    cmd
+}
+
+/// Adds [`REPEAT_TIP`] to an unexpected-argument error about a value (not a flag).
+fn with_repeat_tip(mut e: clap::Error) -> clap::Error {
+    let about_a_value = matches!(
+        e.get(ContextKind::InvalidArg),
+        Some(ContextValue::String(a)) if !a.starts_with('-')
+    );
+    if e.kind() == ErrorKind::UnknownArgument && about_a_value {
+        let mut tips = match e.get(ContextKind::Suggested) {
+            Some(ContextValue::StyledStrs(t)) => t.clone(),
+            _ => Vec::new(),
+        };
+        tips.push(StyledStr::from(REPEAT_TIP));
+        e.insert(ContextKind::Suggested, ContextValue::StyledStrs(tips));
+    }
+    e
+}
+
+/// Parses the process's arguments, or exits with clap's message.
+fn parse() -> Cli {
+    let parsed = command()
+        .try_get_matches()
+        .and_then(|m| Cli::from_arg_matches(&m));
+    match parsed {
+        Ok(cli) => cli,
+        Err(e) => with_repeat_tip(e).exit(),
+    }
+}
+
 fn main() -> ExitCode {
     keep_freed_memory();
-    match run(Cli::parse()) {
+    match run(parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) if is_interrupted(&e) => {
             eprintln!("{e}");
@@ -585,11 +884,13 @@ fn is_interrupted(e: &anyhow::Error) -> bool {
 
 /// The stop flag of the training commands, set by the first Ctrl-C, SIGTERM or SIGHUP: the run
 /// ends after the current iteration, writes a checkpoint to resume from and exits with status
-/// [`INTERRUPTED_EXIT`]. A second signal exits at once.
+/// [`INTERRUPTED_EXIT`]. A second signal exits at once, deleting the temporary files of writes in progress.
 fn stop_flag() -> Option<&'static AtomicBool> {
     static STOP: AtomicBool = AtomicBool::new(false);
     let installed = ctrlc::set_handler(|| {
         if STOP.swap(true, Ordering::SeqCst) {
+            // A checkpoint or output being written is abandoned: delete its temporary file.
+            base::fs::remove_unfinished_writes();
             eprintln!("\ninterrupted again: exiting without a checkpoint");
             std::process::exit(INTERRUPTED_EXIT.into());
         }
@@ -604,9 +905,14 @@ fn stop_flag() -> Option<&'static AtomicBool> {
     }
 }
 
-/// Runs `f` with a terminal front end (bars unless `no_progress`) and the stop flag.
-fn with_control<T>(no_progress: bool, f: impl FnOnce(&Control) -> Result<T>) -> Result<T> {
-    let terminal = Terminal::new(!no_progress);
+/// Runs `f` with a terminal front end for `command` (bars unless `no_progress`) and the stop
+/// flag.
+fn with_control<T>(
+    command: &'static str,
+    no_progress: bool,
+    f: impl FnOnce(&Control) -> Result<T>,
+) -> Result<T> {
+    let terminal = Terminal::new(command, !no_progress);
     f(&Control {
         sink: &terminal,
         stop: stop_flag(),
@@ -689,7 +995,7 @@ fn fit_geometry(a: FitGeometryArgs) -> Result<()> {
             checkpoint_every: a.run.checkpoint_every,
         },
     };
-    let r = with_control(a.run.no_progress, |c| {
+    let r = with_control("fit-geometry", a.run.no_progress, |c| {
         Ok(pipeline::fit_geometry::run(&settings, c)?)
     })?;
     println!(
@@ -737,7 +1043,7 @@ fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
             checkpoint_every: a.run.checkpoint_every,
         },
     };
-    let r = with_control(a.run.no_progress, |c| {
+    let r = with_control("pretrain-decoder", a.run.no_progress, |c| {
         Ok(pipeline::pretrain_decoder::run(&settings, c)?)
     })?;
     println!(
@@ -784,7 +1090,7 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
             checkpoint_every: a.run.checkpoint_every,
         },
     };
-    let r = with_control(a.run.no_progress, |c| {
+    let r = with_control("fit-features", a.run.no_progress, |c| {
         Ok(pipeline::fit_features::run(&settings, c)?)
     })?;
     println!(
@@ -807,7 +1113,7 @@ fn bake(a: BakeArgs) -> Result<()> {
     let settings = BakeSettings {
         bundle: a.bundle,
         styles: a.styles,
-        weights: a.weights,
+        weights: a.mix,
         alpha: a.alpha,
         style_side: a.style_size,
         variant: a.variant,
@@ -828,7 +1134,7 @@ fn bake(a: BakeArgs) -> Result<()> {
         output: a.output,
         resume: a.run.resume,
     };
-    let out = with_control(a.run.no_progress, |c| {
+    let out = with_control("bake", a.run.no_progress, |c| {
         Ok(pipeline::bake::run(&settings, c)?)
     })?;
     let s = &out.summary;
@@ -861,7 +1167,7 @@ fn render(a: RenderArgs) -> Result<()> {
     let scene = SceneInput::open(&a.scene)?;
     let known = a.cameras.known(scene.known_cameras())?;
     let cams = pipeline::cameras::select(&a.cameras.request(), &known, scene.gaussians())?;
-    let terminal = Terminal::new(!a.no_progress);
+    let terminal = Terminal::new("render", !a.no_progress);
     let written =
         pipeline::render::render_views(&scene, &cams, a.what, a.depth_style, &a.output, &terminal)?;
     println!("{} images written to {}", written.len(), a.output.display());
@@ -890,7 +1196,9 @@ fn demo(a: DemoArgs) -> Result<()> {
         feature_iterations: a.feature_iterations,
         frames: a.frames,
     };
-    let r = with_control(a.no_progress, |c| Ok(pipeline::demo::run(&settings, c)?))?;
+    let r = with_control("demo", a.no_progress, |c| {
+        Ok(pipeline::demo::run(&settings, c)?)
+    })?;
     print!("{}", pipeline::eval::table(&r.eval));
     if let Some(p) = r.geometry_psnr {
         println!("geometry: held-out PSNR {p:.2} dB");
@@ -921,7 +1229,7 @@ fn stylize(a: StylizeArgs) -> Result<()> {
     let cams = pipeline::cameras::select(&a.cameras.request(), &known, &bundle.scene)?;
     let settings = pipeline::stylize::StylizeSettings {
         styles: a.style.styles,
-        weights: a.style.weights,
+        weights: a.style.mix,
         alpha: a.style.alpha,
         preserve_colour: a.style.preserve_colour,
         style_side: a.style.style_size,
@@ -931,7 +1239,7 @@ fn stylize(a: StylizeArgs) -> Result<()> {
         fps: a.fps,
         sheet_views: a.sheet_views,
     };
-    let terminal = Terminal::new(!a.no_progress);
+    let terminal = Terminal::new("stylize", !a.no_progress);
     let out = pipeline::stylize::run(&bundle, &cams, &settings, &terminal)?;
     for (name, frames) in &out.outputs {
         println!(
@@ -956,7 +1264,7 @@ fn eval(a: EvalArgs) -> Result<()> {
         alpha_threshold: a.alpha_threshold,
         depth_tolerance: a.depth_tolerance,
     };
-    let terminal = Terminal::new(!a.no_progress);
+    let terminal = Terminal::new("eval", !a.no_progress);
     let report = if let Some(frames_dir) = &a.frames_dir {
         let scene_path = a
             .scene
@@ -982,7 +1290,7 @@ fn eval(a: EvalArgs) -> Result<()> {
         let cams = pipeline::cameras::select(&a.cameras.request(), &known, &bundle.scene)?;
         let settings = pipeline::eval::EvalSettings {
             styles: a.style.styles,
-            weights: a.style.weights,
+            weights: a.style.mix,
             alpha: a.style.alpha,
             preserve_colour: a.style.preserve_colour,
             style_side: a.style.style_size,
@@ -997,4 +1305,41 @@ fn eval(a: EvalArgs) -> Result<()> {
         println!("report written to {}", p.display());
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_command_line_is_consistent() {
+        // clap's own checks: unique names, valid defaults, existing ids in `mut_arg`.
+        command().debug_assert();
+    }
+
+    #[test]
+    fn range_parsers_accept_their_ends_and_refuse_what_lies_outside() {
+        assert_eq!(fraction("0"), Ok(0.0));
+        assert_eq!(fraction("1"), Ok(1.0));
+        for bad in ["-0.01", "1.01", "NaN", "inf", "x"] {
+            assert!(fraction(bad).is_err(), "{bad}");
+        }
+        assert!(positive("1e-9").is_ok());
+        for bad in ["0", "-1", "inf", "-inf"] {
+            assert!(positive(bad).is_err(), "{bad}");
+        }
+        assert_eq!(non_negative("0"), Ok(0.0));
+        assert!(non_negative("-1e-9").is_err());
+        let degree = whole_in(0usize, STORED_SH_DEGREE);
+        assert_eq!(degree("0"), Ok(0));
+        assert_eq!(degree("3"), Ok(3));
+        assert!(degree("4").is_err() && degree("-1").is_err() && degree("1.5").is_err());
+        let count = at_least_one::<u64>();
+        assert_eq!(count("1"), Ok(1));
+        assert!(count("0").is_err());
+        assert_eq!(direction("0, 1,-0.5"), Ok(DVec3::new(0.0, 1.0, -0.5)));
+        for bad in ["0,0,0", "1,2", "1,nan,0", "1,inf,0"] {
+            assert!(direction(bad).is_err(), "{bad}");
+        }
+    }
 }

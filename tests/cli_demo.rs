@@ -1,6 +1,7 @@
 //! `dsgs demo` at a toy size (32 x 32 lego views, a few dozen iterations): every stage runs
 //! and writes its outputs, the evaluation is finite and in range, a rerun skips the finished
-//! stages, and missing inputs are named with where to get them.
+//! stages, missing inputs are named with where to get them, and an undecodable style image
+//! fails before any stage runs.
 
 mod common;
 
@@ -79,10 +80,10 @@ fn a_toy_demo_runs_every_stage_and_a_rerun_skips_them() {
     walk(&report["outputs"], &mut numbers);
     assert!(numbers >= 5 * 4, "{report}");
 
-    // A rerun finds the weights, the geometry and the features and only renders.
+    // A rerun finds every stage done and redoes none.
     let second = ok(&mut run());
     let text = String::from_utf8_lossy(&second.stdout).into_owned();
-    for stage in ["weights", "geometry", "features"] {
+    for stage in ["weights", "geometry", "features", "stylize", "eval"] {
         assert!(
             text.contains(&format!("{stage}: done before, skipped")),
             "{stage}: {text}"
@@ -109,6 +110,33 @@ fn missing_shared_files_are_named_with_their_sources() {
     assert!(
         !dir.join("out").exists(),
         "nothing is written before the inputs are checked"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn an_undecodable_style_image_fails_before_any_stage_runs() {
+    let dir = scratch("demo-bad-style");
+    let bad = dir.join("unreadable.txt");
+    std::fs::write(&bad, b"not an image, just text\n").unwrap();
+    let out = dir.join("out");
+    let err = fails(
+        dsgs()
+            .arg("demo")
+            .arg("--shared")
+            .arg(shared_dir())
+            .arg("-o")
+            .arg(&out)
+            .args(["--downscale", "25", "--geometry-iterations", "30"])
+            .args(["--align-warmup", "10", "--feature-iterations", "3"])
+            .args(["--frames", "4", "--no-progress", "--style"])
+            .arg(&bad),
+    );
+    assert!(err.contains("style image"), "{err}");
+    assert!(err.contains("unreadable.txt"), "{err}");
+    assert!(
+        !out.join("geometry").exists() && !out.join("weights.safetensors").exists(),
+        "a stage ran before the style image was checked"
     );
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -1,10 +1,17 @@
 //! `dsgs eval` on the tiny bundle: the report's metrics are finite and in range, frames written
 //! by `dsgs stylize` evaluate to the same consistency, and the timed decode equals the bundle's.
+//! The streamed evaluation gives the numbers of comparing the whole sequence in memory.
 
 mod common;
 
 use common::{dsgs, fails, ok, scratch};
 use dsgs_testkit::shared_path;
+use pipeline::cameras::{evenly_spaced, select, CameraRequest, CameraSource, KnownCameras};
+use pipeline::consistency::{sequence_consistency, DepthView, WarpOptions};
+use pipeline::eval::{evaluate_bundle, EvalSettings, LONG_RANGE, SHORT_RANGE};
+use pipeline::image_io::{clamped, nchw_from_rgb, RgbImage};
+use pipeline::render::render_colour;
+use pipeline::stylize::{self, COLOUR_VIEWS};
 use serde_json::Value;
 
 fn num(v: &Value, path: &[&str]) -> f64 {
@@ -131,4 +138,82 @@ fn bad_eval_input_is_refused_with_a_message() {
     );
     assert!(err.contains("no .png frames"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `evaluate_bundle` streams the sequence; the reference here renders and stylizes every view
+/// first and compares the whole sequences in memory, pair by pair. Two styles with colour
+/// preservation along 11 orbit views (so there are long-range pairs): every number is the same,
+/// bit for bit.
+#[test]
+fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
+    let bundle = common::tiny_bundle();
+    let mut req = CameraRequest::new(CameraSource::Orbit);
+    req.frames = Some(11);
+    req.width = Some(40);
+    req.height = Some(32);
+    let cams = select(&req, &KnownCameras::default(), &bundle.scene).unwrap();
+    let settings = EvalSettings {
+        styles: vec![
+            shared_path("data/styles/mondrian.jpg"),
+            shared_path("data/styles/sketch.png"),
+        ],
+        weights: None,
+        alpha: 0.8,
+        preserve_colour: true,
+        style_side: 48,
+        warp: WarpOptions::default(),
+    };
+    let report = evaluate_bundle(&bundle, "tiny", &cams, &settings, &pipeline::Quiet).unwrap();
+
+    // The reference: every view in memory.
+    let renders: Vec<_> = cams
+        .iter()
+        .map(|c| render_colour(&bundle.scene, c, bundle.info.background).unwrap())
+        .collect();
+    let views: Vec<DepthView> = cams
+        .iter()
+        .zip(&renders)
+        .map(|(camera, r)| DepthView {
+            camera,
+            depth: &r.depth,
+            alpha: &r.alpha,
+        })
+        .collect();
+    let content_views: Vec<&RgbImage> = evenly_spaced(cams.len(), COLOUR_VIEWS)
+        .into_iter()
+        .map(|i| &renders[i].image)
+        .collect();
+    let content = stylize::colour_content(&content_views).unwrap();
+    let styles = stylize::load_styles(&settings.styles, settings.style_side).unwrap();
+    let targets = stylize::style_targets(&bundle, &styles, None, Some(&content)).unwrap();
+    let encoder = &bundle.encoder;
+    let deepest = |img: &RgbImage| encoder.forward(nchw_from_rgb(img).view()).unwrap();
+    let colour: Vec<RgbImage> = renders.iter().map(|r| clamped(&r.image)).collect();
+    let mut sequences = vec![(colour.clone(), None)];
+    for t in &targets {
+        let (mut frames, mut style_sum, mut content_sum) = (Vec::new(), 0.0f64, 0.0f64);
+        for (c, colour_image) in cams.iter().zip(&colour) {
+            let view = stylize::render_feature_view(&bundle, c).unwrap();
+            let (img, _) = stylize::stylize_view(&bundle, &view, t, settings.alpha).unwrap();
+            let f = deepest(&img);
+            style_sum += style::style_loss(&f, &t.stats.levels).unwrap() as f64;
+            let colour_deepest = deepest(colour_image).pop().unwrap();
+            content_sum += style::content_loss(f.last().unwrap(), &colour_deepest).unwrap() as f64;
+            frames.push(img);
+        }
+        let n = cams.len() as f64;
+        sequences.push((frames, Some((style_sum / n, content_sum / n))));
+    }
+
+    assert_eq!(report.outputs.len(), 1 + targets.len());
+    for (o, (frames, losses)) in report.outputs.iter().zip(&sequences) {
+        for (got, offset) in [(o.short_range, SHORT_RANGE), (o.long_range, LONG_RANGE)] {
+            let want = sequence_consistency(frames, &views, offset, &settings.warp, Some(encoder))
+                .unwrap();
+            assert_eq!(got, want, "{}, offset {offset}", o.name);
+            assert_eq!(got.pairs, cams.len() - offset);
+        }
+        assert_eq!(o.style_loss, losses.map(|l| l.0), "{}", o.name);
+        assert_eq!(o.content_loss, losses.map(|l| l.1), "{}", o.name);
+    }
 }

@@ -105,3 +105,32 @@ fn bad_render_input_is_refused_with_a_message() {
     assert!(err.contains("no/such/scene.ply"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_huge_image_size_is_refused_quickly_naming_the_limit() {
+    let ply = shared_path("data/gaussians/trained_9080.ply");
+    let dir = scratch("render-huge");
+    let limit = gaussian::camera::MAX_IMAGE_SIDE.to_string();
+    // A width far beyond the limit (it once aborted on a 300 GB allocation), and a scale factor
+    // that makes the orbit's cameras as large.
+    for (flag, value) in [("--width", "100000000"), ("--scale", "100000")] {
+        let out = dir.join(&flag[2..]);
+        let started = std::time::Instant::now();
+        let err = fails(
+            dsgs()
+                .args(["render", "--scene"])
+                .arg(&ply)
+                .args(["--frames", "1", flag, value, "-o"])
+                .arg(&out),
+        );
+        assert!(err.contains(flag) && err.contains(&limit), "{err}");
+        assert!(!out.exists(), "{} was written", out.display());
+        // Refused before anything is rendered: well under the time of one render.
+        assert!(
+            started.elapsed().as_secs() < 60,
+            "{flag} took {:?}",
+            started.elapsed()
+        );
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -79,13 +79,7 @@ fn weighted_styles_mix_into_one_output() {
         .arg(&a)
         .arg("--style")
         .arg(&b)
-        .args([
-            "--weights",
-            "0.25,0.75",
-            "--alpha",
-            "0.8",
-            "--preserve-colour",
-        ])
+        .args(["--mix", "0.25,0.75", "--alpha", "0.8", "--preserve-colour"])
         .args(["--style-size", "64", "--cameras", "test", "-o"])
         .arg(&out));
     // Two held-out cameras (orbit views 0 and 8 of 16).
@@ -114,12 +108,14 @@ fn bad_stylize_input_is_refused_with_a_message() {
     std::fs::write(&text, "not an image at all").unwrap();
     let err = fails(base("o1").arg("--style").arg(&text));
     assert!(
-        err.contains("notes.jpg") && err.contains("cannot decode image"),
+        err.contains(&format!("style image {}: ", text.display()))
+            && err.contains("cannot decode image"),
         "{err}"
     );
+    assert_eq!(err.matches("notes.jpg").count(), 1, "{err}");
     // A missing style file.
     let err = fails(base("o2").args(["--style", "nowhere/style.png"]));
-    assert!(err.contains("nowhere/style.png"), "{err}");
+    assert!(err.contains("style image nowhere/style.png"), "{err}");
     // A decoder of another width (the compressed relu4_1 decoder takes 128 channels).
     let err = fails(
         base("o3")
@@ -142,10 +138,27 @@ fn bad_stylize_input_is_refused_with_a_message() {
             .arg("-o")
             .arg(dir.join("o4")),
     );
-    assert!(err.contains("bundle.json"), "{err}");
+    assert!(err.contains("no bundle.json"), "{err}");
+    assert!(!err.contains("os error"), "{err}");
+    // A bundle folder that is not there.
+    let gone = dir.join("gone");
+    let err = fails(
+        dsgs()
+            .arg("stylize")
+            .arg(&gone)
+            .arg("--style")
+            .arg(&a)
+            .arg("-o")
+            .arg(dir.join("o7")),
+    );
+    assert!(
+        err.contains(&format!("bundle folder {} not found", gone.display())),
+        "{err}"
+    );
+    assert!(!err.contains("os error"), "{err}");
     // Weights that do not match the styles.
-    let err = fails(base("o5").arg("--style").arg(&a).args(["--weights", "1,2"]));
-    assert!(err.contains("--weights has 2 values for 1 style"), "{err}");
+    let err = fails(base("o5").arg("--style").arg(&a).args(["--mix", "1,2"]));
+    assert!(err.contains("has 2 values for 1 style"), "{err}");
     // MP4 without ffmpeg on PATH.
     let empty = dir.join("empty-path");
     std::fs::create_dir_all(&empty).unwrap();
@@ -157,5 +170,51 @@ fn bad_stylize_input_is_refused_with_a_message() {
             .env("PATH", &empty),
     );
     assert!(err.contains("ffmpeg"), "{err}");
+    // A strength outside [0, 1] and weights that are all zero.
+    let err = fails(base("o8").arg("--style").arg(&a).args(["--alpha", "5"]));
+    assert!(err.contains("--alpha") && err.contains('5'), "{err}");
+    let err = fails(
+        base("o9")
+            .arg("--style")
+            .arg(&a)
+            .arg("--style")
+            .arg(&a)
+            .args(["--mix", "0,0"]),
+    );
+    assert!(err.contains("all zero"), "{err}");
+    // Nothing was written for any of the refused runs.
+    for o in ["o1", "o2", "o3", "o4", "o5", "o6", "o7", "o8", "o9"] {
+        assert!(!dir.join(o).exists(), "{o} was written");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_style_that_does_not_decode_fails_before_any_output() {
+    let dir = scratch("stylize-garbage");
+    let bundle = save_tiny_bundle(&dir);
+    let [a, _] = styles();
+    let garbage = dir.join("style.txt");
+    std::fs::write(&garbage, "these are words, not pixels").unwrap();
+    let out = dir.join("out");
+    // The good style first: the bad one is still decoded before the first frame.
+    let err = fails(
+        dsgs()
+            .arg("stylize")
+            .arg(&bundle)
+            .arg("--style")
+            .arg(&a)
+            .arg("--style")
+            .arg(&garbage)
+            .args(["--frames", "2", "--style-size", "64", "-o"])
+            .arg(&out),
+    );
+    assert!(
+        err.contains(&format!("style image {}: ", garbage.display())),
+        "{err}"
+    );
+    assert!(!err.contains("dataset:"), "{err}");
+    assert_eq!(err.matches("style.txt").count(), 1, "{err}");
+    assert!(!out.exists(), "{} was written", out.display());
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -358,10 +358,15 @@ fn fit_features_writes_a_bundle_that_stylizes() {
     }
     // One more iteration from the final checkpoint (with the saved configuration) gives the
     // features and lifter of four iterations straight through, bit for bit.
+    // The resumed run reads the views' and styles' encodings back from the first run's cache
+    // (the straight run has none), so the bit-identity below also covers the cache.
     let features_run = |out: &Path, extra: &[&str]| {
-        String::from_utf8_lossy(&ok(&mut inputs.inputs_only(out, 4, extra)).stdout).into_owned()
+        let o = ok(&mut inputs.inputs_only(out, 4, extra));
+        let [stdout, stderr] =
+            [o.stdout, o.stderr].map(|b| String::from_utf8_lossy(&b).into_owned());
+        (stdout, stderr)
     };
-    let text = features_run(
+    let (text, log) = features_run(
         &out,
         &[
             "--resume",
@@ -369,11 +374,16 @@ fn fit_features_writes_a_bundle_that_stylizes() {
         ],
     );
     assert!(text.contains("1 iterations"), "{text}");
+    assert!(
+        log.contains("5 views and 2 style images encoded") && log.contains("(7 reused from"),
+        "{log}"
+    );
     let straight = dir.join("straight");
-    features_run(
+    let (_, log) = features_run(
         &straight,
         &["--config", out.join("config.toml").to_str().unwrap()],
     );
+    assert!(log.contains("(0 reused from"), "{log}");
     let a = SceneBundle::load(&out.join("bundle")).unwrap();
     let b = SceneBundle::load(&straight.join("bundle")).unwrap();
     assert_eq!(a.scene.features, b.scene.features);
@@ -411,6 +421,45 @@ fn fit_features_writes_a_bundle_that_stylizes() {
             .arg(dir.join("bad")),
     );
     assert!(err.contains("no/such/geometry.ply"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Writes `dir/NAME`, a copy of a shared PNG cut short: its header is sound, so only decoding
+/// its pixels finds the problem.
+fn cut_png(dir: &Path, name: &str) -> PathBuf {
+    let png = std::fs::read(shared_path("data/styles/sketch.png")).unwrap();
+    let p = dir.join(name);
+    std::fs::write(&p, &png[..png.len() / 3]).unwrap();
+    p
+}
+
+#[test]
+fn a_bad_image_stops_fit_features_before_anything_is_written() {
+    let dir = scratch("fit-features-bad-image");
+    let inputs = tiny_features(&dir);
+    cut_png(inputs.path("--style"), "cut.png");
+    let out = dir.join("out");
+    let err = fails(&mut inputs.command(&out, 3, &[]));
+    assert!(err.contains("cut.png"), "{err}");
+    assert!(!out.exists(), "the failed run wrote into {}", out.display());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_bad_image_stops_pretrain_decoder_before_anything_is_written() {
+    let dir = scratch("pretrain-decoder-bad-image");
+    let inputs = tiny_pretrain(&dir);
+    for (folder, name) in [
+        ("--content", "cut_content.png"),
+        ("--style", "cut_style.png"),
+    ] {
+        let bad = cut_png(inputs.path(folder), name);
+        let out = dir.join("out");
+        let err = fails(&mut inputs.command(&out, 3, &[]));
+        assert!(err.contains(name), "{err}");
+        assert!(!out.exists(), "the failed run wrote into {}", out.display());
+        std::fs::remove_file(bad).unwrap();
+    }
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -497,7 +546,7 @@ fn bake_writes_a_plain_ply_and_a_report() {
             .arg("-o")
             .arg(dir.join("two.ply")),
     );
-    assert!(err.contains("--weights"), "{err}");
+    assert!(err.contains("mix"), "{err}");
     // A directory that is not a bundle is named.
     let not_bundle = dir.join("not-a-bundle");
     std::fs::create_dir_all(&not_bundle).unwrap();

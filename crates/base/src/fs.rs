@@ -1,12 +1,22 @@
 //! The one atomic file write of the workspace: every output file (scenes, checkpoints, weights,
 //! images, reports) is written through [`write_atomic`], so a reader never sees a partly
 //! written file and an interrupted write leaves the previous file intact.
+//!
+//! While a write is in flight its temporary file (`.NAME.tmp-PID-N`, beside the target) is
+//! recorded in a process-wide registry, and removed from it once the write has finished or
+//! failed. A program that must exit at once, in the middle of a write (a second Ctrl-C during a
+//! checkpoint, say), calls [`remove_unfinished_writes`] first: it deletes the temporary files of
+//! every write still in flight, so the abandoned writes leave nothing behind, and makes every
+//! later write of the process fail instead of starting one. The temporary files of a process
+//! that was killed outright are removed by a later write of the same file once they are a day
+//! old.
 
 use std::ffi::OsString;
 use std::fs;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, SystemTime};
 
 /// Temporary files of interrupted writes older than this are removed by the next write of the
@@ -20,8 +30,72 @@ const STALE_AFTER: Duration = Duration::from_secs(24 * 60 * 60);
 /// that the rename itself survives a crash. Missing parent directories are created. On failure
 /// the temporary file is removed and `path` is left as it was. Temporary files that an
 /// interrupted earlier write of the same `path` left behind are removed once they are a day
-/// old; until then they are ignored (no reader looks at them).
+/// old; until then they are ignored (no reader looks at them). While the write is in flight its
+/// temporary file is registered for [`remove_unfinished_writes`]; after that function has run,
+/// the write fails with [`io::ErrorKind::Interrupted`] without creating anything.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
+    write_atomic_with(path, |f| f.write_all(bytes))
+}
+
+/// Deletes the temporary file of every [`write_atomic`] of this process still in flight (best
+/// effort: a file that cannot be removed is skipped) and makes every later [`write_atomic`] of
+/// the process fail with [`io::ErrorKind::Interrupted`] without creating a file.
+///
+/// It is meant for a process about to exit in the middle of a write (e.g. from a second
+/// interrupt signal), right before `std::process::exit`: the abandoned writes then leave
+/// neither a partial target (there never is one) nor their temporary files. The writes it
+/// interrupts fail (their temporary file is gone when they rename it), their targets keep their
+/// previous contents.
+pub fn remove_unfinished_writes() {
+    let mut reg = registry();
+    reg.closed = true;
+    for tmp in reg.in_flight.drain(..) {
+        let _ = fs::remove_file(tmp);
+    }
+}
+
+/// The temporary files of the writes in flight, and whether [`remove_unfinished_writes`] has
+/// run.
+struct Registry {
+    in_flight: Vec<PathBuf>,
+    closed: bool,
+}
+
+static REGISTRY: Mutex<Registry> = Mutex::new(Registry {
+    in_flight: Vec::new(),
+    closed: false,
+});
+
+/// The registry; it holds only paths, so a panic while it was locked left nothing inconsistent.
+fn registry() -> MutexGuard<'static, Registry> {
+    REGISTRY.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// Creates the temporary file `tmp` and registers it, both under the registry's lock, so that
+/// [`remove_unfinished_writes`] either runs first (and the file is never created) or sees it.
+fn create_registered(tmp: &Path) -> io::Result<fs::File> {
+    let mut reg = registry();
+    if reg.closed {
+        return Err(io::Error::new(
+            io::ErrorKind::Interrupted,
+            "the process is exiting: unfinished writes were abandoned",
+        ));
+    }
+    let f = fs::File::create(tmp)?;
+    reg.in_flight.push(tmp.to_path_buf());
+    Ok(f)
+}
+
+/// Removes `tmp` from the registry (a write that finished, or failed and cleaned up).
+fn unregister(tmp: &Path) {
+    registry().in_flight.retain(|p| p != tmp);
+}
+
+/// [`write_atomic`] with the file's contents written by `write`.
+fn write_atomic_with(
+    path: &Path,
+    write: impl FnOnce(&mut fs::File) -> io::Result<()>,
+) -> io::Result<()> {
     static COUNTER: AtomicU64 = AtomicU64::new(0);
     let name = path
         .file_name()
@@ -40,9 +114,9 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
         COUNTER.fetch_add(1, Ordering::Relaxed)
     ));
     let tmp = dir.join(tmp_name);
+    let mut f = create_registered(&tmp)?;
     let result = (|| {
-        let mut f = fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
+        write(&mut f)?;
         f.sync_all()?;
         drop(f);
         fs::rename(&tmp, path)?;
@@ -51,6 +125,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> io::Result<()> {
     if result.is_err() {
         let _ = fs::remove_file(&tmp);
     }
+    unregister(&tmp);
     result
 }
 
@@ -101,6 +176,26 @@ fn sync_dir(dir: &Path) -> io::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::sync::{mpsc, RwLock, RwLockReadGuard};
+
+    /// Tests that write hold this shared; the test of [`remove_unfinished_writes`], which
+    /// deletes the temporary files of every write of the process and refuses new ones until it
+    /// reopens the registry, holds it exclusively.
+    static WRITES: RwLock<()> = RwLock::new(());
+
+    fn writing() -> RwLockReadGuard<'static, ()> {
+        WRITES.read().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// The registered temporary files inside `dir`.
+    fn registered_in(dir: &Path) -> Vec<PathBuf> {
+        registry()
+            .in_flight
+            .iter()
+            .filter(|p| p.starts_with(dir))
+            .cloned()
+            .collect()
+    }
 
     fn scratch(name: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("dsgs-base-{name}-{}", std::process::id()));
@@ -120,6 +215,7 @@ mod tests {
 
     #[test]
     fn replaces_the_file_and_leaves_no_temporary_file() {
+        let _w = writing();
         let d = scratch("replace");
         let p = d.join("out.bin");
         write_atomic(&p, b"first").unwrap();
@@ -131,6 +227,7 @@ mod tests {
 
     #[test]
     fn creates_missing_directories() {
+        let _w = writing();
         let d = scratch("dirs");
         let p = d.join("a/b/out.txt");
         write_atomic(&p, b"x").unwrap();
@@ -140,6 +237,7 @@ mod tests {
 
     #[test]
     fn a_failed_write_keeps_the_old_file_and_removes_its_temporary_file() {
+        let _w = writing();
         let d = scratch("fail");
         let p = d.join("out.bin");
         write_atomic(&p, b"kept").unwrap();
@@ -154,6 +252,7 @@ mod tests {
 
     #[test]
     fn stale_temporary_files_are_removed_and_fresh_ones_ignored() {
+        let _w = writing();
         let d = scratch("stale");
         let p = d.join("out.bin");
         let stale = d.join(".out.bin.tmp-1-0");
@@ -178,6 +277,69 @@ mod tests {
             names(&d),
             [".other.bin.tmp-1-0", ".out.bin.tmp-2-0", "out.bin"]
         );
+        fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn finished_and_failed_writes_leave_nothing_registered() {
+        let _w = writing();
+        let d = scratch("registry");
+        write_atomic(&d.join("out.bin"), b"data").unwrap();
+        // renaming over a non-empty directory fails after the temporary file was written
+        fs::create_dir_all(d.join("dir/inner")).unwrap();
+        assert!(write_atomic(&d.join("dir"), b"lost").is_err());
+        assert_eq!(registered_in(&d), Vec::<PathBuf>::new());
+        assert_eq!(names(&d), ["dir", "out.bin"]);
+        fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn removing_unfinished_writes_deletes_the_temporary_file_of_a_write_in_flight() {
+        let _exclusive = WRITES.write().unwrap_or_else(PoisonError::into_inner);
+        let d = scratch("unfinished");
+        let p = d.join("checkpoint.bin");
+        write_atomic(&p, b"previous").unwrap();
+
+        // A writer thread stops half-way through its write until told to go on.
+        let (started_tx, started) = mpsc::channel();
+        let (resume, resume_rx) = mpsc::channel::<()>();
+        let target = p.clone();
+        let writer = std::thread::spawn(move || {
+            write_atomic_with(&target, |f| {
+                f.write_all(b"first half")?;
+                started_tx.send(()).unwrap();
+                resume_rx.recv().unwrap();
+                f.write_all(b"second half")
+            })
+        });
+        started.recv().unwrap();
+        let in_flight = registered_in(&d);
+        assert_eq!(in_flight.len(), 1, "{in_flight:?}");
+        let tmp_name = in_flight[0]
+            .file_name()
+            .unwrap()
+            .to_string_lossy()
+            .into_owned();
+        assert!(tmp_name.starts_with(".checkpoint.bin.tmp-"), "{tmp_name}");
+        assert_eq!(names(&d), [tmp_name.as_str(), "checkpoint.bin"]);
+
+        remove_unfinished_writes();
+        assert_eq!(names(&d), ["checkpoint.bin"]);
+        assert_eq!(registered_in(&d), Vec::<PathBuf>::new());
+        // a write starting afterwards (while the process exits) creates nothing
+        let late = write_atomic(&d.join("late.bin"), b"x").unwrap_err();
+        assert_eq!(late.kind(), io::ErrorKind::Interrupted);
+
+        // the interrupted write fails and the target keeps its previous contents
+        resume.send(()).unwrap();
+        assert!(writer.join().unwrap().is_err());
+        assert_eq!(fs::read(&p).unwrap(), b"previous");
+        assert_eq!(names(&d), ["checkpoint.bin"]);
+
+        // reopen the registry for the other tests of this process
+        registry().closed = false;
+        write_atomic(&p, b"next").unwrap();
+        assert_eq!(fs::read(&p).unwrap(), b"next");
         fs::remove_dir_all(&d).unwrap();
     }
 

@@ -1,6 +1,7 @@
 //! What every dsgs crate shares, and nothing else: the numeric trait all kernels are generic
 //! over ([`Real`], `f32` or `f64`) and the atomic file write every output goes through
-//! ([`write_atomic`]).
+//! ([`write_atomic`], with [`remove_unfinished_writes`] for a process that must exit in the middle
+//! of one: it deletes the temporary files of the writes still in flight).
 //!
 //! It sits below every other crate of the workspace and depends on none of them.
 //!
@@ -37,5 +38,5 @@
 pub mod fs;
 pub mod real;
 
-pub use fs::write_atomic;
+pub use fs::{remove_unfinished_writes, write_atomic};
 pub use real::{exp_f32, Real};

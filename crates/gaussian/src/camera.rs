@@ -15,6 +15,17 @@ use glam::{DMat3, DMat4, DVec3};
 /// `f32` image already takes 3 GiB) while leaving every real camera through.
 pub const MAX_IMAGE_SIDE: u32 = 16_384;
 
+/// The most bytes an image decoder may allocate for one image file (its decoded 8- or 16-bit
+/// pixels and its own buffers), set as [`image::Limits::max_alloc`] together with
+/// [`MAX_IMAGE_SIDE`] as the largest width and height whenever a dataset image is decoded
+/// ([`crate::dataset::images::load_rgb`]).
+///
+/// 1 GiB holds an 8-bit RGBA image of [`MAX_IMAGE_SIDE`] pixels per side, so every 8-bit image
+/// within the side limit decodes; a 16-bit image must be at most half that many pixels. The RGB
+/// `f32` image made from the decoded pixels takes 12 bytes per pixel on top (3 GiB at the side
+/// limit).
+pub const MAX_DECODE_BYTES: u64 = 1 << 30;
+
 /// Pinhole intrinsics in pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Intrinsics {
@@ -97,6 +108,31 @@ impl Camera {
     }
 }
 
+/// A number for a message: a plain decimal (`0`, `0.5`, `NaN`, `-inf`), in scientific notation
+/// when very large or small (`1e30`, `1e-20`), never with a forced `.0`. Prints an `f32` with
+/// its own shortest digits (`1e30`, not the `f64` widening `1.0000000150474662e30`).
+pub(crate) fn plain_number<T>(v: T) -> String
+where
+    T: Copy + std::fmt::Display + std::fmt::LowerExp + Into<f64>,
+{
+    let x: f64 = v.into();
+    if x == 0.0 || !x.is_finite() || (1e-4..1e9).contains(&x.abs()) {
+        v.to_string()
+    } else {
+        format!("{v:e}")
+    }
+}
+
+/// Numbers for a message, in brackets (`[0, 0.5, NaN, 1e30]`), each as [`plain_number`]: no
+/// Rust type names (`DVec4(..)`) and no forced `.0`.
+pub(crate) fn plain_numbers<T>(values: &[T]) -> String
+where
+    T: Copy + std::fmt::Display + std::fmt::LowerExp + Into<f64>,
+{
+    let parts: Vec<String> = values.iter().map(|&v| plain_number(v)).collect();
+    format!("[{}]", parts.join(", "))
+}
+
 /// How far a camera's rotation `R` may be from orthonormal (the largest entry of
 /// `|R^T R - I|`) for [`check_rigid`]: loose enough for poses written by other tools in single
 /// precision (rounding leaves about `1e-7`), tight enough to refuse a 1% scale (about `2e-2`).
@@ -126,7 +162,10 @@ pub fn check_rigid(m: &DMat4) -> Result<(), String> {
         .zip([0.0, 0.0, 0.0, 1.0])
         .any(|(v, want)| (v - want).abs() > LAST_ROW_TOLERANCE)
     {
-        return Err(format!("the last row is {last:?}; it must be [0, 0, 0, 1]"));
+        return Err(format!(
+            "the last row is {}; it must be [0, 0, 0, 1]",
+            plain_numbers(&last)
+        ));
     }
     let rot = DMat3::from_mat4(*m);
     let err = (rot.transpose() * rot - DMat3::IDENTITY)

@@ -7,7 +7,7 @@
 
 use glam::{DMat3, DQuat, DVec3};
 
-use crate::camera::{Camera, Intrinsics};
+use crate::camera::{plain_numbers, Camera, Intrinsics};
 
 /// An impossible camera path request.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -22,7 +22,7 @@ pub enum CameraPathError {
     #[error("orbit elevation must lie strictly between -90 and 90 degrees, got {0} rad")]
     Elevation(f64),
     /// The orbit `up` axis cannot be normalised (zero, or not finite).
-    #[error("orbit up axis must be a finite non-zero vector, got {0:?}")]
+    #[error("orbit up axis must be a finite non-zero vector, got {}", plain_numbers(&.0.to_array()))]
     Up(DVec3),
     /// [`orbit_from`]'s start camera lies on the line through `center` along `up`, so it has no
     /// horizontal direction to start from.

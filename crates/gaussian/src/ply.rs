@@ -19,7 +19,11 @@
 //! other elements (faces, edges, ...) are parsed past and dropped. Every malformed or truncated
 //! input yields a [`PlyError`] that names the file, the element and property (and instance)
 //! and the problem; element counts are checked against the bytes that are actually present
-//! before anything is allocated from them.
+//! before anything is allocated from them. Values are checked as they are read: a value that is
+//! not finite as an `f32` (NaN, infinite, or a `double` beyond the `f32` range), or a position,
+//! log-scale, opacity logit or rotation norm outside the bounds documented in [`crate::scene`]
+//! ("Bounds on values read from files"), is refused naming the vertex (instance), the property
+//! and the value.
 //!
 //! # Writing
 //! [`save_ply`] writes the canonical binary little-endian layout above (with `float`
@@ -41,8 +45,12 @@ use std::fs;
 use std::io;
 use std::path::{Path, PathBuf};
 
-use crate::scene::SceneError;
-use crate::{FeatureGaussians, Real};
+use crate::camera::{plain_number, plain_numbers};
+use crate::scene::{
+    SceneError, MAX_ABS_OPACITY_LOGIT, MAX_ABS_POSITION, MAX_LOG_SCALE, MAX_QUAT_NORM,
+    MIN_LOG_SCALE, MIN_QUAT_NORM,
+};
+use crate::{error_text, FeatureGaussians, Real};
 
 /// A PLY file that could not be read or written.
 #[derive(Debug, thiserror::Error)]
@@ -57,9 +65,10 @@ pub struct PlyError {
 /// What went wrong with a PLY file.
 #[derive(Debug, thiserror::Error)]
 pub enum PlyErrorKind {
-    /// Reading, writing or renaming the file failed.
-    #[error("I/O error: {0}")]
-    Io(#[from] io::Error),
+    /// Reading, writing or renaming the file failed. The message includes the I/O error's
+    /// text, which is not also returned as [`std::error::Error::source`] (so it shows once).
+    #[error("I/O error: {}", error_text(.0))]
+    Io(io::Error),
     /// A header line is malformed or unsupported.
     #[error("header line {line}: {problem}")]
     Header {
@@ -92,9 +101,23 @@ pub enum PlyErrorKind {
     /// unsupported number of `f_rest_*` properties).
     #[error("vertex layout: {0}")]
     Layout(String),
-    /// The scene to write, or the one read, fails [`FeatureGaussians::validate`].
+    /// The scene to write (or the one read) fails [`FeatureGaussians::validate`]. The message
+    /// includes the scene error's text, which is not also returned as
+    /// [`std::error::Error::source`].
     #[error("invalid scene: {0}")]
-    Scene(#[from] SceneError),
+    Scene(SceneError),
+}
+
+impl From<io::Error> for PlyErrorKind {
+    fn from(e: io::Error) -> PlyErrorKind {
+        PlyErrorKind::Io(e)
+    }
+}
+
+impl From<SceneError> for PlyErrorKind {
+    fn from(e: SceneError) -> PlyErrorKind {
+        PlyErrorKind::Scene(e)
+    }
 }
 
 impl PlyError {
@@ -708,6 +731,64 @@ impl SceneBuilder {
     }
 }
 
+/// Why a value read for `target` is refused, if it is: it is not finite as an `f32`, or it is
+/// outside the bounds of [`crate::scene`] (see its "Bounds on values read from files").
+/// Rotations are also checked as a whole by [`quat_problem`].
+fn value_problem(target: Target, v: f64) -> Option<String> {
+    let what = match target {
+        Target::Mean(_) => "positions (means)",
+        Target::Dc(_) | Target::Rest(_) => "SH coefficients",
+        Target::Opacity => "opacity logits",
+        Target::Scale(_) => "log-scales",
+        Target::Rot(_) => "rotation quaternions",
+        Target::Feat(_) => "features",
+        Target::Normal | Target::Extra(_) | Target::Skip => return None,
+    };
+    let f = v as f32;
+    if !f.is_finite() {
+        let why = if v.is_finite() {
+            " (beyond the 32-bit float range)"
+        } else {
+            ""
+        };
+        return Some(format!(
+            "non-finite value {}{why}; {what} must be finite",
+            plain_number(v)
+        ));
+    }
+    match target {
+        Target::Mean(_) if f.abs() > MAX_ABS_POSITION => Some(format!(
+            "position coordinate {} is outside ±{MAX_ABS_POSITION:e}, the accepted range of {what}",
+            plain_number(f)
+        )),
+        Target::Scale(_) if !(MIN_LOG_SCALE..=MAX_LOG_SCALE).contains(&f) => Some(format!(
+            "log-scale {} is outside [{MIN_LOG_SCALE}, {MAX_LOG_SCALE}], the accepted range of \
+             {what} (the activated scale, its exponential, would be {})",
+            plain_number(f),
+            plain_number(f.exp())
+        )),
+        Target::Opacity if f.abs() > MAX_ABS_OPACITY_LOGIT => Some(format!(
+            "opacity logit {} is outside ±{MAX_ABS_OPACITY_LOGIT:e}, the accepted range of {what}",
+            plain_number(f)
+        )),
+        _ => None,
+    }
+}
+
+/// Why a rotation quaternion (as stored, `f32`) is refused, if it is: its norm is outside
+/// [[`MIN_QUAT_NORM`], [`MAX_QUAT_NORM`]], so it cannot be normalised into a rotation.
+fn quat_problem(q: [f32; 4]) -> Option<String> {
+    let norm = q.iter().map(|&v| f64::from(v).powi(2)).sum::<f64>().sqrt();
+    (!(MIN_QUAT_NORM..=MAX_QUAT_NORM).contains(&norm)).then(|| {
+        format!(
+            "the rotation quaternion {} has norm {}, outside [{MIN_QUAT_NORM:e}, \
+             {MAX_QUAT_NORM:e}]; it cannot be normalised into a rotation",
+            plain_numbers(&q),
+            plain_number(norm)
+        )
+    })
+}
+
 /// Fewest bytes one instance of an element can take in the body (binary: scalars and list
 /// counts; ASCII: one character per value, plus a separator).
 fn min_instance_bytes(e: &ElementDef, format: Format) -> usize {
@@ -861,7 +942,22 @@ pub fn parse_ply(bytes: &[u8], path: &Path) -> Result<PlyScene, PlyError> {
                 };
                 let v = result.map_err(|problem| value_err(path, e, instance, &p.name, problem))?;
                 if let (Some(b), Some(v), true) = (builder.as_mut(), v, is_vertex) {
-                    b.set(layout.targets[pi], v);
+                    let target = layout.targets[pi];
+                    if let Some(problem) = value_problem(target, v) {
+                        return Err(value_err(path, e, instance, &p.name, problem));
+                    }
+                    b.set(target, v);
+                }
+            }
+            if let Some(b) = builder.as_ref().filter(|_| is_vertex) {
+                let q = b
+                    .scene
+                    .quats
+                    .last()
+                    .copied()
+                    .unwrap_or([1.0, 0.0, 0.0, 0.0]);
+                if let Some(problem) = quat_problem(q) {
+                    return Err(value_err(path, e, instance, "rot_0 .. rot_3", problem));
                 }
             }
         }

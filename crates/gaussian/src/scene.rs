@@ -4,10 +4,53 @@
 //! unnormalised quaternions `(w, x, y, z)`, opacity logits. Spherical-harmonic coefficients are
 //! Gaussian-major: Gaussian `n`, coefficient `k` (0 is DC), RGB, i.e. `sh[n * K + k]` with
 //! `K = (sh_degree + 1)^2`. Features are `features[n * feature_dim + c]`.
+//!
+//! # Bounds on values read from files
+//! Every stored value must be finite. A scene read from a file ([`crate::ply`]) must also keep
+//! its activated values meaningful in `f32`: mean coordinates within ±[`MAX_ABS_POSITION`],
+//! log-scales in [[`MIN_LOG_SCALE`], [`MAX_LOG_SCALE`]], opacity logits within
+//! ±[`MAX_ABS_OPACITY_LOGIT`], and rotation quaternions with a norm in
+//! [[`MIN_QUAT_NORM`], [`MAX_QUAT_NORM`]]. Each bound is far beyond what training produces, so
+//! only corrupt or foreign files are refused.
 
 use glam::DVec3;
 
 use crate::{Camera, Real};
+
+/// The largest absolute coordinate of a Gaussian's mean accepted from a file (world units).
+///
+/// `f32` spaces its values one unit apart at `1e7`, so a scene beyond it cannot be rendered at
+/// any useful detail; georeferenced coordinates (UTM northings reach about `1e7`) still pass.
+/// A larger value is a corrupt or foreign file, and its squares would overflow `f32` in the
+/// projection.
+pub const MAX_ABS_POSITION: f32 = 1e7;
+
+/// The largest log-scale accepted from a file: `exp(20)` is about `4.9e8`, fifty times the
+/// largest coordinate ([`MAX_ABS_POSITION`]). Larger values make the activated scale absurd and
+/// soon overflow `f32` (the projected covariance grows with `exp(2 s)`; `exp(s)` itself
+/// overflows above about 88.7).
+pub const MAX_LOG_SCALE: f32 = 20.0;
+
+/// The smallest log-scale accepted from a file. `exp(s)` is already exactly 0 in `f32` below
+/// about -103.9, so a lower value only says the file is corrupt: training moves a log-scale by
+/// at most its learning rate per step (a few hundred over a whole 3DGS run), never to -1000.
+pub const MIN_LOG_SCALE: f32 = -1000.0;
+
+/// The largest absolute opacity logit accepted from a file. The sigmoid is exactly 0 or 1 in
+/// `f32` beyond about ±104, and training moves a logit by at most its learning rate per step
+/// (under 1500 over a whole 3DGS run), so a larger logit only says the file is corrupt.
+pub const MAX_ABS_OPACITY_LOGIT: f32 = 1e4;
+
+/// The smallest norm of a rotation quaternion accepted from a file: [the
+/// projection](mod@crate::project) normalises by `max(|q|, 1e-12)`, so a shorter quaternion (a
+/// zero one among them) would not become a unit quaternion and would scale the Gaussian
+/// instead of rotating it.
+pub const MIN_QUAT_NORM: f64 = 1e-12;
+
+/// The largest norm of a rotation quaternion accepted from a file: training keeps quaternions
+/// near unit length (each step moves a component by about its learning rate), so a norm beyond
+/// `1e6` only says the file is corrupt; far beyond, the norm overflows `f32`.
+pub const MAX_QUAT_NORM: f64 = 1e6;
 
 /// A set of 3D Gaussians with colour (SH) and an optional learnable feature per Gaussian.
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -1,15 +1,23 @@
-//! Robustness: truncated and corrupted PLY, JSON, COLMAP (binary and text), `.npy` and image
-//! inputs must produce `Ok` or `Err`, never a panic, a hang or an absurd allocation.
+//! Robustness: truncated and corrupted PLY, NeRF JSON, COLMAP (binary and text), LLFF `.npy`
+//! and image inputs must produce `Ok` or `Err`, never a panic, a hang or an absurd allocation.
 //!
-//! The loops are deterministic (a fixed-seed xorshift generator): every input is truncated at
-//! every byte offset (or, for the large real COLMAP files, at a few hundred offsets spread over
-//! the file) and mutated a few thousand times by overwriting one to four random bytes. Whatever
-//! loads must also survive the next stage (saving a PLY, building cameras from poses).
+//! Each test is a fuzz target of the testkit's harness ([`dsgs_testkit::fuzz`]): the valid seed
+//! inputs, every truncation of them (a few hundred spread over the large real COLMAP files), then
+//! mutated copies: byte-level mutations for all, and number, string, word and line mutations for
+//! the text formats and text headers (PLY headers, `.npy` headers, JSON, COLMAP text), which
+//! reach the checks past the syntax (counts claiming terabytes, non-finite or negative values,
+//! unknown names). Whatever loads must also survive the next stage (saving a PLY and reading it
+//! back, building and using cameras from poses, loading the images of a dataset).
+//!
+//! The number of mutated inputs per target is bounded for CI; `DSGS_FUZZ_CASES=N` (or
+//! `unbounded`) and `DSGS_FUZZ_SEED` change it, e.g.
+//! `DSGS_FUZZ_CASES=100000 cargo test --release -p dsgs-gaussian --test fuzz -- --nocapture`
+//! (see `docs/robustness.md`).
 
-use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
-use dsgs_testkit::{repo_fixture, shared_path};
+use dsgs_testkit::fuzz::{text_mutators, write_input, CappedAlloc, Target, Truncations};
+use dsgs_testkit::{repo_fixture, scratch_dir, shared_path};
 use gaussian::dataset::colmap::{
     self, parse_cameras_bin, parse_cameras_txt, parse_images_bin, parse_images_txt,
     parse_points3d_bin, parse_points3d_txt, ColmapModel,
@@ -20,79 +28,22 @@ use gaussian::npy::parse_npy;
 use gaussian::ply::{encode_ply, load_ply, parse_ply, ExtraProperty, ScalarType};
 use gaussian::Camera;
 
-/// xorshift64*: a small deterministic generator.
-struct Rng(u64);
+#[global_allocator]
+static ALLOC: CappedAlloc = CappedAlloc;
 
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
-    }
-    fn below(&mut self, n: usize) -> usize {
-        (self.next() % n as u64) as usize
-    }
-}
-
-/// Runs `f` on the truncations of `input` at `offsets` and on `mutations` corrupted copies,
-/// reporting the offending input if `f` panics. Returns how many inputs were accepted.
-fn hammer(
-    what: &str,
-    input: &[u8],
-    offsets: impl IntoIterator<Item = usize>,
-    mutations: usize,
-    seed: u64,
-    f: &dyn Fn(&[u8]),
-) -> usize {
-    let accepted = std::cell::Cell::new(0usize);
-    let run = |desc: &dyn Fn() -> String, bytes: &[u8]| {
-        if catch_unwind(AssertUnwindSafe(|| f(bytes))).is_err() {
-            panic!("{what}: panicked on {}", desc());
-        }
-        accepted.set(accepted.get() + 1);
+/// What a successfully parsed PLY must allow: saving it and reading the same scene back. The
+/// scenes are compared through their encodings, bit for bit (a corrupted file may hold NaNs,
+/// which `==` never matches).
+fn check_ply(bytes: &[u8]) -> bool {
+    let Ok(s) = parse_ply(bytes, Path::new("fuzz.ply")) else {
+        return false;
     };
-    for cut in offsets {
-        run(
-            &|| format!("truncation at byte {cut}"),
-            &input[..cut.min(input.len())],
-        );
-    }
-    let mut rng = Rng(seed);
-    for m in 0..mutations {
-        let mut bytes = input.to_vec();
-        let mut changes = Vec::new();
-        for _ in 0..1 + rng.below(4) {
-            let at = rng.below(bytes.len());
-            let v = rng.next() as u8;
-            bytes[at] = v;
-            changes.push((at, v));
-        }
-        run(
-            &|| format!("mutation {m}: (offset, new byte) {changes:?}"),
-            &bytes,
-        );
-    }
-    accepted.get()
-}
-
-fn all_offsets(input: &[u8]) -> std::ops::Range<usize> {
-    0..input.len()
-}
-
-/// `count` offsets spread over the input.
-fn spread(input: &[u8], count: usize) -> Vec<usize> {
-    (0..count).map(|i| i * input.len() / count).collect()
-}
-
-/// What a successfully parsed PLY must allow: saving it and reading the same scene back.
-fn check_ply(bytes: &[u8]) {
-    if let Ok(s) = parse_ply(bytes, Path::new("fuzz.ply")) {
-        let saved = encode_ply(&s.gaussians, &s.extras, Path::new("fuzz.ply"))
-            .expect("a loaded scene must save");
-        let back = parse_ply(&saved, Path::new("saved.ply")).expect("a saved scene must load");
-        assert_eq!(back, s);
-    }
+    let saved =
+        encode_ply(&s.gaussians, &s.extras, Path::new("fuzz.ply")).expect("a loaded scene saves");
+    let back = parse_ply(&saved, Path::new("saved.ply")).expect("a saved scene loads");
+    let again = encode_ply(&back.gaussians, &back.extras, Path::new("saved.ply")).unwrap();
+    assert!(again == saved, "a save/load round trip changed the scene");
+    true
 }
 
 #[test]
@@ -110,16 +61,12 @@ fn ply_inputs_never_panic() {
     let binary = encode_ply(&scene, &[extra], Path::new("small.ply")).unwrap();
     let ascii = std::fs::read(repo_fixture("ply/tiny_ascii_deg1.ply")).unwrap();
     let big_endian = std::fs::read(repo_fixture("ply/tiny_be_deg0_feat2.ply")).unwrap();
-    for (name, input, seed) in [
-        ("binary LE PLY", &binary, 1),
-        ("ASCII PLY", &ascii, 2),
-        ("binary BE PLY", &big_endian, 3),
-    ] {
-        let ok = hammer(name, input, all_offsets(input), 4000, seed, &check_ply);
-        assert!(ok > 0);
-        // The untouched file parses.
-        assert!(parse_ply(input, Path::new("x")).is_ok(), "{name}");
-    }
+    Target::new("PLY", 12_000)
+        .seed(binary)
+        .seed(ascii)
+        .seed(big_endian)
+        .mutators(text_mutators())
+        .run(check_ply);
 }
 
 #[test]
@@ -128,24 +75,22 @@ fn nerf_json_never_panics() {
         std::fs::read_to_string(shared_path("data/scenes/lego/transforms_train.json")).unwrap();
     let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
     v["frames"].as_array_mut().unwrap().truncate(3);
-    let small = serde_json::to_string_pretty(&v).unwrap().into_bytes();
-    hammer(
-        "transforms JSON",
-        &small,
-        all_offsets(&small),
-        4000,
-        4,
-        &|bytes| {
+    let small = serde_json::to_string_pretty(&v).unwrap();
+    Target::new("NeRF transforms JSON", 5_000)
+        .seed(small)
+        .mutators(text_mutators())
+        .run(|bytes| {
             let text = String::from_utf8_lossy(bytes);
-            if let Ok(t) = parse_transforms(&text, Path::new("transforms.json")) {
-                for f in &t.frames {
-                    let m = frame_matrix(f).expect("checked by parse_transforms");
-                    let cam = Camera::from_opengl_world_from_camera(t.intrinsics(800, 800), m);
-                    let _ = cam.project_point(glam::DVec3::ZERO);
-                }
+            let Ok(t) = parse_transforms(&text, Path::new("transforms.json")) else {
+                return false;
+            };
+            for f in &t.frames {
+                let m = frame_matrix(f).expect("checked by parse_transforms");
+                let cam = Camera::from_opengl_world_from_camera(t.intrinsics(800, 800), m);
+                let _ = cam.project_point(glam::DVec3::ZERO);
             }
-        },
-    );
+            true
+        });
 }
 
 /// Encodes a model in COLMAP's binary layout (as documented in `dataset::colmap`).
@@ -200,80 +145,73 @@ fn encode_model_bin(m: &ColmapModel) -> [Vec<u8>; 3] {
     [cams, imgs, pts]
 }
 
+const BIN: &str = "fuzz.bin";
+const TXT: &str = "fuzz.txt";
+
 #[test]
-fn colmap_text_and_binary_never_panic() {
+fn colmap_binary_never_panics() {
     let dir = repo_fixture("colmap_tiny/sparse/0");
     let model = colmap::read_model(&dir).unwrap();
     // The binary encoding of the text fixture parses back to the same model.
     let [cams, imgs, pts] = encode_model_bin(&model);
-    let p = Path::new("fuzz.bin");
+    let p = Path::new(BIN);
     assert_eq!(parse_cameras_bin(&cams, p).unwrap(), model.cameras);
     assert_eq!(parse_images_bin(&imgs, p).unwrap(), model.images);
     assert_eq!(parse_points3d_bin(&pts, p).unwrap(), model.points);
-
-    hammer("cameras.bin", &cams, all_offsets(&cams), 3000, 5, &|b| {
-        let _ = parse_cameras_bin(b, p);
-    });
-    hammer("images.bin", &imgs, all_offsets(&imgs), 3000, 6, &|b| {
-        let _ = parse_images_bin(b, p);
-    });
-    hammer("points3D.bin", &pts, all_offsets(&pts), 3000, 7, &|b| {
-        let _ = parse_points3d_bin(b, p);
-    });
-    for (file, seed) in [("cameras.txt", 8), ("images.txt", 9), ("points3D.txt", 10)] {
-        let text = std::fs::read(dir.join(file)).unwrap();
-        hammer(file, &text, all_offsets(&text), 3000, seed, &|b| {
-            let _ = parse_cameras_txt(b, p);
-            let _ = parse_images_txt(b, p);
-            let _ = parse_points3d_txt(b, p);
-        });
-    }
+    // The real (small) cameras.bin is a second seed of its parser.
+    let real_cams =
+        std::fs::read(shared_path("data/scenes/beer_can/sparse/0/cameras.bin")).unwrap();
+    Target::new("COLMAP cameras.bin", 5_000)
+        .seed(cams)
+        .seed(real_cams)
+        .run(|b| parse_cameras_bin(b, Path::new(BIN)).is_ok());
+    Target::new("COLMAP images.bin", 5_000)
+        .seed(imgs)
+        .run(|b| parse_images_bin(b, Path::new(BIN)).is_ok());
+    Target::new("COLMAP points3D.bin", 5_000)
+        .seed(pts)
+        .run(|b| parse_points3d_bin(b, Path::new(BIN)).is_ok());
 }
 
+#[test]
+fn colmap_text_never_panics() {
+    let dir = repo_fixture("colmap_tiny/sparse/0");
+    let read = |f: &str| std::fs::read(dir.join(f)).unwrap();
+    Target::new("COLMAP cameras.txt", 5_000)
+        .seed(read("cameras.txt"))
+        .mutators(text_mutators())
+        .run(|b| parse_cameras_txt(b, Path::new(TXT)).is_ok());
+    Target::new("COLMAP images.txt", 5_000)
+        .seed(read("images.txt"))
+        .mutators(text_mutators())
+        .run(|b| parse_images_txt(b, Path::new(TXT)).is_ok());
+    Target::new("COLMAP points3D.txt", 5_000)
+        .seed(read("points3D.txt"))
+        .mutators(text_mutators())
+        .run(|b| parse_points3d_txt(b, Path::new(TXT)).is_ok());
+}
+
+/// The real COLMAP model of the beer_can capture (2 MB of images, 4,414 points), truncated at a
+/// few hundred offsets and mutated.
 #[test]
 fn real_colmap_binaries_never_panic() {
     let dir = shared_path("data/scenes/beer_can/sparse/0");
-    let p = Path::new("fuzz.bin");
-    let cams = std::fs::read(dir.join("cameras.bin")).unwrap();
-    hammer(
-        "beer_can cameras.bin",
-        &cams,
-        all_offsets(&cams),
-        1000,
-        11,
-        &|b| {
-            let _ = parse_cameras_bin(b, p);
-        },
-    );
-    let imgs = std::fs::read(dir.join("images.bin")).unwrap();
-    hammer(
-        "beer_can images.bin",
-        &imgs,
-        spread(&imgs, 150),
-        150,
-        12,
-        &|b| {
-            let _ = parse_images_bin(b, p);
-        },
-    );
-    let pts = std::fs::read(dir.join("points3D.bin")).unwrap();
-    hammer(
-        "beer_can points3D.bin",
-        &pts,
-        spread(&pts, 150),
-        150,
-        13,
-        &|b| {
-            let _ = parse_points3d_bin(b, p);
-        },
-    );
+    let read = |f: &str| std::fs::read(dir.join(f)).unwrap();
+    Target::new("beer_can images.bin", 300)
+        .seed(read("images.bin"))
+        .truncations(Truncations::Spread(150))
+        .run(|b| parse_images_bin(b, Path::new(BIN)).is_ok());
+    Target::new("beer_can points3D.bin", 300)
+        .seed(read("points3D.bin"))
+        .truncations(Truncations::Spread(150))
+        .run(|b| parse_points3d_bin(b, Path::new(BIN)).is_ok());
 }
 
-/// Corrupted camera and image files of a whole (tiny) COLMAP dataset on disk.
+/// A tiny COLMAP dataset on disk (the text fixture and two 64x48 PNGs) whose camera and image
+/// files are corrupted: loading the dataset and its images gives `Ok` or `Err`.
 #[test]
 fn colmap_dataset_loading_never_panics() {
-    let root = std::env::temp_dir().join(format!("dsgs-fuzz-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&root);
+    let root = scratch_dir("fuzz", "colmap-dataset");
     let sparse = root.join("sparse/0");
     std::fs::create_dir_all(&sparse).unwrap();
     std::fs::create_dir_all(root.join("images")).unwrap();
@@ -286,53 +224,63 @@ fn colmap_dataset_loading_never_panics() {
     for f in ["cameras.txt", "images.txt", "points3D.txt"] {
         std::fs::copy(src.join(f), sparse.join(f)).unwrap();
     }
-    assert!(Dataset::load(&root, &LoadOptions::default()).is_ok());
-    for (file, seed) in [("cameras.txt", 14), ("images.txt", 15)] {
+    for file in ["cameras.txt", "images.txt"] {
         let good = std::fs::read(src.join(file)).unwrap();
-        hammer(file, &good, spread(&good, 60), 300, seed, &|b| {
-            std::fs::write(sparse.join(file), b).unwrap();
-            if let Ok(d) = Dataset::load(&root, &LoadOptions::default()) {
-                for i in 0..d.len() {
-                    let _ = d.load_image(i);
-                }
-            }
-        });
+        let (root, target) = (root.clone(), sparse.join(file));
+        Target::new(&format!("COLMAP dataset {file}"), 600)
+            .seed(good.clone())
+            .mutators(text_mutators())
+            .truncations(Truncations::Spread(60))
+            .run(move |b| load_dataset(&root, &target, b));
         std::fs::write(sparse.join(file), &good).unwrap();
     }
     std::fs::remove_dir_all(&root).unwrap();
 }
 
+/// Writes `bytes` to `file` and loads the dataset at `root` with all its images.
+fn load_dataset(root: &PathBuf, file: &Path, bytes: &[u8]) -> bool {
+    write_input(file, bytes);
+    let Ok(d) = Dataset::load(root, &LoadOptions::default()) else {
+        return false;
+    };
+    for i in 0..d.len() {
+        let _ = d.load_image(i);
+    }
+    true
+}
+
 #[test]
-fn npy_never_panics() {
+fn llff_npy_never_panics() {
     let npy = std::fs::read(shared_path("data/scenes/beer_can/poses_bounds.npy")).unwrap();
-    let p = Path::new("fuzz.npy");
-    hammer(
-        "poses_bounds.npy",
-        &npy,
-        all_offsets(&npy),
-        3000,
-        16,
-        &|b| {
-            if let Ok(a) = parse_npy(b, p) {
-                if let Ok(poses) = llff::poses_from_array(&a, p) {
-                    for pose in poses {
-                        let _ = pose.camera.center();
-                    }
+    // The header (a Python dict literal with the shape) gets the text mutators.
+    Target::new("LLFF poses_bounds.npy", 5_000)
+        .seed(npy)
+        .mutators(text_mutators().iter().map(|m| m.within(0..128)))
+        .run(|b| {
+            let p = Path::new("fuzz.npy");
+            let Ok(a) = parse_npy(b, p) else {
+                return false;
+            };
+            if let Ok(poses) = llff::poses_from_array(&a, p) {
+                for pose in poses {
+                    let _ = pose.camera.center();
                 }
             }
-        },
-    );
+            true
+        });
 }
 
 #[test]
 fn corrupted_images_give_errors() {
     let jpg = std::fs::read(shared_path("data/scenes/beer_can/images_8/0000.jpg")).unwrap();
-    let dir = std::env::temp_dir().join(format!("dsgs-fuzz-img-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = scratch_dir("fuzz", "jpeg");
     let file = dir.join("x.jpg");
-    hammer("JPEG", &jpg, spread(&jpg, 100), 100, 17, &|b| {
-        std::fs::write(&file, b).unwrap();
-        let _ = images::load_rgb(&file, [0.0; 3]);
-    });
+    Target::new("JPEG image", 300)
+        .seed(jpg)
+        .truncations(Truncations::Spread(100))
+        .run(move |b| {
+            write_input(&file, b);
+            images::load_rgb(&file, [0.0; 3]).is_ok()
+        });
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -28,12 +28,12 @@ pub enum NetError {
     #[error("{0}")]
     Input(String),
     /// Reading or writing a file failed.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The file being read or written.
         path: PathBuf,
         /// The underlying I/O error.
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// A weights file is malformed or inconsistent.
     #[error("{path}: {detail}")]

@@ -165,17 +165,17 @@ impl NetWeights {
     /// Writes the file atomically ([`base::write_atomic`]).
     pub fn save(&self, path: &Path) -> Result<(), NetError> {
         let bytes = self.to_bytes()?;
-        base::write_atomic(path, &bytes).map_err(|source| NetError::Io {
+        base::write_atomic(path, &bytes).map_err(|error| NetError::Io {
             path: path.to_path_buf(),
-            source,
+            error,
         })
     }
 
     /// Reads a file written by [`NetWeights::save`].
     pub fn load(path: &Path) -> Result<NetWeights, NetError> {
-        let bytes = std::fs::read(path).map_err(|source| NetError::Io {
+        let bytes = std::fs::read(path).map_err(|error| NetError::Io {
             path: path.to_path_buf(),
-            source,
+            error,
         })?;
         NetWeights::from_bytes(&bytes).map_err(|e| match e {
             NetError::Io { .. } | NetError::File { .. } => e,

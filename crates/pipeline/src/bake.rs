@@ -3,7 +3,7 @@
 //!
 //! The style target is built as `dsgs stylize` builds it ([`crate::stylize::style_targets`]):
 //! each `--style` image is read (longer side at most `style_side`) and encoded with the bundle's
-//! encoder; several styles must be mixed with `--weights` into one target, since a `.ply` holds
+//! encoder; several styles must be mixed with `--mix` into one target, since a `.ply` holds
 //! one set of colours. The deepest level's statistics at strength `alpha`
 //! (`SceneBundle::target_stats`) drive the stylized targets.
 //!
@@ -11,6 +11,11 @@
 //! ([`BakeOverrides`]). Outputs: the `.ply` (written atomically) and, beside it, a JSON report
 //! with the same stem ([`report_path`]): the inputs, the effective configuration, the PSNR of the
 //! baked and of the unbaked scene against the training and held-out targets, and the times.
+//!
+//! Inputs are checked before the bundle is loaded or anything is trained or written: the
+//! strength and the mixture weights ([`crate::stylize::check_style_settings`]), the output
+//! name, and every style image, read and decoded up front; then, with the bundle, the size of
+//! every target view at `resolution_scale` ([`crate::cameras::check_image_size`]).
 //!
 //! The optimisation checkpoints into a folder beside the `.ply` ([`checkpoint_dir`]:
 //! `baked.ply` -> `baked.checkpoint/checkpoint.safetensors`) periodically and when stopped; a
@@ -24,7 +29,8 @@ use gaussian::ply::save_ply;
 use serde::Serialize;
 use train::{BakeConfig, BakeReport, Variant};
 
-use crate::stylize::{load_bundle, load_styles, style_targets};
+use crate::cameras::check_image_size;
+use crate::stylize::{check_style_settings, load_bundle, load_styles, style_targets};
 use crate::{config, Control};
 use train::RunOutcome;
 
@@ -101,7 +107,7 @@ pub struct BakeSettings {
     pub bundle: PathBuf,
     /// The style images (`--style`, repeated).
     pub styles: Vec<PathBuf>,
-    /// Mixture weights, one per style (`--weights`; required with several styles).
+    /// Mixture weights, one per style (`--mix`; required with several styles).
     pub weights: Option<Vec<f64>>,
     /// Style strength: 0 reconstructs the scene, 1 is the full style (`--alpha`).
     pub alpha: f64,
@@ -180,6 +186,27 @@ pub fn checkpoint_dir(ply: &Path) -> PathBuf {
     ply.with_extension("checkpoint")
 }
 
+/// Checks the size of every target view: each camera of the bundle scaled by
+/// `resolution_scale` (rounded as `gaussian::Camera::scaled` rounds) must be within the image
+/// size limits. The error names the camera, the bundle and the scale.
+pub fn check_target_sizes(info: &train::BundleInfo, scale: f64, bundle: &Path) -> Result<()> {
+    for (i, c) in info.cameras.iter().enumerate() {
+        let w = (c.width as f64 * scale).round().max(1.0);
+        let h = (c.height as f64 * scale).round().max(1.0);
+        check_image_size(
+            &format!(
+                "camera {i} ({}) of {} at --resolution-scale (resolution_scale) {scale}",
+                c.name,
+                bundle.display()
+            ),
+            // `as u64` saturates: a size beyond it is still reported as too large.
+            w as u64,
+            h as u64,
+        )?;
+    }
+    Ok(())
+}
+
 /// Runs the bake, reporting to the control's sink, and writes the `.ply` and its report when it
 /// completes. A stop request during the optimisation ends it with a checkpoint
 /// ([`RunOutcome::stop_checkpoint`]) and writes nothing else; during the target rendering it
@@ -188,27 +215,31 @@ pub fn run(settings: &BakeSettings, control: &Control) -> Result<BakeOutput> {
     let mut cfg: BakeConfig = config::load(settings.config.as_deref())?;
     settings.overrides.apply(&mut cfg);
     cfg.validate().context("checking the bake configuration")?;
-    if !settings.alpha.is_finite() {
-        bail!("--alpha {} is not finite", settings.alpha);
-    }
+    check_style_settings(
+        settings.alpha,
+        settings.weights.as_deref(),
+        settings.styles.len(),
+    )?;
     if settings.output.extension().is_none_or(|e| e == "json") {
         bail!(
             "the output {} should be a .ply file",
             settings.output.display()
         );
     }
-    let styles = load_styles(&settings.styles, settings.style_side)?;
-    if styles.len() > 1 && settings.weights.is_none() {
+    if settings.styles.len() > 1 && settings.weights.is_none() {
         bail!(
-            "a baked scene holds one style: mix the {} style images with --weights",
-            styles.len()
+            "a baked scene holds one style: mix the {} style images with --mix",
+            settings.styles.len()
         );
     }
+    // Every style image is decoded before the bundle is loaded and long before training.
+    let styles = load_styles(&settings.styles, settings.style_side)?;
     let bundle = load_bundle(
         &settings.bundle,
         settings.variant,
         settings.decoder.as_deref(),
     )?;
+    check_target_sizes(&bundle.info, cfg.resolution_scale, &settings.bundle)?;
     let targets = style_targets(&bundle, &styles, settings.weights.as_deref(), None)?;
     let target = &targets[0];
     let stats = bundle

@@ -19,11 +19,59 @@
 //! Image sizes: `width` and `height` resize every camera (one of them alone keeps each camera's
 //! aspect ratio); `scale` scales them ([`gaussian::Camera::scaled`]); without any, the cameras
 //! keep their size, and cameras made from nothing are 256 x 256.
+//!
+//! Size limits: every image size, given or computed (the flags, a scale factor, an aspect ratio
+//! kept, the cameras of a dataset or bundle), must be 1 to [`MAX_IMAGE_SIDE`] pixels per side
+//! and at most [`MAX_IMAGE_PIXELS`] pixels in all ([`check_image_size`]). [`select`] checks the
+//! request ([`CameraRequest::check`]) before making any camera and every camera it returns, so
+//! an oversized request fails with a message naming the flag and the limit instead of
+//! allocating.
 
 use crate::error::{bail, Context, Error, Result};
+use gaussian::camera::MAX_IMAGE_SIDE;
 use gaussian::camera_path::{interpolate, look_at_point, mean_up, orbit, orbit_from};
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
 use glam::DVec3;
+
+/// The most pixels (width times height) of an image the pipeline renders, decodes or reads as a
+/// style, beside the per-side limit [`MAX_IMAGE_SIDE`]: 8192 x 8192.
+///
+/// The side limit alone lets through 16384 x 16384 = 2^28 pixels, 3 GiB for one RGB `f32`
+/// image; a render holds several such planes (colour, alpha, depth, the rasterizer's own) and a
+/// stylized view tens to hundreds of feature channels per pixel, so sizes near that product
+/// abort on allocation on most machines. A quarter of it still takes every real camera (a 4K
+/// frame is an eighth of it) and panoramas up to 16384 x 4096.
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 26;
+
+/// Checks an image size against [`MAX_IMAGE_SIDE`] and [`MAX_IMAGE_PIXELS`]; the error starts
+/// with `what` (the flag, file or camera the size comes from) and states the limit.
+pub fn check_image_size(what: &str, width: u64, height: u64) -> Result<()> {
+    let max = MAX_IMAGE_SIDE as u64;
+    if !(1..=max).contains(&width) || !(1..=max).contains(&height) {
+        bail!(
+            "{what}: {width} x {height} pixels; an image side must be 1 to {MAX_IMAGE_SIDE} \
+             pixels"
+        );
+    }
+    let pixels = width * height;
+    if pixels > MAX_IMAGE_PIXELS {
+        bail!(
+            "{what}: {width} x {height} = {pixels} pixels; an image may have at most \
+             {MAX_IMAGE_PIXELS} pixels"
+        );
+    }
+    Ok(())
+}
+
+/// Checks the size of every camera against the limits ([`check_image_size`]), naming the
+/// first camera outside them by its index in `cameras`.
+pub fn check_camera_sizes(cameras: &[Camera]) -> Result<()> {
+    for (i, c) in cameras.iter().enumerate() {
+        let k = &c.intrinsics;
+        check_image_size(&format!("camera {i}"), k.width as u64, k.height as u64)?;
+    }
+    Ok(())
+}
 
 /// The orbit radius, in median distances of the Gaussians from their median centre.
 pub const ORBIT_RADIUS_FACTOR: f64 = 2.5;
@@ -168,6 +216,46 @@ impl CameraRequest {
             up: None,
         }
     }
+
+    /// Checks the values of the request on their own: at least one frame, a finite positive
+    /// scale, width and height 1 to [`MAX_IMAGE_SIDE`] and, when both are given, at most
+    /// [`MAX_IMAGE_PIXELS`] pixels. The error names the flag and the limit.
+    pub fn check(&self) -> Result<()> {
+        if self.frames == Some(0) {
+            bail!("--frames must be at least 1");
+        }
+        if let Some(s) = self.scale {
+            if !(s > 0.0 && s.is_finite()) {
+                bail!("--scale {s} is not a positive factor");
+            }
+        }
+        for (flag, v) in [("--width", self.width), ("--height", self.height)] {
+            if let Some(v) = v {
+                if !(1..=MAX_IMAGE_SIDE).contains(&v) {
+                    bail!("{flag} {v}: an image side must be 1 to {MAX_IMAGE_SIDE} pixels");
+                }
+            }
+        }
+        if let (Some(w), Some(h)) = (self.width, self.height) {
+            check_image_size(&format!("--width {w} --height {h}"), w as u64, h as u64)?;
+        }
+        Ok(())
+    }
+
+    /// The flags that change the cameras' sizes, as given (e.g. `--width 64 --scale 2`).
+    fn size_flags(&self) -> String {
+        let mut flags = Vec::new();
+        if let Some(w) = self.width {
+            flags.push(format!("--width {w}"));
+        }
+        if let Some(h) = self.height {
+            flags.push(format!("--height {h}"));
+        }
+        if let Some(s) = self.scale {
+            flags.push(format!("--scale {s}"));
+        }
+        flags.join(" ")
+    }
 }
 
 /// `n` indices spread evenly over `0..len` (all of them when `n >= len`).
@@ -197,42 +285,58 @@ pub fn median_centre(scene: &FeatureGaussians<f32>) -> DVec3 {
     DVec3::new(median(0), median(1), median(2))
 }
 
-fn resize_all(cameras: Vec<Camera>, req: &CameraRequest) -> Result<Vec<Camera>> {
-    if let Some(s) = req.scale {
-        if !(s > 0.0 && s.is_finite()) {
-            bail!("--scale {s} is not a positive factor");
-        }
-    }
-    for (flag, v) in [("--width", req.width), ("--height", req.height)] {
-        if v == Some(0) {
-            bail!("{flag} must be at least 1");
-        }
-    }
-    Ok(cameras
+/// The cameras resized as the request says, each size checked ([`check_image_size`]) before the
+/// camera is made; the error names the flags (or the cameras' origin) and the camera.
+fn resize_all(cameras: Vec<Camera>, req: &CameraRequest, origin: &str) -> Result<Vec<Camera>> {
+    let flags = req.size_flags();
+    cameras
         .into_iter()
-        .map(|c| {
+        .enumerate()
+        .map(|(i, c)| {
+            let k = c.intrinsics;
+            // The size in floating point first, so that an absurd factor cannot wrap or
+            // saturate before it is checked; rounded as `Intrinsics::scaled` rounds.
+            let (mut w, mut h) = (k.width as f64, k.height as f64);
+            if let Some(s) = req.scale {
+                (w, h) = ((w * s).round().max(1.0), (h * s).round().max(1.0));
+            }
+            let aspect = h / w;
+            let (w, h) = match (req.width, req.height) {
+                (Some(a), Some(b)) => (a as f64, b as f64),
+                (Some(a), None) => (a as f64, (a as f64 * aspect).round().max(1.0)),
+                (None, Some(b)) => ((b as f64 / aspect).round().max(1.0), b as f64),
+                (None, None) => (w, h),
+            };
+            let what = if flags.is_empty() {
+                format!("camera {i} of {origin}")
+            } else {
+                format!("camera {i} of {origin} with {flags}")
+            };
+            // `as u64` saturates, so a size beyond u64 is still reported as too large.
+            check_image_size(&what, w as u64, h as u64)?;
             let c = match req.scale {
                 Some(s) => c.scaled(s),
                 None => c,
             };
-            let k = c.intrinsics;
-            let aspect = k.height as f64 / k.width as f64;
-            match (req.width, req.height) {
-                (Some(w), Some(h)) => c.resized(w, h),
-                (Some(w), None) => c.resized(w, ((w as f64 * aspect).round() as u32).max(1)),
-                (None, Some(h)) => c.resized(((h as f64 / aspect).round() as u32).max(1), h),
+            Ok(match (req.width, req.height) {
                 (None, None) => c,
-            }
+                _ => c.resized(w as u32, h as u32),
+            })
         })
-        .collect())
+        .collect()
 }
 
-fn no_cameras(known: &KnownCameras, what: &str) -> Error {
-    let origin = if known.origin.is_empty() {
+/// A readable name of where known cameras come from.
+fn origin_of(known: &KnownCameras) -> String {
+    if known.origin.is_empty() {
         "the scene".to_string()
     } else {
         known.origin.clone()
-    };
+    }
+}
+
+fn no_cameras(known: &KnownCameras, what: &str) -> Error {
+    let origin = origin_of(known);
     Error::Message(format!(
         "{origin} has no cameras for `--cameras {what}`; give --dataset DIR with the scene's \
          cameras, or use `--cameras orbit`"
@@ -240,14 +344,15 @@ fn no_cameras(known: &KnownCameras, what: &str) -> Error {
 }
 
 /// The cameras of a request. `scene` places orbits when no cameras are known.
+///
+/// The request is checked first ([`CameraRequest::check`]), and every camera's size before the
+/// camera is returned ([`check_image_size`]), so nothing is made at a size beyond the limits.
 pub fn select(
     req: &CameraRequest,
     known: &KnownCameras,
     scene: &FeatureGaussians<f32>,
 ) -> Result<Vec<Camera>> {
-    if req.frames == Some(0) {
-        bail!("--frames must be at least 1");
-    }
+    req.check()?;
     let cams = match req.source {
         CameraSource::Dataset => {
             if known.cameras.is_empty() {
@@ -278,7 +383,7 @@ pub fn select(
         }
         CameraSource::Orbit => orbit_cameras(req, known, scene)?,
     };
-    resize_all(cams, req)
+    resize_all(cams, req, &origin_of(known))
 }
 
 fn orbit_cameras(
@@ -296,7 +401,10 @@ fn orbit_cameras(
         return Ok(orbit_from(start, centre, frames, up)?);
     }
     if scene.is_empty() {
-        bail!("an orbit around an empty scene is undefined");
+        bail!(
+            "{}: the scene has no Gaussians, so an orbit around it is undefined",
+            origin_of(known)
+        );
     }
     let centre = median_centre(scene);
     let mut dist: Vec<f64> = scene

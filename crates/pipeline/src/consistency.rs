@@ -36,6 +36,16 @@
 //! Along a sequence, pairs `(i, i + offset)` are compared (short range: offset 1; long range:
 //! offset 7). The RMSE is pooled over the masked pixels of all pairs; the perceptual distance is
 //! the mean over pairs that have a valid position.
+//!
+//! # Streaming
+//! [`sequence_consistency`] compares a sequence held in memory. [`StreamedConsistency`] takes
+//! the views one at a time and keeps only the last `max offset + 1` of them: when view `j`
+//! arrives it is compared with views `j - offset` of the window, so each range still adds its
+//! pairs in the order `i = 0, 1, ...` and the results are those of [`sequence_consistency`],
+//! bit for bit, while memory does not grow with the length of the sequence. The correspondence
+//! of a pair is computed once and shared by every output sequence along the same cameras.
+
+use std::collections::VecDeque;
 
 use crate::error::{bail, Result};
 use gaussian::Camera;
@@ -341,6 +351,21 @@ pub struct PairMetrics {
     pub perceptual: Option<f64>,
 }
 
+/// Checks that an image has its camera's size.
+fn check_image_size(img: &RgbImage, camera: &Camera) -> Result<()> {
+    let k = camera.intrinsics;
+    if (img.width, img.height) != (k.width, k.height) {
+        bail!(
+            "an image is {}x{} but its camera is {}x{}",
+            img.width,
+            img.height,
+            k.width,
+            k.height
+        );
+    }
+    Ok(())
+}
+
 /// Compares image `i` with image `j` warped into view `i`.
 pub fn compare_pair(
     image_i: &RgbImage,
@@ -350,25 +375,26 @@ pub fn compare_pair(
     opts: &WarpOptions,
     encoder: Option<&Encoder<f32>>,
 ) -> Result<PairMetrics> {
-    for (img, v) in [(image_i, view_i), (image_j, view_j)] {
-        let k = v.camera.intrinsics;
-        if (img.width, img.height) != (k.width, k.height) {
-            bail!(
-                "an image is {}x{} but its camera is {}x{}",
-                img.width,
-                img.height,
-                k.width,
-                k.height
-            );
-        }
-    }
+    check_image_size(image_i, view_i.camera)?;
+    check_image_size(image_j, view_j.camera)?;
     let corr = correspond(view_i, view_j, opts)?;
+    compare_warped(image_i, image_j, &corr, encoder)
+}
+
+/// Compares image `i` with image `j` warped into view `i` through their correspondence `corr`
+/// (the images' sizes are checked by the callers).
+fn compare_warped(
+    image_i: &RgbImage,
+    image_j: &RgbImage,
+    corr: &Correspondence,
+    encoder: Option<&Encoder<f32>>,
+) -> Result<PairMetrics> {
     let a = clamped(image_i);
     let bj = clamped(image_j);
     let warped = RgbImage {
         width: image_i.width,
         height: image_i.height,
-        data: warp(&corr, &bj.data, image_j.width as usize, 3),
+        data: warp(corr, &bj.data, image_j.width as usize, 3),
     };
     let mask = corr.mask();
     let (squared_error, valid_pixels) = masked_squared_error(&a.data, &warped.data, &mask);
@@ -400,6 +426,58 @@ pub struct RangeMetrics {
     pub perceptual: Option<f64>,
 }
 
+/// The running sums of one range: the pairs `(i, i + offset)` compared so far, added in the
+/// order of `i`.
+#[derive(Clone, Debug)]
+struct RangeSums {
+    offset: usize,
+    pairs: usize,
+    squared_error: f64,
+    valid: usize,
+    total: usize,
+    perceptual: Vec<f64>,
+}
+
+impl RangeSums {
+    fn new(offset: usize) -> Self {
+        RangeSums {
+            offset,
+            pairs: 0,
+            squared_error: 0.0,
+            valid: 0,
+            total: 0,
+            perceptual: Vec::new(),
+        }
+    }
+
+    /// Adds pair `(i, i + offset)`, whose view `i` has `pixels` pixels.
+    fn add(&mut self, m: &PairMetrics, pixels: usize) {
+        self.pairs += 1;
+        self.squared_error += m.squared_error;
+        self.valid += m.valid_pixels;
+        self.total += pixels;
+        if let Some(d) = m.perceptual {
+            self.perceptual.push(d);
+        }
+    }
+
+    fn metrics(&self) -> RangeMetrics {
+        let (valid, total) = (self.valid, self.total);
+        RangeMetrics {
+            offset: self.offset,
+            pairs: self.pairs,
+            valid_fraction: if total > 0 {
+                valid as f64 / total as f64
+            } else {
+                0.0
+            },
+            rmse: (valid > 0).then(|| (self.squared_error / (3 * valid) as f64).sqrt()),
+            perceptual: (!self.perceptual.is_empty())
+                .then(|| self.perceptual.iter().sum::<f64>() / self.perceptual.len() as f64),
+        }
+    }
+}
+
 /// Compares the pairs `(i, i + offset)` of `images` along `views`.
 pub fn sequence_consistency(
     images: &[RgbImage],
@@ -414,32 +492,129 @@ pub fn sequence_consistency(
     if offset == 0 {
         bail!("consistency offset must be at least 1");
     }
-    let (mut sq, mut valid, mut total) = (0.0f64, 0usize, 0usize);
-    let mut perceptual = Vec::new();
-    let mut pairs = 0;
+    let mut sums = RangeSums::new(offset);
     for i in 0..images.len().saturating_sub(offset) {
         let j = i + offset;
         let m = compare_pair(&images[i], &views[i], &images[j], &views[j], opts, encoder)?;
-        pairs += 1;
-        sq += m.squared_error;
-        valid += m.valid_pixels;
-        total += images[i].data.len() / 3;
-        if let Some(d) = m.perceptual {
-            perceptual.push(d);
+        sums.add(&m, images[i].data.len() / 3);
+    }
+    Ok(sums.metrics())
+}
+
+/// One view of a streamed sequence: its camera, the geometry rendered from it and its image in
+/// each output sequence.
+#[derive(Clone, Debug)]
+pub struct StreamFrame {
+    /// The camera.
+    pub camera: Camera,
+    /// Rendered normalised depth (camera z) per pixel, row-major.
+    pub depth: Vec<f32>,
+    /// Rendered alpha per pixel, row-major.
+    pub alpha: Vec<f32>,
+    /// The view's image in each output sequence, in the order of the outputs.
+    pub images: Vec<RgbImage>,
+}
+
+impl StreamFrame {
+    fn view(&self) -> DepthView<'_> {
+        DepthView {
+            camera: &self.camera,
+            depth: &self.depth,
+            alpha: &self.alpha,
         }
     }
-    Ok(RangeMetrics {
-        offset,
-        pairs,
-        valid_fraction: if total > 0 {
-            valid as f64 / total as f64
-        } else {
-            0.0
-        },
-        rmse: (valid > 0).then(|| (sq / (3 * valid) as f64).sqrt()),
-        perceptual: (!perceptual.is_empty())
-            .then(|| perceptual.iter().sum::<f64>() / perceptual.len() as f64),
-    })
+}
+
+/// Consistency of several output sequences along one camera sequence, fed one view at a time
+/// (see "Streaming" in the module documentation): only the last `max offset + 1` views are
+/// kept.
+pub struct StreamedConsistency<'e> {
+    offsets: Vec<usize>,
+    opts: WarpOptions,
+    encoder: Option<&'e Encoder<f32>>,
+    outputs: usize,
+    window: VecDeque<StreamFrame>,
+    /// Per output, per offset.
+    sums: Vec<Vec<RangeSums>>,
+    peak: usize,
+}
+
+impl<'e> StreamedConsistency<'e> {
+    /// A stream of `outputs` sequences compared at each of `offsets` (each at least 1).
+    pub fn new(
+        outputs: usize,
+        offsets: &[usize],
+        opts: WarpOptions,
+        encoder: Option<&'e Encoder<f32>>,
+    ) -> Result<Self> {
+        if offsets.is_empty() || offsets.contains(&0) {
+            bail!("consistency offsets must be at least 1, got {offsets:?}");
+        }
+        Ok(StreamedConsistency {
+            offsets: offsets.to_vec(),
+            opts,
+            encoder,
+            outputs,
+            window: VecDeque::new(),
+            sums: (0..outputs)
+                .map(|_| offsets.iter().map(|&o| RangeSums::new(o)).collect())
+                .collect(),
+            peak: 0,
+        })
+    }
+
+    /// The most views the window keeps: the largest offset plus one.
+    pub fn capacity(&self) -> usize {
+        self.offsets.iter().max().copied().unwrap_or(0) + 1
+    }
+
+    /// The most views the window has held at once so far.
+    pub fn peak_window(&self) -> usize {
+        self.peak
+    }
+
+    /// Adds the next view: compares it with the views `offset` before it, then keeps it in the
+    /// window (dropping the oldest view beyond the window's capacity).
+    pub fn push(&mut self, frame: StreamFrame) -> Result<()> {
+        if frame.images.len() != self.outputs {
+            bail!(
+                "a view has {} images for {} output sequences",
+                frame.images.len(),
+                self.outputs
+            );
+        }
+        let view_j = frame.view();
+        view_j.check()?;
+        for img in &frame.images {
+            check_image_size(img, &frame.camera)?;
+        }
+        for (k, &offset) in self.offsets.iter().enumerate() {
+            let Some(at) = self.window.len().checked_sub(offset) else {
+                continue;
+            };
+            let earlier = &self.window[at];
+            let corr = correspond(&earlier.view(), &view_j, &self.opts)?;
+            for (o, sums) in self.sums.iter_mut().enumerate() {
+                let image_i = &earlier.images[o];
+                let m = compare_warped(image_i, &frame.images[o], &corr, self.encoder)?;
+                sums[k].add(&m, image_i.data.len() / 3);
+            }
+        }
+        self.window.push_back(frame);
+        if self.window.len() > self.capacity() {
+            self.window.pop_front();
+        }
+        self.peak = self.peak.max(self.window.len());
+        Ok(())
+    }
+
+    /// The metrics of each output sequence, one per offset in the order given.
+    pub fn finish(self) -> Vec<Vec<RangeMetrics>> {
+        self.sums
+            .iter()
+            .map(|per_offset| per_offset.iter().map(RangeSums::metrics).collect())
+            .collect()
+    }
 }
 
 #[cfg(test)]
@@ -610,6 +785,84 @@ mod tests {
             }
         }
         assert!(corr.valid() > 0);
+    }
+
+    /// Frames of a fronto-parallel plane seen by cameras sliding along x, with images that
+    /// differ from view to view (so every pair has a non-zero error).
+    fn sliding_frames(n: usize, outputs: usize) -> Vec<StreamFrame> {
+        let (w, h) = (20usize, 14usize);
+        (0..n)
+            .map(|i| {
+                let camera = Camera::from_rotation_center(
+                    k(w as u32, h as u32),
+                    DMat3::IDENTITY,
+                    DVec3::new(0.02 * i as f64, -0.01 * i as f64, 0.0),
+                );
+                let images = (0..outputs)
+                    .map(|o| RgbImage {
+                        width: w as u32,
+                        height: h as u32,
+                        data: (0..w * h * 3)
+                            .map(|q| ((q * 7 + i * 13 + o * 29) % 17) as f32 / 16.0)
+                            .collect(),
+                    })
+                    .collect();
+                let mut alpha = vec![1.0f32; w * h];
+                alpha[(i * 5) % (w * h)] = 0.0;
+                StreamFrame {
+                    camera,
+                    depth: vec![2.5; w * h],
+                    alpha,
+                    images,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_streamed_ranges_equal_the_in_memory_ones_with_a_bounded_window() {
+        let frames = sliding_frames(20, 2);
+        let opts = WarpOptions::default();
+        let mut stream = StreamedConsistency::new(2, &[1, 7], opts, None).unwrap();
+        for f in frames.clone() {
+            stream.push(f).unwrap();
+        }
+        assert_eq!(stream.capacity(), 8);
+        assert_eq!(stream.peak_window(), 8, "the window holds the last 8 views");
+        let streamed = stream.finish();
+        let views: Vec<DepthView> = frames.iter().map(StreamFrame::view).collect();
+        for (o, per_offset) in streamed.iter().enumerate() {
+            let images: Vec<RgbImage> = frames.iter().map(|f| f.images[o].clone()).collect();
+            for (got, offset) in per_offset.iter().zip([1, 7]) {
+                let want = sequence_consistency(&images, &views, offset, &opts, None).unwrap();
+                assert_eq!(*got, want, "output {o}, offset {offset}");
+                assert_eq!(got.pairs, 20 - offset);
+                assert!(got.rmse.is_some_and(|r| r > 0.0), "{got:?}");
+            }
+        }
+        // A sequence shorter than an offset has no pair at that offset.
+        let mut short = StreamedConsistency::new(1, &[1, 7], opts, None).unwrap();
+        for f in sliding_frames(3, 1) {
+            short.push(f).unwrap();
+        }
+        assert_eq!(short.peak_window(), 3);
+        let r = short.finish();
+        assert_eq!((r[0][0].pairs, r[0][1].pairs), (2, 0));
+        assert_eq!(r[0][1].rmse, None);
+    }
+
+    #[test]
+    fn a_streamed_view_of_the_wrong_shape_is_refused() {
+        let mut frames = sliding_frames(2, 2);
+        let mut stream = StreamedConsistency::new(2, &[1], WarpOptions::default(), None).unwrap();
+        frames[1].images.pop();
+        stream.push(frames[0].clone()).unwrap();
+        let e = stream.push(frames[1].clone()).unwrap_err().to_string();
+        assert!(e.contains("1 images for 2"), "{e}");
+        let mut bad = frames[0].clone();
+        bad.images[1].width -= 1;
+        assert!(stream.push(bad).is_err());
+        assert!(StreamedConsistency::new(1, &[0], WarpOptions::default(), None).is_err());
     }
 
     #[test]

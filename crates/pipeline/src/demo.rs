@@ -1,13 +1,18 @@
 //! `dsgs demo`: the whole pipeline on the lego scene at low resolution, in one command.
 //!
+//! Before anything runs, every input is checked ([`check_inputs`]): missing files are listed
+//! with where to get them, and every image a stage will read is decoded, so a bad style image
+//! fails at once rather than after the training stages.
+//!
 //! Stages, each in its own folder of the output directory and each skipped when its result is
-//! already there (so an interrupted demo continues where it stopped):
+//! already there (so an interrupted demo continues where it stopped, and a finished one reruns
+//! in seconds):
 //!
 //! 1. `weights.safetensors`: the relu3_1 encoder and its decoder, imported from the PyTorch
 //!    checkpoints in `SHARED/weights/wct-relu1_1-3_1/` (or `--weights FILE`).
 //! 2. `geometry/`: `dsgs fit-geometry` on `SHARED/data/scenes/lego` at 1/8 scale (100 x 100),
-//!    white background, 1,000 iterations with the learning-rate schedule and densification
-//!    compressed to that length.
+//!    white background, 1,000 iterations of the 3DGS schedule scaled to that length
+//!    ([`geometry_config`]).
 //! 3. `features/`: `dsgs fit-features` on that geometry, styles from
 //!    `SHARED/data/styles/small-set`: 1,500 cheap alignment-only iterations, then 300 with the
 //!    full loss (alignment, content and style).
@@ -15,6 +20,15 @@
 //!    GIF per style and `contact_sheet.png` (styles x views).
 //! 5. `eval.json`: `dsgs eval` of the same orbit (short- and long-range consistency, style and
 //!    content losses, seconds per view).
+//!
+//! Stages 1 to 3 count as done when their final outputs are there (the geometry's scene and its
+//! last checkpoint, the feature stage's bundle); an unfinished training stage resumes from its
+//! checkpoint. Stages 4 and 5 write a record `OUT/stylize.done.json` or `OUT/eval.done.json`
+//! (atomically, after all their outputs) of what they were made from: the files of the scene
+//! bundle, the decoder and the style images (each path with its size and modification time), the
+//! variant, the number of frames and the rendering settings. A rerun skips such a stage only when
+//! its record matches the run and every output it lists is still there; otherwise the stage runs
+//! again (e.g. after `--style` changes, or when the features were trained again).
 //!
 //! Every stage writes its effective configuration beside its outputs. `SHARED` is `--shared`,
 //! else the `DSGS_SHARED` environment variable, else `../shared`.
@@ -24,8 +38,10 @@ use std::time::Instant;
 
 use crate::error::{bail, Context, Error, Result};
 use crate::Control;
+use gaussian::dataset::Dataset;
 use train::checkpoint::checkpoint_step;
-use train::{FeatureTrainConfig, Variant};
+use train::image_folder::collect_images;
+use train::{FeatureTrainConfig, GeometryConfig, Variant};
 
 use crate::cameras::{CameraRequest, CameraSource, KnownCameras};
 use crate::consistency::WarpOptions;
@@ -34,7 +50,7 @@ use crate::fit_features::{FeatureOverrides, FitFeaturesConfig, FitFeaturesSettin
 use crate::fit_geometry::{FitGeometryConfig, FitSettings, GeometryOverrides};
 use crate::pretrain_decoder::NetworkFiles;
 use crate::stylize::{StylizeOutput, StylizeSettings};
-use crate::{config, stylize, weights};
+use crate::{config, image_io, stylize, weights};
 
 /// The scene of the demo, under `SHARED`.
 pub const SCENE: &str = "data/scenes/lego";
@@ -126,7 +142,15 @@ pub fn styles_or_default(shared: &Path, styles: &[PathBuf]) -> Vec<PathBuf> {
     }
 }
 
-/// Checks that every input exists before anything runs, naming what is missing.
+/// The longest side of the style images in the stylize and eval stages.
+pub const STYLE_SIDE: u32 = 256;
+
+/// Checks every input before anything runs, so that a bad file fails the demo at once rather
+/// than after minutes of training: first that every input exists (naming all that are missing,
+/// with where to get them), then that every image a stage will read decodes: the stylization
+/// styles always, and the training styles and the scene's images unless the stages reading them
+/// (geometry and features) are already done. Errors name the file
+/// (`style image PATH: ...`).
 pub fn check_inputs(s: &DemoSettings) -> Result<()> {
     let mut missing = Vec::new();
     let mut need = |p: PathBuf| {
@@ -155,7 +179,50 @@ pub fn check_inputs(s: &DemoSettings) -> Result<()> {
             missing.join("\n  ")
         );
     }
+    for st in &s.styles {
+        image_io::load_style_image(st, STYLE_SIDE)?;
+    }
+    let features_to_run = !features_done(s);
+    if features_to_run {
+        let training = collect_images(&[s.shared.join(TRAINING_STYLES)], false)?;
+        for st in &training {
+            image_io::load_style_image(st, STYLE_SIDE)?;
+        }
+    }
+    if features_to_run || !geometry_done(s) {
+        let scene = s.shared.join(SCENE);
+        let dataset = Dataset::load(&scene, &geometry_config(s).load_options()?)
+            .with_context(|| format!("loading the dataset {}", scene.display()))?;
+        let all: Vec<usize> = (0..dataset.len()).collect();
+        dataset
+            .load_images(&all)
+            .with_context(|| format!("reading the images of {}", scene.display()))?;
+    }
     Ok(())
+}
+
+/// `OUT/geometry`.
+fn geometry_dir(s: &DemoSettings) -> PathBuf {
+    s.out_dir.join("geometry")
+}
+
+/// `OUT/features/bundle`.
+fn bundle_dir(s: &DemoSettings) -> PathBuf {
+    s.out_dir.join("features").join("bundle")
+}
+
+/// Whether the geometry stage has finished: its scene and its last kept checkpoint are there.
+fn geometry_done(s: &DemoSettings) -> bool {
+    let dir = geometry_dir(s);
+    dir.join("point_cloud.ply").is_file()
+        && dir
+            .join(format!("chkpnt_{}.safetensors", s.geometry_iterations))
+            .is_file()
+}
+
+/// Whether the feature stage has finished: the scene bundle is there.
+fn features_done(s: &DemoSettings) -> bool {
+    bundle_dir(s).join("bundle.json").is_file()
 }
 
 fn timed<T>(f: impl FnOnce() -> Result<T>) -> Result<(T, f64)> {
@@ -182,23 +249,21 @@ fn latest_geometry_checkpoint(dir: &Path) -> Option<PathBuf> {
         .map(|(_, p)| p)
 }
 
-/// The geometry configuration of the demo: 3DGS defaults with the schedule compressed to
-/// `iterations` (position learning rate decaying over the run, densification from a quarter to
-/// the end every `iterations / 10` steps, no opacity reset, an SH degree every quarter).
+/// The geometry configuration of the demo: the 3DGS schedule scaled to `geometry_iterations`
+/// ([`GeometryConfig::scaled_to`](train::GeometryConfig::scaled_to), the rule of
+/// `fit-geometry --iterations`), on a white background from 20,000 random points, evaluated
+/// and saved at the end, with kept checkpoints half-way and at the end (the last one marks the
+/// stage as done) and a periodic one every quarter.
 pub fn geometry_config(s: &DemoSettings) -> FitGeometryConfig {
-    let mut c = FitGeometryConfig::default();
+    let n = s.geometry_iterations.max(1);
+    let mut c = FitGeometryConfig {
+        geometry: GeometryConfig::default().scaled_to(n),
+        ..FitGeometryConfig::default()
+    };
     c.dataset.downscale = s.downscale;
     let g = &mut c.geometry;
-    let n = s.geometry_iterations.max(1);
-    g.iterations = n;
     g.background = [1.0, 1.0, 1.0];
     g.random_init_points = 20_000;
-    g.sh_degree_interval = (n / 4).max(1);
-    g.learning_rates.position_lr_max_steps = n;
-    g.densify.densify_from_iter = n / 4;
-    g.densify.densify_until_iter = n;
-    g.densify.densification_interval = (n / 10).max(1);
-    g.densify.opacity_reset_interval = n + 1;
     g.test_iterations = vec![n];
     g.save_iterations = vec![n];
     g.checkpoint_iterations = vec![n / 2, n];
@@ -258,11 +323,10 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
     };
 
     // 2. geometry
-    let geo_dir = s.out_dir.join("geometry");
+    let geo_dir = geometry_dir(s);
     let ply = geo_dir.join("point_cloud.ply");
     let mut geometry_psnr = None;
-    let finished = geo_dir.join(format!("chkpnt_{}.safetensors", s.geometry_iterations));
-    if ply.is_file() && finished.is_file() {
+    if geometry_done(s) {
         seconds.push(("geometry", None));
     } else {
         std::fs::create_dir_all(&geo_dir)
@@ -288,8 +352,8 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
 
     // 3. features
     let feat_dir = s.out_dir.join("features");
-    let bundle_dir = feat_dir.join("bundle");
-    if bundle_dir.join("bundle.json").is_file() {
+    let bundle_dir = bundle_dir(s);
+    if features_done(s) {
         seconds.push(("features", None));
     } else {
         std::fs::create_dir_all(&feat_dir)
@@ -333,37 +397,67 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
         weights: None,
         alpha: 1.0,
         preserve_colour: false,
-        style_side: 256,
+        style_side: STYLE_SIDE,
         out_dir: s.out_dir.join("stylized"),
         gif: true,
         mp4: false,
         fps: 12.0,
         sheet_views: 6,
     };
-    let (stylized, t) = timed(|| stylize::run(&bundle, &cams, &settings, control.sink))?;
-    seconds.push(("stylize", Some(t)));
+    let inputs = record::Inputs::new(s, &bundle_dir, &settings)?;
+    let stylize_record = record::path(&s.out_dir, "stylize");
+    let stylized = match record::finished::<record::Stylized>(&stylize_record, &inputs) {
+        Some(done) => {
+            seconds.push(("stylize", None));
+            done.output()
+        }
+        None => {
+            record::forget(&stylize_record)?;
+            let (out, t) = timed(|| stylize::run(&bundle, &cams, &settings, control.sink))?;
+            record::write(&stylize_record, &inputs, &record::Stylized::of(&out))?;
+            seconds.push(("stylize", Some(t)));
+            out
+        }
+    };
 
     // 5. evaluate the same orbit
-    let eval_settings = EvalSettings {
-        styles: s.styles.clone(),
-        weights: None,
-        alpha: 1.0,
-        preserve_colour: false,
-        style_side: 256,
-        warp: WarpOptions::default(),
-    };
-    let (eval, t) = timed(|| {
-        crate::eval::evaluate_bundle(
-            &bundle,
-            &bundle_dir.display().to_string(),
-            &cams,
-            &eval_settings,
-            control.sink,
-        )
-    })?;
     let eval_json = s.out_dir.join("eval.json");
-    crate::eval::write_report(&eval_json, &eval)?;
-    seconds.push(("eval", Some(t)));
+    let eval_record = record::path(&s.out_dir, "eval");
+    let finished_eval = record::finished::<record::Evaluated>(&eval_record, &inputs)
+        .and_then(|_| record::read_eval_report(&eval_json).ok());
+    let eval = match finished_eval {
+        Some(report) => {
+            seconds.push(("eval", None));
+            report
+        }
+        None => {
+            record::forget(&eval_record)?;
+            let eval_settings = EvalSettings {
+                styles: s.styles.clone(),
+                weights: None,
+                alpha: settings.alpha,
+                preserve_colour: settings.preserve_colour,
+                style_side: settings.style_side,
+                warp: WarpOptions::default(),
+            };
+            let (eval, t) = timed(|| {
+                crate::eval::evaluate_bundle(
+                    &bundle,
+                    &bundle_dir.display().to_string(),
+                    &cams,
+                    &eval_settings,
+                    control.sink,
+                )
+            })?;
+            crate::eval::write_report(&eval_json, &eval)?;
+            let evaluated = record::Evaluated {
+                report: eval_json.clone(),
+            };
+            record::write(&eval_record, &inputs, &evaluated)?;
+            seconds.push(("eval", Some(t)));
+            eval
+        }
+    };
 
     Ok(DemoReport {
         geometry_psnr,
@@ -373,6 +467,302 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
         eval_json,
         seconds,
     })
+}
+
+/// The records of the finished stylize and eval stages: `OUT/{stage}.done.json`, written
+/// atomically when the stage has written all its outputs and removed before it runs again.
+///
+/// A record holds the stage's [`Inputs`] (the files of the scene bundle and the decoder, the
+/// style images, each with its size and modification time, and the settings) and what the
+/// stage wrote. A rerun skips the stage when its record exists, its inputs equal those of the
+/// run and every recorded output is still there; otherwise the stage runs again.
+mod record {
+    use std::path::{Path, PathBuf};
+    use std::time::UNIX_EPOCH;
+
+    use serde::de::DeserializeOwned;
+    use serde::{Deserialize, Serialize};
+    use train::Variant;
+
+    use super::DemoSettings;
+    use crate::error::{Context, Result};
+    use crate::eval::EvalReport;
+    use crate::stylize::{StageSeconds, StylizeOutput, StylizeSettings};
+
+    /// `OUT/{stage}.done.json`.
+    pub fn path(out_dir: &Path, stage: &str) -> PathBuf {
+        out_dir.join(format!("{stage}.done.json"))
+    }
+
+    /// A file a stage read: its path, size and modification time.
+    #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+    pub struct FileStamp {
+        path: PathBuf,
+        bytes: u64,
+        /// Modification time since the Unix epoch: seconds and nanoseconds.
+        modified: (u64, u32),
+    }
+
+    impl FileStamp {
+        fn of(path: &Path) -> Result<FileStamp> {
+            let meta =
+                std::fs::metadata(path).with_context(|| format!("reading {}", path.display()))?;
+            let modified = meta
+                .modified()
+                .ok()
+                .and_then(|t| t.duration_since(UNIX_EPOCH).ok())
+                .map_or((0, 0), |d| (d.as_secs(), d.subsec_nanos()));
+            Ok(FileStamp {
+                path: path.to_path_buf(),
+                bytes: meta.len(),
+                modified,
+            })
+        }
+    }
+
+    /// What the stylize and eval stages are made from.
+    #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+    pub struct Inputs {
+        /// The files of the scene bundle, sorted by name.
+        bundle: Vec<FileStamp>,
+        /// The decoder used instead of the bundle's.
+        decoder: Option<FileStamp>,
+        variant: Variant,
+        /// The style images, in order.
+        styles: Vec<FileStamp>,
+        frames: usize,
+        style_side: u32,
+        alpha: f64,
+        preserve_colour: bool,
+        gif: bool,
+        fps: f64,
+        sheet_views: usize,
+    }
+
+    impl Inputs {
+        /// The inputs of a demo run's stylize and eval stages.
+        pub fn new(s: &DemoSettings, bundle_dir: &Path, st: &StylizeSettings) -> Result<Inputs> {
+            let mut bundle = Vec::new();
+            for e in std::fs::read_dir(bundle_dir)
+                .with_context(|| format!("reading {}", bundle_dir.display()))?
+            {
+                let p = e
+                    .with_context(|| format!("reading {}", bundle_dir.display()))?
+                    .path();
+                if p.is_file() {
+                    bundle.push(FileStamp::of(&p)?);
+                }
+            }
+            bundle.sort_by(|a, b| a.path.cmp(&b.path));
+            Ok(Inputs {
+                bundle,
+                decoder: s.decoder.as_deref().map(FileStamp::of).transpose()?,
+                variant: s.variant,
+                styles: st
+                    .styles
+                    .iter()
+                    .map(|p| FileStamp::of(p))
+                    .collect::<Result<_>>()?,
+                frames: s.frames,
+                style_side: st.style_side,
+                alpha: st.alpha,
+                preserve_colour: st.preserve_colour,
+                gif: st.gif,
+                fps: st.fps,
+                sheet_views: st.sheet_views,
+            })
+        }
+    }
+
+    /// What a stage wrote, as its record keeps it.
+    pub trait Outputs {
+        /// The files that must still be there for the stage to count as done.
+        fn files(&self) -> Vec<&Path>;
+    }
+
+    #[derive(Serialize, Deserialize)]
+    struct Record<T> {
+        inputs: Inputs,
+        outputs: T,
+    }
+
+    /// The outputs of the stage recorded in `record` when it was made from `inputs` and all its
+    /// files are still there (`None` otherwise, an unreadable record included).
+    pub fn finished<T: Outputs + DeserializeOwned>(record: &Path, inputs: &Inputs) -> Option<T> {
+        let bytes = std::fs::read(record).ok()?;
+        let r: Record<T> = serde_json::from_slice(&bytes).ok()?;
+        (r.inputs == *inputs && r.outputs.files().iter().all(|f| f.is_file())).then_some(r.outputs)
+    }
+
+    /// Removes a stage's record before the stage runs, so that a run stopped half-way is never
+    /// taken for a finished one.
+    pub fn forget(record: &Path) -> Result<()> {
+        match std::fs::remove_file(record) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                Err(e).with_context(|| format!("removing {}", record.display()))
+            }
+            _ => Ok(()),
+        }
+    }
+
+    /// Writes a stage's record (atomically), once its outputs are all written.
+    pub fn write<T: Serialize>(record: &Path, inputs: &Inputs, outputs: &T) -> Result<()> {
+        let json = serde_json::to_vec_pretty(&Record {
+            inputs: inputs.clone(),
+            outputs,
+        })
+        .context("serialising a stage record")?;
+        base::write_atomic(record, &json).with_context(|| format!("writing {}", record.display()))
+    }
+
+    /// What the stylize stage wrote ([`StylizeOutput`] without the MP4s the demo never makes).
+    #[derive(Serialize, Deserialize)]
+    pub struct Stylized {
+        outputs: Vec<(String, Vec<PathBuf>)>,
+        gifs: Vec<PathBuf>,
+        contact_sheet: Option<PathBuf>,
+        /// Mean seconds per view: raster, lift and transform, decode.
+        seconds: [f64; 3],
+    }
+
+    impl Stylized {
+        pub fn of(o: &StylizeOutput) -> Stylized {
+            Stylized {
+                outputs: o.outputs.clone(),
+                gifs: o.gifs.clone(),
+                contact_sheet: o.contact_sheet.clone(),
+                seconds: [o.seconds.raster, o.seconds.lift_transform, o.seconds.decode],
+            }
+        }
+
+        pub fn output(self) -> StylizeOutput {
+            let [raster, lift_transform, decode] = self.seconds;
+            StylizeOutput {
+                outputs: self.outputs,
+                gifs: self.gifs,
+                mp4s: Vec::new(),
+                contact_sheet: self.contact_sheet,
+                seconds: StageSeconds {
+                    raster,
+                    lift_transform,
+                    decode,
+                },
+            }
+        }
+    }
+
+    impl Outputs for Stylized {
+        fn files(&self) -> Vec<&Path> {
+            self.outputs
+                .iter()
+                .flat_map(|(_, frames)| frames)
+                .chain(&self.gifs)
+                .chain(&self.contact_sheet)
+                .map(PathBuf::as_path)
+                .collect()
+        }
+    }
+
+    /// What the eval stage wrote: its report.
+    #[derive(Serialize, Deserialize)]
+    pub struct Evaluated {
+        pub report: PathBuf,
+    }
+
+    impl Outputs for Evaluated {
+        fn files(&self) -> Vec<&Path> {
+            vec![&self.report]
+        }
+    }
+
+    /// Reads an evaluation report written by [`crate::eval::write_report`].
+    pub fn read_eval_report(path: &Path) -> Result<EvalReport> {
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        let mut de = serde_json::Deserializer::from_slice(&bytes);
+        report::EvalReportDef::deserialize(&mut de)
+            .with_context(|| format!("{}: not an evaluation report", path.display()))
+    }
+
+    /// `Deserialize` for the report types, which derive only `Serialize`: serde's remote
+    /// derive, which the compiler checks field by field against the types themselves.
+    mod report {
+        use serde::{Deserialize, Deserializer};
+
+        use crate::consistency::{RangeMetrics, WarpOptions};
+        use crate::eval::{EvalReport, OutputReport};
+        use crate::stylize::StageSeconds;
+
+        #[derive(Deserialize)]
+        #[serde(remote = "WarpOptions")]
+        struct WarpOptionsDef {
+            alpha_threshold: f32,
+            depth_tolerance: f64,
+        }
+
+        #[derive(Deserialize)]
+        #[serde(remote = "RangeMetrics")]
+        struct RangeMetricsDef {
+            offset: usize,
+            pairs: usize,
+            valid_fraction: f64,
+            rmse: Option<f64>,
+            perceptual: Option<f64>,
+        }
+
+        #[derive(Deserialize)]
+        #[serde(remote = "StageSeconds")]
+        struct StageSecondsDef {
+            raster: f64,
+            lift_transform: f64,
+            decode: f64,
+        }
+
+        #[derive(Deserialize)]
+        #[serde(remote = "OutputReport")]
+        struct OutputReportDef {
+            name: String,
+            #[serde(with = "RangeMetricsDef")]
+            short_range: RangeMetrics,
+            #[serde(with = "RangeMetricsDef")]
+            long_range: RangeMetrics,
+            style_loss: Option<f64>,
+            content_loss: Option<f64>,
+        }
+
+        #[derive(Deserialize)]
+        struct Output(#[serde(with = "OutputReportDef")] OutputReport);
+
+        #[derive(Deserialize)]
+        struct Seconds(#[serde(with = "StageSecondsDef")] StageSeconds);
+
+        fn outputs<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<OutputReport>, D::Error> {
+            Ok(Vec::<Output>::deserialize(d)?
+                .into_iter()
+                .map(|o| o.0)
+                .collect())
+        }
+
+        fn seconds<'de, D: Deserializer<'de>>(d: D) -> Result<Option<StageSeconds>, D::Error> {
+            Ok(Option::<Seconds>::deserialize(d)?.map(|s| s.0))
+        }
+
+        #[derive(Deserialize)]
+        #[serde(remote = "EvalReport")]
+        pub struct EvalReportDef {
+            scene: String,
+            variant: Option<String>,
+            alpha: Option<f64>,
+            frames: usize,
+            width: u32,
+            height: u32,
+            #[serde(with = "WarpOptionsDef")]
+            warp: WarpOptions,
+            #[serde(deserialize_with = "outputs")]
+            outputs: Vec<OutputReport>,
+            #[serde(deserialize_with = "seconds")]
+            seconds_per_view: Option<StageSeconds>,
+        }
+    }
 }
 
 #[cfg(test)]
@@ -406,16 +796,18 @@ mod tests {
     }
 
     #[test]
-    fn the_geometry_schedule_is_compressed_to_the_run() {
-        let c = geometry_config(&settings(Path::new("x")));
+    fn the_geometry_schedule_is_the_default_one_scaled_to_the_run() {
+        let s = settings(Path::new("x"));
+        let c = geometry_config(&s);
         let g = &c.geometry;
-        assert_eq!(g.iterations, 1000);
-        assert_eq!(g.learning_rates.position_lr_max_steps, 1000);
-        assert_eq!(g.densify.densify_from_iter, 250);
-        assert_eq!(g.densify.densify_until_iter, 1000);
-        assert!(g.densify.opacity_reset_interval > g.iterations);
-        assert_eq!(g.checkpoint_iterations, [500, 1000]);
-        assert_eq!(c.dataset.downscale, 8.0);
+        let scaled = GeometryConfig::default().scaled_to(s.geometry_iterations);
+        assert_eq!(g.iterations, s.geometry_iterations);
+        assert_eq!(g.learning_rates, scaled.learning_rates);
+        assert_eq!(g.densify, scaled.densify);
+        assert_eq!(g.sh_degree_interval, scaled.sh_degree_interval);
+        // The last kept checkpoint is the run's end: it marks the stage as done.
+        assert_eq!(g.checkpoint_iterations.last(), Some(&g.iterations));
+        assert_eq!(c.dataset.downscale, s.downscale);
     }
 
     #[test]

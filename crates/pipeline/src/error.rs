@@ -5,62 +5,157 @@
 //! own text and returns the error it wraps from [`std::error::Error::source`], so a program that
 //! prints the chain (`anyhow`'s `{:#}`, or walking `source()`) shows
 //! `writing out/a.png: No such file or directory (os error 2)`. The errors of the crates below
-//! are kept as they are ([`Error::Train`], [`Error::Net`], ...) and display transparently.
+//! are kept as they are ([`Error::Train`], [`Error::Net`], ...) and display as themselves.
+//!
+//! Every text of a chain is shown once. Some errors of the crates below both embed their
+//! cause's text in their own (`out/a.png: No such file or directory (os error 2)`) and return
+//! that cause from `source()`, which would make a printed chain repeat it. So the source of an
+//! [`Error`] is the first error down the chain whose text its own text does not already
+//! contain, and [`Context`] wraps such an error so that the same holds below it: the chain
+//! above prints `reading out/a.png: out/a.png: No such file or directory (os error 2)`, with
+//! the operating system's text once.
 //!
 //! [`Context`] adds that explaining text to any `Result` whose error is a standard error
 //! (this crate's own [`Error`] included) and turns a `None` into an [`Error::Message`].
 
-use std::fmt::Display;
+use std::error::Error as StdError;
+use std::fmt::{self, Display};
 
 /// Everything that can go wrong in a pipeline stage.
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug)]
 pub enum Error {
     /// A problem the pipeline found itself (bad settings, missing files, mismatched inputs).
-    #[error("{0}")]
     Message(String),
     /// A stop request ended a run that cannot report a partial result; the message says how to
     /// continue.
-    #[error("{0}")]
     Interrupted(String),
     /// What was being done when `source` failed; displays only `context`.
-    #[error("{context}")]
     Context {
         /// What was being done, e.g. `writing out/a.png`.
         context: String,
         /// The error that it explains.
-        #[source]
-        source: Box<dyn std::error::Error + Send + Sync + 'static>,
+        source: Box<dyn StdError + Send + Sync + 'static>,
     },
     /// Training, checkpointing or resuming failed.
-    #[error(transparent)]
-    Train(#[from] train::TrainError),
+    Train(train::TrainError),
     /// A network operation or weights file failed.
-    #[error(transparent)]
-    Net(#[from] nets::NetError),
+    Net(nets::NetError),
     /// A PyTorch checkpoint could not be read.
-    #[error(transparent)]
-    Checkpoint(#[from] nets::checkpoint::CheckpointError),
+    Checkpoint(nets::checkpoint::CheckpointError),
     /// A feature-space operation or style statistic failed.
-    #[error(transparent)]
-    Style(#[from] style::StyleError),
+    Style(style::StyleError),
     /// The rasterizer refused its input.
-    #[error(transparent)]
-    Raster(#[from] raster::RasterError),
+    Raster(raster::RasterError),
     /// A dataset could not be loaded.
-    #[error(transparent)]
-    Dataset(#[from] gaussian::dataset::DatasetError),
+    Dataset(gaussian::dataset::DatasetError),
     /// A PLY file could not be read or written.
-    #[error(transparent)]
-    Ply(#[from] gaussian::ply::PlyError),
+    Ply(gaussian::ply::PlyError),
     /// A camera path could not be built.
-    #[error(transparent)]
-    CameraPath(#[from] gaussian::camera_path::CameraPathError),
+    CameraPath(gaussian::camera_path::CameraPathError),
     /// Encoding or decoding an image failed.
-    #[error(transparent)]
-    Image(#[from] image::ImageError),
+    Image(image::ImageError),
     /// Formatting text failed.
-    #[error(transparent)]
-    Fmt(#[from] std::fmt::Error),
+    Fmt(fmt::Error),
+}
+
+impl Error {
+    /// The error of a crate below that this one is, if any.
+    fn below(&self) -> Option<&(dyn StdError + 'static)> {
+        Some(match self {
+            Error::Message(_) | Error::Interrupted(_) | Error::Context { .. } => return None,
+            Error::Train(e) => e,
+            Error::Net(e) => e,
+            Error::Checkpoint(e) => e,
+            Error::Style(e) => e,
+            Error::Raster(e) => e,
+            Error::Dataset(e) => e,
+            Error::Ply(e) => e,
+            Error::CameraPath(e) => e,
+            Error::Image(e) => e,
+            Error::Fmt(e) => e,
+        })
+    }
+}
+
+impl Display for Error {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Error::Message(m) | Error::Interrupted(m) => f.write_str(m),
+            Error::Context { context, .. } => f.write_str(context),
+            other => match other.below() {
+                Some(e) => Display::fmt(e, f),
+                None => Ok(()),
+            },
+        }
+    }
+}
+
+impl StdError for Error {
+    fn source(&self) -> Option<&(dyn StdError + 'static)> {
+        match self {
+            Error::Message(_) | Error::Interrupted(_) => None,
+            Error::Context { context, source } => {
+                first_not_in(context, Some(&**source as &(dyn StdError + 'static)))
+            }
+            other => other
+                .below()
+                .and_then(|e| first_not_in(&e.to_string(), e.source())),
+        }
+    }
+}
+
+macro_rules! from_below {
+    ($($variant:ident($ty:ty)),* $(,)?) => {
+        $(impl From<$ty> for Error {
+            fn from(e: $ty) -> Error {
+                Error::$variant(e)
+            }
+        })*
+    };
+}
+
+from_below!(
+    Train(train::TrainError),
+    Net(nets::NetError),
+    Checkpoint(nets::checkpoint::CheckpointError),
+    Style(style::StyleError),
+    Raster(raster::RasterError),
+    Dataset(gaussian::dataset::DatasetError),
+    Ply(gaussian::ply::PlyError),
+    CameraPath(gaussian::camera_path::CameraPathError),
+    Image(image::ImageError),
+    Fmt(fmt::Error),
+);
+
+/// The first error of the chain starting at `next` whose text `shown` does not contain.
+fn first_not_in<'a>(
+    shown: &str,
+    mut next: Option<&'a (dyn StdError + 'static)>,
+) -> Option<&'a (dyn StdError + 'static)> {
+    while let Some(e) = next {
+        if !shown.contains(&e.to_string()) {
+            return Some(e);
+        }
+        next = e.source();
+    }
+    None
+}
+
+/// An error of another crate that embeds its source's text in its own: displayed as itself,
+/// with the first error down its chain that its text does not contain as its source.
+#[derive(Debug)]
+struct ShownOnce(Box<dyn StdError + Send + Sync + 'static>);
+
+impl Display for ShownOnce {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        Display::fmt(&self.0, f)
+    }
+}
+
+impl StdError for ShownOnce {
+    fn source(&self) -> Option<&(dyn StdError + 'static)> {
+        first_not_in(&self.0.to_string(), self.0.source())
+    }
 }
 
 /// Result alias of this crate.
@@ -84,7 +179,7 @@ pub trait Context<T> {
     fn with_context<C: Display, F: FnOnce() -> C>(self, context: F) -> Result<T>;
 }
 
-impl<T, E: std::error::Error + Send + Sync + 'static> Context<T> for Result<T, E> {
+impl<T, E: StdError + Send + Sync + 'static> Context<T> for Result<T, E> {
     fn context<C: Display>(self, context: C) -> Result<T> {
         self.map_err(|e| wrap(context, e))
     }
@@ -104,10 +199,20 @@ impl<T> Context<T> for Option<T> {
     }
 }
 
-fn wrap<C: Display, E: std::error::Error + Send + Sync + 'static>(context: C, e: E) -> Error {
+fn wrap<C: Display, E: StdError + Send + Sync + 'static>(context: C, e: E) -> Error {
+    // An error whose text holds its source's is wrapped so that the chain shows it once; any
+    // other is kept as it is (so that callers can still downcast it, e.g. to an interruption).
+    let repeats = e
+        .source()
+        .is_some_and(|s| e.to_string().contains(&s.to_string()));
+    let source: Box<dyn StdError + Send + Sync + 'static> = if repeats {
+        Box::new(ShownOnce(Box::new(e)))
+    } else {
+        Box::new(e)
+    };
     Error::Context {
         context: context.to_string(),
-        source: Box::new(e),
+        source,
     }
 }
 
@@ -158,6 +263,75 @@ mod tests {
             bail!("failed {n} times");
         }
         assert_eq!(fails(2).unwrap_err().to_string(), "failed 2 times");
+    }
+
+    /// An error that embeds its cause's text and also returns it as its source (as a
+    /// `thiserror` type with `{source}` in its message and a `source` field does).
+    #[derive(Debug)]
+    struct Embedding(std::io::Error);
+
+    impl Display for Embedding {
+        fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+            write!(f, "scenes/a.ply: {}", self.0)
+        }
+    }
+
+    impl StdError for Embedding {
+        fn source(&self) -> Option<&(dyn StdError + 'static)> {
+            Some(&self.0)
+        }
+    }
+
+    fn io_error() -> Embedding {
+        Embedding(std::io::Error::new(
+            std::io::ErrorKind::NotFound,
+            "no such thing here",
+        ))
+    }
+
+    #[test]
+    fn an_embedded_cause_is_printed_once() {
+        let below = io_error();
+        // The premise: the error below repeats its cause.
+        assert!(below.to_string().contains("no such thing here"));
+        assert!(std::error::Error::source(&below).is_some());
+
+        let wrapped = Err::<(), _>(io_error())
+            .context("loading the scene")
+            .unwrap_err();
+        let wrapped_twice = Err::<(), _>(wrapped).context("rendering").unwrap_err();
+        let text = chain(&wrapped_twice);
+        assert_eq!(text.matches("no such thing here").count(), 1, "{text}");
+        assert!(
+            text.starts_with("rendering: loading the scene: scenes/a.ply"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn a_cause_not_embedded_is_kept_and_errors_stay_downcastable() {
+        #[derive(Debug)]
+        struct Outer(std::io::Error);
+        impl Display for Outer {
+            fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str("the outer step failed")
+            }
+        }
+        impl StdError for Outer {
+            fn source(&self) -> Option<&(dyn StdError + 'static)> {
+                Some(&self.0)
+            }
+        }
+        let io = std::io::Error::other("the inner cause");
+        let e = Err::<(), _>(Outer(io)).context("working").unwrap_err();
+        assert_eq!(chain(&e), "working: the outer step failed: the inner cause");
+        let stop = train::TrainError::Interrupted("baking".into());
+        let e = Err::<(), _>(stop).context("baking into b").unwrap_err();
+        let below = std::error::Error::source(&e).expect("the interruption");
+        assert!(matches!(
+            below.downcast_ref::<train::TrainError>(),
+            Some(train::TrainError::Interrupted(_))
+        ));
     }
 
     #[test]

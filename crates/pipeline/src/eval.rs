@@ -15,19 +15,27 @@
 //! Existing frames (e.g. baked renders) are evaluated the same way against the geometry of a
 //! `.ply` or a bundle ([`evaluate_frames`]); the perceptual distance then needs a bundle's
 //! encoder.
+//!
+//! Both stream the sequence ([`StreamedConsistency`]): each view is rendered (or read),
+//! stylized and compared with the views before it once, and only the last `LONG_RANGE + 1`
+//! views' images, depths and alphas are kept, so memory does not grow with the number of
+//! frames. The results are those of comparing the whole sequence in memory, bit for bit. With
+//! colour preservation, the views of its content ([`COLOUR_VIEWS`] evenly spaced ones) are
+//! rendered in colour once more before the stream starts.
 
 use std::path::{Path, PathBuf};
 
 use crate::error::{bail, Context, Result};
+use gaussian::dataset::images::image_size;
 use gaussian::Camera;
 use nets::Encoder;
 use serde::Serialize;
 use train::SceneBundle;
 
 use crate::cameras::evenly_spaced;
-use crate::consistency::{sequence_consistency, DepthView, RangeMetrics, WarpOptions};
+use crate::consistency::{RangeMetrics, StreamFrame, StreamedConsistency, WarpOptions};
 use crate::image_io::{self, nchw_from_rgb, RgbImage};
-use crate::render::{render_colour, ColourRender, SceneInput};
+use crate::render::{render_colour, SceneInput};
 use crate::stylize::{self, StageSeconds, COLOUR_VIEWS};
 use crate::{Sink, Stage, Tally};
 
@@ -84,7 +92,7 @@ pub struct EvalReport {
 pub struct EvalSettings {
     /// The style images (`--style`, repeated).
     pub styles: Vec<PathBuf>,
-    /// Mix the styles with these weights into one output, one per style (`--weights`).
+    /// Mix the styles with these weights into one output, one per style (`--mix`).
     pub weights: Option<Vec<f64>>,
     /// Style strength: 0 reconstructs the scene, 1 is the full style (`--alpha`).
     pub alpha: f64,
@@ -96,28 +104,21 @@ pub struct EvalSettings {
     pub warp: WarpOptions,
 }
 
-fn depth_views<'a>(cameras: &'a [Camera], renders: &'a [ColourRender]) -> Vec<DepthView<'a>> {
-    cameras
-        .iter()
-        .zip(renders)
-        .map(|(camera, r)| DepthView {
-            camera,
-            depth: &r.depth,
-            alpha: &r.alpha,
-        })
-        .collect()
+/// The offsets every output is compared at, short range first.
+const OFFSETS: [usize; 2] = [SHORT_RANGE, LONG_RANGE];
+
+/// A stream comparing `outputs` sequences at short and long range.
+fn stream<'e>(
+    outputs: usize,
+    warp: &WarpOptions,
+    encoder: Option<&'e Encoder<f32>>,
+) -> Result<StreamedConsistency<'e>> {
+    StreamedConsistency::new(outputs, &OFFSETS, *warp, encoder)
 }
 
-fn ranges(
-    images: &[RgbImage],
-    views: &[DepthView],
-    warp: &WarpOptions,
-    encoder: Option<&Encoder<f32>>,
-) -> Result<(RangeMetrics, RangeMetrics)> {
-    Ok((
-        sequence_consistency(images, views, SHORT_RANGE, warp, encoder)?,
-        sequence_consistency(images, views, LONG_RANGE, warp, encoder)?,
-    ))
+/// The short- and long-range metrics of each output of a finished stream.
+fn ranges(stream: StreamedConsistency) -> Vec<(RangeMetrics, RangeMetrics)> {
+    stream.finish().into_iter().map(|r| (r[0], r[1])).collect()
 }
 
 fn check_same_size(cameras: &[Camera]) -> Result<(u32, u32)> {
@@ -143,6 +144,12 @@ pub fn evaluate_bundle(
     settings: &EvalSettings,
     sink: &dyn Sink,
 ) -> Result<EvalReport> {
+    stylize::check_style_settings(
+        settings.alpha,
+        settings.weights.as_deref(),
+        settings.styles.len(),
+    )?;
+    crate::cameras::check_camera_sizes(cameras)?;
     let (width, height) = check_same_size(cameras)?;
     let styles = stylize::load_styles(&settings.styles, settings.style_side)?;
     let outputs = if settings.weights.is_some() {
@@ -150,19 +157,12 @@ pub fn evaluate_bundle(
     } else {
         styles.len()
     };
-    let mut tally = Tally::start(Stage::Evaluate, cameras.len() * (1 + outputs), sink);
-    let mut colour = Vec::with_capacity(cameras.len());
-    let mut features = Vec::with_capacity(cameras.len());
-    for c in cameras {
-        colour.push(render_colour(&bundle.scene, c, bundle.info.background)?);
-        features.push(stylize::render_feature_view(bundle, c)?);
-        tally.advance(1, "render");
-    }
     let content = if settings.preserve_colour {
-        let imgs: Vec<&RgbImage> = evenly_spaced(cameras.len(), COLOUR_VIEWS)
-            .into_iter()
-            .map(|i| &colour[i].image)
-            .collect();
+        // The colour content needs a few views before the stream starts; rendering is
+        // deterministic, so these are the stream's own colour renders of those views.
+        let renders =
+            stylize::colour_renders(bundle, cameras, &evenly_spaced(cameras.len(), COLOUR_VIEWS))?;
+        let imgs: Vec<&RgbImage> = renders.iter().map(|r| &r.image).collect();
         Some(stylize::colour_content(&imgs)?)
     } else {
         None
@@ -173,50 +173,64 @@ pub fn evaluate_bundle(
         settings.weights.as_deref(),
         content.as_ref(),
     )?;
-    let views = depth_views(cameras, &colour);
-    let colour_images: Vec<RgbImage> = colour.iter().map(|r| image_io::clamped(&r.image)).collect();
     let encoder = &bundle.encoder;
-    let colour_deepest = colour_images
-        .iter()
-        .map(|img| {
-            let f = encoder.forward(nchw_from_rgb(img).view())?;
-            Ok(f.into_iter().last().expect("encoder depth >= 1"))
-        })
-        .collect::<Result<Vec<_>>>()?;
-    let (short, long) = ranges(&colour_images, &views, &settings.warp, Some(encoder))?;
-    let mut outputs = vec![OutputReport {
+    let mut tally = Tally::start(Stage::Evaluate, cameras.len() * (1 + outputs), sink);
+    let mut stream = stream(1 + targets.len(), &settings.warp, Some(encoder))?;
+    let mut seconds = StageSeconds::default();
+    let mut decoded = 0usize;
+    // Per target: the sums over the views of the style and content losses, in view order.
+    let mut sums = vec![(0.0f64, 0.0f64); targets.len()];
+    for c in cameras {
+        let colour = render_colour(&bundle.scene, c, bundle.info.background)?;
+        let features = stylize::render_feature_view(bundle, c)?;
+        tally.advance(1, "render");
+        let colour_image = image_io::clamped(&colour.image);
+        let colour_deepest = encoder
+            .forward(nchw_from_rgb(&colour_image).view())?
+            .into_iter()
+            .last()
+            .expect("encoder depth >= 1");
+        let mut images = Vec::with_capacity(1 + targets.len());
+        images.push(colour_image);
+        for (target, (style_sum, content_sum)) in targets.iter().zip(&mut sums) {
+            let (img, s) = stylize::stylize_view(bundle, &features, target, settings.alpha)?;
+            seconds.raster += s.raster;
+            seconds.lift_transform += s.lift_transform;
+            seconds.decode += s.decode;
+            decoded += 1;
+            let f = encoder.forward(nchw_from_rgb(&img).view())?;
+            *style_sum += style::style_loss(&f, &target.stats.levels)? as f64;
+            *content_sum +=
+                style::content_loss(f.last().expect("encoder depth >= 1"), &colour_deepest)? as f64;
+            images.push(img);
+            tally.advance(1, "decode");
+        }
+        drop(features);
+        stream.push(StreamFrame {
+            camera: *c,
+            depth: colour.depth,
+            alpha: colour.alpha,
+            images,
+        })?;
+    }
+    let mut ranges = ranges(stream).into_iter();
+    let (short, long) = ranges.next().expect("the colour output");
+    let mut reports = vec![OutputReport {
         name: "colour".into(),
         short_range: short,
         long_range: long,
         style_loss: None,
         content_loss: None,
     }];
-    let mut seconds = StageSeconds::default();
-    let mut decoded = 0usize;
-    for target in &targets {
-        let mut frames = Vec::with_capacity(cameras.len());
-        let (mut style_sum, mut content_sum) = (0.0f64, 0.0f64);
-        for (v, colour_feat) in features.iter().zip(&colour_deepest) {
-            let (img, s) = stylize::stylize_view(bundle, v, target, settings.alpha)?;
-            seconds.raster += s.raster;
-            seconds.lift_transform += s.lift_transform;
-            seconds.decode += s.decode;
-            decoded += 1;
-            let f = encoder.forward(nchw_from_rgb(&img).view())?;
-            style_sum += style::style_loss(&f, &target.stats.levels)? as f64;
-            content_sum +=
-                style::content_loss(f.last().expect("encoder depth >= 1"), colour_feat)? as f64;
-            frames.push(img);
-            tally.advance(1, "decode");
-        }
-        let (short, long) = ranges(&frames, &views, &settings.warp, Some(encoder))?;
-        let n = frames.len() as f64;
-        outputs.push(OutputReport {
+    let views = cameras.len() as f64;
+    for ((target, (style_sum, content_sum)), (short, long)) in targets.iter().zip(sums).zip(ranges)
+    {
+        reports.push(OutputReport {
             name: target.name.clone(),
             short_range: short,
             long_range: long,
-            style_loss: Some(style_sum / n),
-            content_loss: Some(content_sum / n),
+            style_loss: Some(style_sum / views),
+            content_loss: Some(content_sum / views),
         });
     }
     let n = decoded.max(1) as f64;
@@ -229,7 +243,7 @@ pub fn evaluate_bundle(
         width,
         height,
         warp: settings.warp,
-        outputs,
+        outputs: reports,
         seconds_per_view: Some(StageSeconds {
             raster: seconds.raster / n,
             lift_transform: seconds.lift_transform / n,
@@ -254,7 +268,8 @@ pub fn frame_files(dir: &Path) -> Result<Vec<PathBuf>> {
 }
 
 /// Evaluates existing frames (`*.png` of `frames_dir`, in name order, one per camera) against
-/// the geometry of `scene`.
+/// the geometry of `scene`. Every frame's size is read from its header before the first is
+/// evaluated, so a frame of the wrong size or a file that is not an image is reported at once.
 pub fn evaluate_frames(
     scene: &SceneInput,
     cameras: &[Camera],
@@ -272,9 +287,21 @@ pub fn evaluate_frames(
             cameras.len()
         );
     }
+    for f in &files {
+        let (w, h) = image_size(f)?;
+        if (w, h) != (width, height) {
+            bail!(
+                "{}: frame is {w}x{h}, the cameras are {width}x{height}",
+                f.display()
+            );
+        }
+    }
+    let encoder = match scene {
+        SceneInput::Bundle { bundle, .. } => Some(&bundle.encoder),
+        SceneInput::Ply { .. } => None,
+    };
     let mut tally = Tally::start(Stage::Evaluate, files.len(), sink);
-    let mut frames = Vec::with_capacity(files.len());
-    let mut geometry = Vec::with_capacity(files.len());
+    let mut stream = stream(1, warp, encoder)?;
     for (f, c) in files.iter().zip(cameras) {
         let img = image_io::load_image(f)?;
         if (img.width, img.height) != (width, height) {
@@ -285,16 +312,16 @@ pub fn evaluate_frames(
                 img.height
             );
         }
-        frames.push(img);
-        geometry.push(render_colour(scene.gaussians(), c, scene.background())?);
+        let geometry = render_colour(scene.gaussians(), c, scene.background())?;
+        stream.push(StreamFrame {
+            camera: *c,
+            depth: geometry.depth,
+            alpha: geometry.alpha,
+            images: vec![img],
+        })?;
         tally.advance(1, "render");
     }
-    let views = depth_views(cameras, &geometry);
-    let encoder = match scene {
-        SceneInput::Bundle { bundle, .. } => Some(&bundle.encoder),
-        SceneInput::Ply { .. } => None,
-    };
-    let (short, long) = ranges(&frames, &views, warp, encoder)?;
+    let (short, long) = ranges(stream)[0];
     let name = frames_dir
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())

@@ -10,6 +10,12 @@
 //! directory if there is one, otherwise the defaults; flags override it ([`FeatureOverrides`])
 //! and the effective configuration is written to `OUT/config.toml` before training starts.
 //!
+//! Setup: the dataset's training views and every style image are decoded, then the views and
+//! styles are encoded, reported as `Stage::Prepare` progress; a bad image stops the run before
+//! anything is written. The encodings are cached in `OUT/encodings/` (`train::features`,
+//! "Encoding cache"), so a resumed or repeated run with the same inputs skips the encoding and
+//! trains exactly as without the cache.
+//!
 //! Outputs: the scene bundle `OUT/bundle/` (loadable by `dsgs stylize`) and
 //! `OUT/checkpoint.safetensors`, written at the checkpoint interval and again at the end.
 
@@ -19,7 +25,7 @@ use crate::error::{Context, Result};
 use gaussian::dataset::{Dataset, LoadOptions};
 use gaussian::ply::load_ply;
 use serde::{Deserialize, Serialize};
-use train::features::{dataset_views, FEATURE_CHECKPOINT_FILE};
+use train::features::{dataset_views, FeatureSetup, ENCODINGS_DIR, FEATURE_CHECKPOINT_FILE};
 use train::{FeatureInputs, FeatureTrainConfig, FeatureTrainer, GeometryConfig, Variant};
 
 use crate::fit_geometry::{DatasetConfig, FitGeometryConfig};
@@ -196,10 +202,8 @@ fn inputs(
     let options = cfg.load_options()?;
     let dataset = Dataset::load(&settings.dataset, &options)
         .with_context(|| format!("loading the dataset {}", settings.dataset.display()))?;
-    for w in &dataset.warnings {
-        control.warn(w.to_string());
-    }
-    let (views, cameras) = dataset_views(&dataset, cfg.dataset.eval)
+    control.report_dataset(&dataset);
+    let (views, cameras) = dataset_views(&dataset, cfg.dataset.eval, control.sink)
         .with_context(|| format!("reading the views of {}", settings.dataset.display()))?;
     let n = &settings.networks;
     let mut provenance = vec![
@@ -239,13 +243,18 @@ pub fn run(settings: &FitFeaturesSettings, control: &Control) -> Result<FitFeatu
     let cfg = effective_config(settings)?;
     let inputs = inputs(settings, &cfg, control)?;
     let (gaussians, train_views) = (inputs.geometry.len(), inputs.views.len());
-    config::save(&cfg, &settings.out_dir)?;
+    let cache = settings.out_dir.join(ENCODINGS_DIR);
+    let setup = FeatureSetup {
+        sink: control.sink,
+        cache: Some(&cache),
+    };
     let mut trainer = match &settings.resume {
-        Some(ck) => FeatureTrainer::resume(ck, cfg.features.clone(), inputs)
+        Some(ck) => FeatureTrainer::resume_with(ck, cfg.features.clone(), inputs, &setup)
             .with_context(|| format!("resuming from {}", ck.display()))?,
-        None => FeatureTrainer::new(cfg.features.clone(), inputs)
+        None => FeatureTrainer::new_with(cfg.features.clone(), inputs, &setup)
             .context("setting up feature training")?,
     };
+    config::save(&cfg, &settings.out_dir)?;
     let summary = trainer.train(&control.run_in(&settings.out_dir))?;
     let checkpoint = settings.out_dir.join(FEATURE_CHECKPOINT_FILE);
     if !summary.run.interrupted {

@@ -7,6 +7,9 @@
 //! otherwise, when resuming, the `config.toml` of the output directory if there is one,
 //! otherwise the defaults; command-line flags override it ([`GeometryOverrides`]), and the
 //! effective configuration is written to `OUT/config.toml` before training starts.
+//! `--iterations N` runs the base configuration's schedule stretched or compressed to `N`
+//! iterations (the rule of `train::geometry`, [`GeometryConfig::scaled_to`]); without it the
+//! step counts of the configuration are used as written.
 //!
 //! Outputs: `OUT/point_cloud/iteration_N/point_cloud.ply` at the save iterations and at the last
 //! iteration run, `OUT/point_cloud.ply` (a copy of the last scene, not a link),
@@ -86,8 +89,8 @@ impl FitGeometryConfig {
 /// Command-line values that override the configuration.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct GeometryOverrides {
-    /// Total iterations (`--iterations`; key `iterations`), also adjusting the test, save and
-    /// checkpoint iterations (see [`apply`](Self::apply)).
+    /// Total iterations (`--iterations`; key `iterations`): the configuration's schedule
+    /// stretched or compressed to this length (see [`apply`](Self::apply)).
     pub iterations: Option<u64>,
     /// Resize the images by `1 / F` on load (`--downscale`; key `dataset.downscale`); clears
     /// `dataset.images_folder`.
@@ -121,13 +124,18 @@ pub struct GeometryOverrides {
 }
 
 impl GeometryOverrides {
-    /// Applies the overrides. A new iteration count drops test and save iterations beyond it
-    /// and adds it to both; explicit `test_iterations` also become the save iterations unless
-    /// `save_iterations` are given (as the 3DGS trainer does).
+    /// Applies the overrides. A new iteration count `n` scales every step count of the
+    /// configuration's schedule from its `iterations` to `n` ([`GeometryConfig::scaled_to`]:
+    /// learning-rate decay, densification window and intervals, opacity resets, SH degree
+    /// steps, test, save and checkpoint iterations), then drops the test, save and checkpoint
+    /// iterations beyond `n` and adds `n` to the test and save iterations. Explicit
+    /// `test_iterations` also become the save iterations unless `save_iterations` are given
+    /// (as the 3DGS trainer does). Without an iteration count, the configuration's step counts
+    /// are kept as written.
     pub fn apply(&self, c: &mut FitGeometryConfig) {
         let g = &mut c.geometry;
         if let Some(n) = self.iterations {
-            g.iterations = n;
+            *g = g.scaled_to(n);
             g.test_iterations.retain(|&t| t <= n);
             g.save_iterations.retain(|&t| t <= n);
             g.checkpoint_iterations.retain(|&t| t <= n);
@@ -325,9 +333,18 @@ mod tests {
             ..Default::default()
         }
         .apply(&mut c);
-        assert_eq!(c.geometry.iterations, 5000);
-        assert_eq!(c.geometry.test_iterations, vec![5000]);
-        assert_eq!(c.geometry.save_iterations, vec![5000]);
+        let g = &c.geometry;
+        assert_eq!(g.iterations, 5000);
+        // The schedule is the default one scaled to the run: the position rate decays over
+        // the run, densification stops within it, every event falls in it, and the run's end
+        // is evaluated and saved.
+        assert_eq!(g.learning_rates.position_lr_max_steps, 5000);
+        assert!(g.densify.densify_until_iter < 5000);
+        assert!(g.sh_degree_interval < GeometryConfig::default().sh_degree_interval);
+        for list in [&g.test_iterations, &g.save_iterations] {
+            assert!(list.iter().all(|&t| (1..=5000).contains(&t)), "{list:?}");
+            assert!(list.contains(&5000), "{list:?}");
+        }
         assert_eq!(c.geometry.seed, 3);
         assert_eq!(c.geometry.background, [1.0; 3]);
         assert_eq!(
@@ -343,5 +360,40 @@ mod tests {
         c.dataset.downscale = -1.0;
         c.dataset.images_folder = None;
         assert!(c.load_options().is_err());
+    }
+
+    #[test]
+    fn iterations_scale_the_configured_schedule_and_its_absence_keeps_it() {
+        let text = "iterations = 2000\nsh_degree_interval = 100\n\
+                    [densify]\ndensify_from_iter = 200\ndensify_until_iter = 1000\n";
+        let written: FitGeometryConfig = config::parse(text, Path::new("g.toml")).unwrap();
+        // Other flags leave the written step counts alone.
+        let mut kept = written.clone();
+        GeometryOverrides {
+            seed: Some(1),
+            white: true,
+            ..Default::default()
+        }
+        .apply(&mut kept);
+        assert_eq!(kept.geometry.densify, written.geometry.densify);
+        assert_eq!(
+            kept.geometry.sh_degree_interval,
+            written.geometry.sh_degree_interval
+        );
+        // --iterations compresses the written schedule, not the default one.
+        let mut half = written.clone();
+        GeometryOverrides {
+            iterations: Some(1000),
+            ..Default::default()
+        }
+        .apply(&mut half);
+        // Half the run: the file's densification window at half its steps.
+        let (d, w) = (&half.geometry.densify, &written.geometry.densify);
+        assert_eq!(2 * d.densify_from_iter, w.densify_from_iter);
+        assert_eq!(2 * d.densify_until_iter, w.densify_until_iter);
+        assert_eq!(
+            2 * half.geometry.learning_rates.position_lr_max_steps,
+            written.geometry.learning_rates.position_lr_max_steps
+        );
     }
 }

@@ -7,8 +7,10 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::error::{bail, Context, Result};
+use crate::cameras::{check_image_size, MAX_IMAGE_PIXELS};
+use crate::error::{bail, Context, Error, Result};
 use base::write_atomic;
+use gaussian::camera::MAX_IMAGE_SIDE;
 use gaussian::dataset::images::{load_rgb, resize};
 pub use gaussian::dataset::RgbImage;
 use image::codecs::gif::{GifEncoder, Repeat};
@@ -96,24 +98,48 @@ pub fn write_png(path: &Path, img: &RgbImage) -> Result<()> {
 
 /// Reads an image file as RGB (alpha composited onto black).
 pub fn load_image(path: &Path) -> Result<RgbImage> {
+    read_rgb(path, "image")
+}
+
+/// Reads and decodes an image file as RGB (alpha composited onto black). Errors read
+/// `{what} {path}: {problem}`, the path once.
+fn read_rgb(path: &Path, what: &str) -> Result<RgbImage> {
     if !path.is_file() {
-        bail!("{}: no such image file", path.display());
+        bail!("{what} {}: no such file", path.display());
     }
-    Ok(load_rgb(path, [0.0; 3])?)
+    load_rgb(path, [0.0; 3]).map_err(|e| {
+        // The decoder's message starts with the path: keep what follows it.
+        let text = e.to_string();
+        let prefix = format!("{}: ", path.display());
+        let problem = text.strip_prefix(&prefix).unwrap_or(&text);
+        Error::msg(format!("{what} {}: {problem}", path.display()))
+    })
 }
 
 /// Reads a style image, reduced (aspect kept, averaging filter) so its longer side is at most
-/// `max_side` pixels; `0` keeps its size.
+/// `max_side` pixels; `0` keeps its size. `max_side` must be at most [`MAX_IMAGE_SIDE`], and
+/// the image as returned within the size limits ([`check_image_size`]); errors name the file
+/// (`style image {path}: ...`).
 pub fn load_style_image(path: &Path, max_side: u32) -> Result<RgbImage> {
-    let img = load_image(path).context("style image")?;
-    let side = img.width.max(img.height);
-    if max_side == 0 || side <= max_side {
-        return Ok(img);
+    if max_side > MAX_IMAGE_SIDE {
+        bail!("--style-size {max_side}: an image side must be 1 to {MAX_IMAGE_SIDE} pixels");
     }
-    let s = max_side as f64 / side as f64;
-    let w = ((img.width as f64 * s).round() as u32).max(1);
-    let h = ((img.height as f64 * s).round() as u32).max(1);
-    Ok(resize(&img, w, h))
+    let img = read_rgb(path, "style image")?;
+    let side = img.width.max(img.height);
+    let img = if max_side == 0 || side <= max_side {
+        img
+    } else {
+        let s = max_side as f64 / side as f64;
+        let w = ((img.width as f64 * s).round() as u32).max(1);
+        let h = ((img.height as f64 * s).round() as u32).max(1);
+        resize(&img, w, h)
+    };
+    check_image_size(
+        &format!("style image {}", path.display()),
+        img.width as u64,
+        img.height as u64,
+    )?;
+    Ok(img)
 }
 
 /// Encodes frames (all of one size) as a looping animated GIF at `fps` frames per second.
@@ -159,8 +185,29 @@ pub fn write_gif(path: &Path, frames: &[RgbImage], fps: f64) -> Result<()> {
     write_atomic(path, &bytes).with_context(|| format!("writing {}", path.display()))
 }
 
+/// The largest cell size, at most `width x height` and with about its aspect ratio, of a
+/// contact sheet of `cols x rows` cells that stays within the image size limits
+/// ([`MAX_IMAGE_SIDE`] per side, [`MAX_IMAGE_PIXELS`] in all); cells are at least 1 x 1.
+pub fn sheet_cell_size(width: u32, height: u32, cols: usize, rows: usize) -> (u32, u32) {
+    let (w, h) = (width.max(1) as f64, height.max(1) as f64);
+    let (sw, sh) = (w * cols.max(1) as f64, h * rows.max(1) as f64);
+    let side = MAX_IMAGE_SIDE as f64;
+    let f = 1f64
+        .min(side / sw)
+        .min(side / sh)
+        .min((MAX_IMAGE_PIXELS as f64 / (sw * sh)).sqrt());
+    if f >= 1.0 {
+        return (width.max(1), height.max(1));
+    }
+    (
+        ((w * f).floor() as u32).max(1),
+        ((h * f).floor() as u32).max(1),
+    )
+}
+
 /// Tiles rows of equally sized images into one image (row `r`, column `c` at
-/// `(c * width, r * height)`); missing cells stay black.
+/// `(c * width, r * height)`); missing cells stay black. A sheet beyond the image size limits
+/// ([`check_image_size`]) is an error, before anything is allocated: see [`sheet_cell_size`].
 pub fn contact_sheet(rows: &[Vec<RgbImage>]) -> Result<RgbImage> {
     let Some(first) = rows.iter().flatten().next() else {
         bail!("a contact sheet needs at least one image");
@@ -168,6 +215,11 @@ pub fn contact_sheet(rows: &[Vec<RgbImage>]) -> Result<RgbImage> {
     let (cw, ch) = (first.width as usize, first.height as usize);
     let cols = rows.iter().map(Vec::len).max().unwrap_or(0);
     let (sw, sh) = (cw * cols, ch * rows.len());
+    check_image_size(
+        &format!("a contact sheet of {cols} x {} cells", rows.len()),
+        sw as u64,
+        sh as u64,
+    )?;
     let mut sheet = blank(sw as u32, sh as u32);
     for (r, row) in rows.iter().enumerate() {
         for (c, cell) in row.iter().enumerate() {
@@ -357,6 +409,26 @@ mod tests {
         assert_eq!(sheet.pixel(0, 0), a.pixel(0, 0));
         assert_eq!(sheet.pixel(1, 3), b.pixel(1, 1));
         assert_eq!(sheet.pixel(3, 3), [0.0; 3]);
+    }
+
+    #[test]
+    fn contact_sheets_stay_within_the_size_limits() {
+        // Small sheets keep their cells.
+        assert_eq!(sheet_cell_size(64, 48, 5, 3), (64, 48));
+        // Large ones are reduced to fit, keeping the cells' shape within a pixel.
+        for (w, h, cols, rows) in [(8000, 6000, 5, 2), (16384, 100, 9, 1), (300, 300, 4, 200)] {
+            let (cw, ch) = sheet_cell_size(w, h, cols, rows);
+            let (sw, sh) = (cw as u64 * cols as u64, ch as u64 * rows as u64);
+            assert!(sw <= MAX_IMAGE_SIDE as u64 && sh <= MAX_IMAGE_SIDE as u64);
+            assert!(sw * sh <= MAX_IMAGE_PIXELS, "{cw}x{ch}");
+            assert!(cw < w && ch <= h);
+            let ratio = cw as f64 / ch as f64;
+            assert!((ratio - w as f64 / h as f64).abs() <= ratio / ch.min(cw) as f64 + 1e-9);
+        }
+        // A sheet beyond the limits is refused, naming the limit.
+        let wide = blank(MAX_IMAGE_SIDE, 1);
+        let e = contact_sheet(&[vec![wide.clone(), wide]]).unwrap_err();
+        assert!(e.to_string().contains(&MAX_IMAGE_SIDE.to_string()), "{e}");
     }
 
     #[test]

@@ -135,6 +135,23 @@ impl Control<'_> {
         self.sink.emit(Event::Warning(message.into()));
     }
 
+    /// Reports what loading a dataset noticed: its warnings, and the views brought to the
+    /// dataset's common image size (one line naming how many, the size and the first of them).
+    pub(crate) fn report_dataset(&self, dataset: &gaussian::dataset::Dataset) {
+        for w in &dataset.warnings {
+            self.warn(w.to_string());
+        }
+        if let (Some(first), Some((w, h))) = (dataset.resized.first(), dataset.image_size()) {
+            self.warn(format!(
+                "resized {} view(s) to the dataset's common size {w}x{h} (first: {}, {}x{})",
+                dataset.resized.len(),
+                first.name,
+                first.from.0,
+                first.from.1
+            ));
+        }
+    }
+
     /// Reports a note for the log.
     pub(crate) fn log(&self, stage: Stage, message: impl Into<String>) {
         self.sink.emit(Event::Log {

@@ -12,6 +12,10 @@
 //! one, otherwise the defaults; flags override it ([`DecoderOverrides`]) and the effective
 //! configuration is written to `OUT/config.toml` before training starts.
 //!
+//! Inputs are checked before anything is written: every content and style image is decoded
+//! once up front (reported as `Stage::Prepare` progress), so a bad file is named in seconds,
+//! not when training first draws it.
+//!
 //! Outputs: `OUT/decoder.safetensors` (encoder and trained decoder, canonical weights) and
 //! `OUT/checkpoint.safetensors`, written at the checkpoint interval and again at the end, so a
 //! finished run can be continued with more iterations.
@@ -23,7 +27,7 @@ use nets::{Decoder, Encoder};
 use train::decoder_training::{init_decoder, DecoderEvaluation, DECODER_CHECKPOINT_FILE};
 use train::{DecoderTrainConfig, DecoderTrainer, ImageSet, Variant};
 
-use crate::{config, Control};
+use crate::{config, Control, Stage, Tally};
 use train::RunOutcome;
 
 /// Where the networks come from: a canonical file holding both, and/or separate files (either
@@ -191,6 +195,24 @@ pub fn open_images(sources: &[PathBuf], recursive: bool, role: &str) -> Result<I
         .with_context(|| format!("opening the {role} images ({list})"))
 }
 
+/// Decodes every image of the sets (each named by its role in errors), reported as
+/// `Stage::Prepare` progress.
+fn decode_inputs(sets: &[(&ImageSet, &str)], control: &Control) -> Result<()> {
+    let total = sets.iter().map(|(s, _)| s.len()).sum();
+    let mut tally = Tally::start(Stage::Prepare, total, control.sink);
+    for (set, role) in sets {
+        let status = format!("decode {role} images");
+        let mut decoded = 0;
+        set.check_decodes(&mut |done| {
+            tally.advance(done - decoded, &status);
+            decoded = done;
+        })
+        .with_context(|| format!("decoding the {role} images"))?;
+    }
+    tally.finish();
+    Ok(())
+}
+
 /// Trains the decoder, reporting to the control's sink. A stop request ends the run after the
 /// current iteration with a checkpoint of it ([`RunOutcome::stop_checkpoint`]).
 pub fn run(settings: &PretrainSettings, control: &Control) -> Result<PretrainReport> {
@@ -198,6 +220,7 @@ pub fn run(settings: &PretrainSettings, control: &Control) -> Result<PretrainRep
     let content = open_images(&settings.content, settings.recursive, "content")?;
     let styles = open_images(&settings.styles, settings.recursive, "style")?;
     let (n_content, n_style) = (content.len(), styles.len());
+    decode_inputs(&[(&content, "content"), (&styles, "style")], control)?;
     let encoder = settings.networks.load_encoder()?;
     // Every input is read before anything is written.
     let decoder = match (&settings.resume, settings.from_scratch) {

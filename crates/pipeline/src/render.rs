@@ -44,8 +44,7 @@ impl SceneInput {
     /// Opens a bundle directory or a `.ply` file.
     pub fn open(path: &Path) -> Result<SceneInput> {
         if path.is_dir() {
-            let bundle = train::SceneBundle::load(path)
-                .with_context(|| format!("loading the scene bundle {}", path.display()))?;
+            let bundle = crate::stylize::open_bundle(path)?;
             Ok(SceneInput::Bundle {
                 path: path.to_path_buf(),
                 bundle: Box::new(bundle),
@@ -454,7 +453,8 @@ pub fn depth_image(r: &ColourRender, range: (f64, f64), style: DepthStyle) -> Rg
 }
 
 /// Renders `kind` for every camera into `out_dir/frame_XXXX.png`; returns the written paths.
-/// Reports one [`Stage::Render`](crate::Stage::Render) unit per view to `sink`.
+/// Reports one [`Stage::Render`](crate::Stage::Render) unit per view to `sink`. Every camera's
+/// size is checked first ([`crate::cameras::check_camera_sizes`]).
 pub fn render_views(
     scene: &SceneInput,
     cameras: &[Camera],
@@ -463,6 +463,7 @@ pub fn render_views(
     out_dir: &Path,
     sink: &dyn crate::Sink,
 ) -> Result<Vec<PathBuf>> {
+    crate::cameras::check_camera_sizes(cameras)?;
     std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
     let g = scene.gaussians();
     if kind == RenderKind::FeaturesPca && g.feature_dim == 0 {

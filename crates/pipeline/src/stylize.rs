@@ -18,12 +18,20 @@
 //!   spaced cameras of the sequence placed side by side, one content for the whole sequence, so
 //!   the target does not change from view to view.
 //!
-//! The decoded image is written clamped to `[0, 1]`.
+//! Inputs are checked before anything is rendered or written ([`run`]): the strength `alpha`
+//! and the mixture weights ([`check_style_settings`]), the cameras' sizes
+//! ([`crate::cameras::check_camera_sizes`]), and every style image, read and decoded up front
+//! ([`load_styles`]), so a bad file fails the run, naming it, before the first frame.
+//!
+//! The decoded image is written clamped to `[0, 1]`. The contact sheet's cells are the frames
+//! at their size, reduced when the whole sheet would exceed the image size limits
+//! ([`image_io::sheet_cell_size`]).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use crate::error::{bail, Context, Result};
+use gaussian::dataset::images::resize;
 use gaussian::Camera;
 use ndarray::Array4;
 use serde::Serialize;
@@ -40,15 +48,35 @@ pub const COLOUR_VIEWS: usize = 8;
 /// Default longest side of style images.
 pub const DEFAULT_STYLE_SIDE: u32 = 512;
 
-/// Loads a bundle, optionally switching the variant and replacing the decoder (a canonical
-/// `.safetensors` or a PyTorch checkpoint holding a decoder).
+/// Reads a scene bundle directory ([`SceneBundle::load`]), first saying plainly when `dir` is
+/// not there (`bundle folder X not found`) or holds no `bundle.json` (`X: no bundle.json`).
+pub fn open_bundle(dir: &Path) -> Result<SceneBundle> {
+    let info = train::bundle::INFO_FILE;
+    let holds = format!(
+        "a scene bundle is a folder holding {}, {} and {info}",
+        train::bundle::SCENE_FILE,
+        train::bundle::NETS_FILE
+    );
+    if !dir.exists() {
+        bail!("bundle folder {} not found", dir.display());
+    }
+    if !dir.is_dir() {
+        bail!("{}: not a folder ({holds})", dir.display());
+    }
+    if !dir.join(info).exists() {
+        bail!("{}: no {info} ({holds})", dir.display());
+    }
+    SceneBundle::load(dir).with_context(|| format!("loading the scene bundle {}", dir.display()))
+}
+
+/// Loads a bundle ([`open_bundle`]), optionally switching the variant and replacing the decoder
+/// (a canonical `.safetensors` or a PyTorch checkpoint holding a decoder).
 pub fn load_bundle(
     dir: &Path,
     variant: Option<Variant>,
     decoder: Option<&Path>,
 ) -> Result<SceneBundle> {
-    let bundle = SceneBundle::load(dir)
-        .with_context(|| format!("loading the scene bundle {}", dir.display()))?;
+    let bundle = open_bundle(dir)?;
     let variant = variant.unwrap_or(bundle.info.variant);
     let dec = match decoder {
         None => bundle.decoder.clone(),
@@ -97,7 +125,9 @@ pub fn style_names(paths: &[PathBuf]) -> Vec<String> {
     names
 }
 
-/// Reads every style image (failing on the first that is missing or not an image).
+/// Reads and decodes every style image, each reduced so its longer side is at most `max_side`
+/// ([`image_io::load_style_image`]), failing on the first that is missing, not an image or
+/// beyond the size limits, with a message naming it (`style image {path}: ...`).
 pub fn load_styles(paths: &[PathBuf], max_side: u32) -> Result<Vec<StyleImage>> {
     if paths.is_empty() {
         bail!("no style image given (--style IMG)");
@@ -125,23 +155,60 @@ pub struct StyleTarget {
     pub stats: StyleFeatureStats<f32>,
 }
 
-/// Checks mixture weights: one per style, finite, non-negative, positive sum; returns them
-/// normalised to sum 1.
+/// Checks mixture weights: one per style, each finite and non-negative, not all zero; returns
+/// them normalised to sum 1. The error names the offending value.
 pub fn normalised_weights(weights: &[f64], styles: usize) -> Result<Vec<f64>> {
     if weights.len() != styles {
         bail!(
-            "--weights has {} values for {styles} style image(s)",
+            "--mix has {} values for {styles} style image(s)",
             weights.len()
         );
     }
-    if weights.iter().any(|w| !(w.is_finite() && *w >= 0.0)) {
-        bail!("--weights must be finite and non-negative, got {weights:?}");
+    for (i, w) in weights.iter().enumerate() {
+        if !(w.is_finite() && *w >= 0.0) {
+            bail!(
+                "--mix: weight {} is {w}; each weight must be a finite number, 0 or more",
+                i + 1
+            );
+        }
     }
     let sum: f64 = weights.iter().sum();
-    if sum <= 0.0 {
-        bail!("--weights sum to zero");
+    if !(sum > 0.0 && sum.is_finite()) {
+        let list: Vec<String> = weights.iter().map(|w| w.to_string()).collect();
+        bail!(
+            "--mix {}: {}",
+            list.join(","),
+            if sum > 0.0 {
+                "the weights are too large to add up"
+            } else {
+                "the weights are all zero; at least one must be above 0"
+            }
+        );
     }
     Ok(weights.iter().map(|w| w / sum).collect())
+}
+
+/// Checks a style strength: a number from 0 (the scene as it is) to 1 (the full style). The
+/// error names the value.
+pub fn check_alpha(alpha: f64) -> Result<()> {
+    if !(0.0..=1.0).contains(&alpha) {
+        bail!(
+            "--alpha {alpha}: the style strength must be a number from 0 (the scene as it is) \
+             to 1 (the full style)"
+        );
+    }
+    Ok(())
+}
+
+/// Checks the style settings shared by stylization, evaluation and baking before any work:
+/// the strength ([`check_alpha`]) and, when given, the mixture weights for `styles` style
+/// images ([`normalised_weights`]).
+pub fn check_style_settings(alpha: f64, weights: Option<&[f64]>, styles: usize) -> Result<()> {
+    check_alpha(alpha)?;
+    if let Some(w) = weights {
+        normalised_weights(w, styles)?;
+    }
+    Ok(())
 }
 
 /// The content of colour preservation: the colour renders of the given views side by side
@@ -237,14 +304,15 @@ pub struct StageSeconds {
     pub decode: f64,
 }
 
-/// Decodes a cached view for a target at strength `alpha`: the clamped RGB image and the stage
-/// times (raster time from the cache).
+/// Decodes a cached view for a target at strength `alpha` (checked: [`check_alpha`]): the
+/// clamped RGB image and the stage times (raster time from the cache).
 pub fn stylize_view(
     bundle: &SceneBundle,
     view: &FeatureView,
     target: &StyleTarget,
     alpha: f64,
 ) -> Result<(RgbImage, StageSeconds)> {
+    check_alpha(alpha)?;
     let stats = bundle.target_stats(target.stats.deepest(), alpha)?;
     let k = view.camera.intrinsics;
     let (img, [lt, dec]) = bundle.decode_timed(&view.features, &stats, k.width, k.height)?;
@@ -263,7 +331,7 @@ pub fn stylize_view(
 pub struct StylizeSettings {
     /// The style images (`--style`, repeated; at least one).
     pub styles: Vec<PathBuf>,
-    /// Mix the styles with these weights into one output, one per style (`--weights`).
+    /// Mix the styles with these weights into one output, one per style (`--mix`).
     pub weights: Option<Vec<f64>>,
     /// Style strength: 0 reconstructs the scene, 1 is the full style (`--alpha`).
     pub alpha: f64,
@@ -323,19 +391,20 @@ pub fn run(
     if cameras.is_empty() {
         bail!("no cameras to render");
     }
-    if !(settings.alpha.is_finite()) {
-        bail!("--alpha {} is not finite", settings.alpha);
-    }
-    // Fail early on everything that does not need rendering.
+    // Fail early on everything that does not need rendering: the settings, the cameras' sizes,
+    // ffmpeg, and every style image, decoded before the first frame.
+    check_style_settings(
+        settings.alpha,
+        settings.weights.as_deref(),
+        settings.styles.len(),
+    )?;
+    crate::cameras::check_camera_sizes(cameras)?;
     let ffmpeg = if settings.mp4 {
         Some(image_io::ffmpeg()?)
     } else {
         None
     };
     let styles = load_styles(&settings.styles, settings.style_side)?;
-    if let Some(w) = &settings.weights {
-        normalised_weights(w, styles.len())?;
-    }
     std::fs::create_dir_all(&settings.out_dir)
         .with_context(|| format!("creating {}", settings.out_dir.display()))?;
 
@@ -364,15 +433,22 @@ pub fn run(
     }
     let mut out = StylizeOutput::default();
     // The sheet's first column shows each row's style (white for the colour row, black for a
-    // mixture of several styles).
-    let (cw, ch) = (cameras[0].intrinsics.width, cameras[0].intrinsics.height);
+    // mixture of several styles); its cells are the frames, reduced if the sheet would be too
+    // large.
+    let (cw, ch) = image_io::sheet_cell_size(
+        cameras[0].intrinsics.width,
+        cameras[0].intrinsics.height,
+        1 + sheet_idx.len(),
+        1 + targets.len(),
+    );
+    let cell = |img: &RgbImage| resize(&image_io::clamped(img), cw, ch);
     let corner = RgbImage {
         width: cw,
         height: ch,
         data: vec![1.0; cw as usize * ch as usize * 3],
     };
     let mut sheet_rows = vec![std::iter::once(corner)
-        .chain(sheet_colour.iter().map(|r| image_io::clamped(&r.image)))
+        .chain(sheet_colour.iter().map(|r| cell(&r.image)))
         .collect::<Vec<_>>()];
     let mut total = StageSeconds::default();
     let mut decoded = 0usize;
@@ -397,7 +473,7 @@ pub fn run(
             image_io::write_png(&path, &img)?;
             frames.push(path);
             if sheet_idx.contains(&i) {
-                row.push(img.clone());
+                row.push(cell(&img));
             }
             if settings.gif {
                 gif_frames.push(img);

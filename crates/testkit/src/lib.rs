@@ -28,6 +28,7 @@ use base::Real;
 use safetensors::{Dtype, SafeTensors};
 
 pub mod arrays;
+pub mod fuzz;
 #[cfg(feature = "nets")]
 pub mod nets;
 pub mod oracle;

@@ -253,11 +253,19 @@ impl BundleInfo {
     /// camera gives a [`TrainError::Checkpoint`] on `bundle.json` whose message names the
     /// camera by index and name and says what is wrong, e.g. `camera 3 (r_12): fx is 0; the
     /// focal length must be finite and positive`.
+    ///
+    /// A missing folder or description is said once, plainly: `checkpoint X: bundle folder not
+    /// found`, `checkpoint X: no bundle.json (...)`.
     pub fn load(dir: &Path) -> Result<BundleInfo, TrainError> {
         let info_path = dir.join(INFO_FILE);
-        let bytes = std::fs::read(&info_path).map_err(|source| TrainError::Io {
-            path: info_path.clone(),
-            source,
+        let bytes = std::fs::read(&info_path).map_err(|e| {
+            if e.kind() != std::io::ErrorKind::NotFound {
+                io_err(&info_path, "cannot be read", &e)
+            } else if dir.is_dir() {
+                bundle_err(dir, format!("no {INFO_FILE} ({})", holds()))
+            } else {
+                not_a_folder(dir)
+            }
         })?;
         let info: BundleInfo = serde_json::from_slice(&bytes)
             .map_err(|e| bundle_err(&info_path, format!("not a bundle description: {e}")))?;
@@ -342,6 +350,27 @@ fn bundle_err(path: &Path, message: impl Into<String>) -> TrainError {
     }
 }
 
+/// What a bundle folder holds, for messages.
+fn holds() -> String {
+    format!("a scene bundle is a folder holding {SCENE_FILE}, {NETS_FILE} and {INFO_FILE}")
+}
+
+/// The error of a file or folder that could not be read, created or written: `{path}: {what}:
+/// {io}`. The I/O error's text is part of the message and not returned as its source, so that
+/// a printed error chain shows it once.
+fn io_err(path: &Path, what: &str, e: &std::io::Error) -> TrainError {
+    bundle_err(path, format!("{what}: {e}"))
+}
+
+/// The error of a bundle path that is missing or not a folder.
+fn not_a_folder(dir: &Path) -> TrainError {
+    if dir.exists() {
+        bundle_err(dir, format!("not a folder ({})", holds()))
+    } else {
+        bundle_err(dir, "bundle folder not found")
+    }
+}
+
 impl SceneBundle {
     /// Checks that the parts fit together: feature width = lifter input, lifter output =
     /// decoder input = encoder's deepest width, statistics and background sizes.
@@ -396,10 +425,7 @@ impl SceneBundle {
     /// Writes the bundle into `dir` (created if needed); each file is written atomically.
     pub fn save(&self, dir: &Path) -> Result<(), TrainError> {
         self.validate()?;
-        std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
-            path: dir.to_path_buf(),
-            source,
-        })?;
+        std::fs::create_dir_all(dir).map_err(|e| io_err(dir, "cannot be created", &e))?;
         save_ply(dir.join(SCENE_FILE), &self.scene)?;
         let nets = NetWeights {
             encoder: Some(self.encoder.clone().with_resolution(Resolution::Standard)),
@@ -412,20 +438,16 @@ impl SceneBundle {
         let info_path = dir.join(INFO_FILE);
         let json = serde_json::to_vec_pretty(&self.info)
             .map_err(|e| bundle_err(&info_path, e.to_string()))?;
-        base::write_atomic(&info_path, &json).map_err(|source| TrainError::Io {
-            path: info_path.clone(),
-            source,
-        })
+        base::write_atomic(&info_path, &json)
+            .map_err(|e| io_err(&info_path, "cannot be written", &e))
     }
 
     /// Reads a bundle directory written by [`SceneBundle::save`], with the networks set to the
-    /// bundle's variant.
+    /// bundle's variant. A missing folder or `bundle.json` is reported as by
+    /// [`BundleInfo::load`].
     pub fn load(dir: &Path) -> Result<SceneBundle, TrainError> {
         if !dir.is_dir() {
-            return Err(bundle_err(
-                dir,
-                "not a scene bundle directory (expected scene.ply, nets.safetensors, bundle.json)",
-            ));
+            return Err(not_a_folder(dir));
         }
         let info = BundleInfo::load(dir)?;
         let scene = load_ply(dir.join(SCENE_FILE))?;
@@ -630,4 +652,66 @@ pub fn render_feature_map(
 /// Path of a file inside a bundle directory.
 pub fn bundle_file(dir: &Path, name: &str) -> PathBuf {
     dir.join(name)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scratch(name: &str) -> PathBuf {
+        dsgs_testkit::scratch_dir("bundle-unit", name)
+    }
+
+    /// The error and its sources as `anyhow` prints them with `{:#}`.
+    fn chain(e: &dyn std::error::Error) -> String {
+        let mut s = e.to_string();
+        let mut cause = e.source();
+        while let Some(c) = cause {
+            s.push_str(": ");
+            s.push_str(&c.to_string());
+            cause = c.source();
+        }
+        s
+    }
+
+    #[test]
+    fn a_missing_folder_or_description_is_said_once() {
+        let dir = scratch("missing");
+        let gone = dir.join("gone");
+        for e in [
+            BundleInfo::load(&gone).unwrap_err(),
+            SceneBundle::load(&gone).unwrap_err(),
+        ] {
+            let text = chain(&e);
+            assert!(text.contains("bundle folder not found"), "{text}");
+            assert_eq!(text.matches("gone").count(), 1, "{text}");
+            assert!(!text.contains("os error"), "{text}");
+        }
+        for e in [
+            BundleInfo::load(&dir).unwrap_err(),
+            SceneBundle::load(&dir).unwrap_err(),
+        ] {
+            let text = chain(&e);
+            assert!(text.contains("no bundle.json"), "{text}");
+            assert!(text.contains(&dir.display().to_string()), "{text}");
+            assert!(!text.contains("os error"), "{text}");
+        }
+        let file = dir.join("bundle.ply");
+        std::fs::write(&file, "ply").unwrap();
+        let text = chain(&SceneBundle::load(&file).unwrap_err());
+        assert!(text.contains("bundle.ply: not a folder"), "{text}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn an_io_error_is_part_of_the_message_and_not_its_source() {
+        let dir = scratch("io");
+        // A folder where bundle.json should be: reading it fails with an I/O error.
+        std::fs::create_dir_all(dir.join(INFO_FILE)).unwrap();
+        let e = BundleInfo::load(&dir).unwrap_err();
+        let text = chain(&e);
+        assert!(text.contains("bundle.json: cannot be read: "), "{text}");
+        assert!(std::error::Error::source(&e).is_none(), "{text}");
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }

@@ -193,10 +193,7 @@ impl GeometryCheckpoint {
 
     /// Reads a checkpoint written by [`GeometryCheckpoint::save`].
     pub fn load(path: &Path) -> Result<Self, TrainError> {
-        let bytes = std::fs::read(path).map_err(|source| TrainError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+        let bytes = std::fs::read(path).map_err(|e| TrainError::io(path, e))?;
         Self::from_bytes(&bytes, path)
     }
 

@@ -318,10 +318,7 @@ impl DecoderTrainer {
         style_images: ImageSet,
         config: DecoderTrainConfig,
     ) -> Result<Self, TrainError> {
-        let bytes = std::fs::read(checkpoint).map_err(|source| TrainError::Io {
-            path: checkpoint.to_path_buf(),
-            source,
-        })?;
+        let bytes = std::fs::read(checkpoint).map_err(|e| TrainError::io(checkpoint, e))?;
         let r = StateReader::new(&bytes, checkpoint, DECODER_CHECKPOINT_FORMAT)?;
         let fp = r.meta_str("encoder_fingerprint")?;
         if fp != weights_fingerprint(&encoder) {
@@ -512,10 +509,7 @@ impl DecoderTrainer {
     /// atomically.
     pub fn save_weights(&self, path: &Path) -> Result<(), TrainError> {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
-                path: dir.to_path_buf(),
-                source,
-            })?;
+            std::fs::create_dir_all(dir).map_err(|e| TrainError::io(dir, e))?;
         }
         let nets = NetWeights {
             encoder: Some(self.encoder.clone()),

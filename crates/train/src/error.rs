@@ -11,14 +11,14 @@ pub enum TrainError {
     /// A configuration value that cannot work.
     #[error("invalid configuration: {0}")]
     Config(String),
-    /// Reading or writing a file failed.
-    #[error("{}: {source}", path.display())]
+    /// Reading or writing a file failed. The message includes the I/O error's text, so it is
+    /// not also returned as the `source()` (a front end printing the chain shows it once).
+    #[error("{}: {error}", path.display())]
     Io {
         /// The file or directory that could not be read, written or created.
         path: PathBuf,
         /// The underlying I/O error.
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// A checkpoint, weights file or scene bundle that is not what this crate writes (no
     /// safetensors header, wrong format tag, missing or malformed metadata or tensors, a bundle
@@ -34,6 +34,10 @@ pub enum TrainError {
     /// The dataset has nothing to train on, or an image does not fit its camera.
     #[error("dataset: {0}")]
     Dataset(String),
+    /// A set of training images (content or style, [`crate::image_folder`]) that is empty or
+    /// names a missing, unreadable or non-image file; the message names the file.
+    #[error("{0}")]
+    Images(String),
     /// A dataset that could not be loaded.
     #[error(transparent)]
     DatasetLoad(#[from] gaussian::dataset::DatasetError),
@@ -50,10 +54,10 @@ pub enum TrainError {
 
 impl TrainError {
     /// The [`TrainError::Io`] error of `path`.
-    pub fn io(path: &Path, source: std::io::Error) -> TrainError {
+    pub fn io(path: &Path, error: std::io::Error) -> TrainError {
         TrainError::Io {
             path: path.to_path_buf(),
-            source,
+            error,
         }
     }
 }

@@ -16,6 +16,10 @@ use std::time::Instant;
 /// A stage of the pipeline.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Stage {
+    /// Reading and precomputing the inputs of a training stage before its first iteration
+    /// (decoding images, encoding views and styles); reported as sub-steps in the progress
+    /// status, e.g. `decode views`.
+    Prepare,
     /// Fitting 3D Gaussians to posed images.
     Geometry,
     /// Pre-training the AdaIN decoder on images.
@@ -38,6 +42,7 @@ impl Stage {
     /// A short lowercase name, for progress bars and logs.
     pub fn name(self) -> &'static str {
         match self {
+            Stage::Prepare => "prepare",
             Stage::Geometry => "geometry",
             Stage::Decoder => "decoder",
             Stage::Features => "features",

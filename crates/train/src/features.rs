@@ -30,20 +30,32 @@
 //! [`stage3_gradients`] is steps 2-4 for any precision, so the same code is checked against
 //! central differences in `f64`.
 //!
-//! Caches. Before training, every training view is encoded once: its alignment target (the
-//! instance-normalised `relu_k_1`, [`style::align_target`]) is kept at the feature resolution,
-//! `C x h x w` `f32` values per view (`C` the encoder's deepest width), i.e.
-//! `4 C h w` bytes per view: for the standard variant with `C = 512` and 400 x 400 views
-//! (50 x 50 features) 5 MB per view; for fullres, where `h x w` is the image size, 328 MB per
-//! 400 x 400 view, so fullres runs want small images. The unnormalised features' per-channel
-//! mean and std are averaged over the views into the scene statistics of the bundle. Every
-//! style image (short side resized to `style_size`) is encoded once and only its per-level
-//! statistics are kept.
+//! Caches. Before training ([`FeatureTrainer::new_with`], reported as [`Stage::Prepare`]
+//! progress), every style image is decoded (short side resized to `style_size`), so a bad file
+//! stops the run at once, not after the views are encoded. Then every training view is encoded
+//! once: its alignment target (the instance-normalised `relu_k_1`, [`style::align_target`]) is
+//! kept at the feature resolution, `C x h x w` `f32` values per view (`C` the encoder's deepest
+//! width), i.e. `4 C h w` bytes per view: for the standard variant with `C = 512` and
+//! 400 x 400 views (50 x 50 features) 5 MB per view; for fullres, where `h x w` is the image
+//! size, 328 MB per 400 x 400 view, so fullres runs want small images. The unnormalised
+//! features' per-channel mean and std are averaged over the views into the scene statistics of
+//! the bundle. Every style image is encoded once and only its per-level statistics are kept.
+//!
+//! Encoding cache. Given a cache folder ([`FeatureSetup::cache`], [`ENCODINGS_DIR`] of the
+//! output folder), each view's target and statistics and each style's statistics are also
+//! written there, one file per view or style, named by a hash (FNV-1a) of everything the
+//! encoding depends on: the program (its version and its executable's size and modification
+//! time), the encoder's weights, the variant, and the decoded pixels and size of the image. A
+//! rerun or resume with the same inputs reads them back instead of encoding: the values are the
+//! ones the encoder gives, bit for bit, so training continues exactly as without the cache. A
+//! file is used only if its format, key, length and checksum all match; anything else is
+//! encoded afresh and rewritten, and files no longer used by the run are removed.
 //!
 //! Checkpoints hold the features, the lifter, the Adam state and the step; they name the
 //! geometry and encoder they belong to by fingerprints, which resuming checks.
 
 use std::path::{Path, PathBuf};
+use std::time::{Instant, UNIX_EPOCH};
 
 use gaussian::dataset::Dataset;
 use gaussian::{Camera, FeatureGaussians, Real};
@@ -56,7 +68,7 @@ use raster::{render, render_backward, Channels, RenderOptions};
 use serde::{Deserialize, Serialize};
 use style::{
     align_loss, align_loss_backward, channel_stats, encode_style, instance_normalize, stage3_loss,
-    Stage3Weights, StyleFeatureStats,
+    ChannelStats, Stage3Weights, StyleFeatureStats,
 };
 
 use crate::adam::{Adam, AdamConfig};
@@ -67,7 +79,7 @@ use crate::checkpoint::{Fnv1a, StateReader, StateWriter};
 use crate::decoder_training::{conv_default_init, mix, INIT_STREAM, STEP_STREAM};
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 use crate::error::TrainError;
-use crate::event::Stage;
+use crate::event::{Event, Quiet, Sink, Stage, Tally};
 use crate::geometry::{load_views, View};
 use crate::image_folder::{to_tensor, ImageSet};
 
@@ -79,6 +91,9 @@ pub const FEATURE_CHECKPOINT_FILE: &str = crate::driver::CHECKPOINT_FILE;
 /// The scene bundle folder inside a feature-training output folder, written when training
 /// completes.
 pub const BUNDLE_DIR: &str = "bundle";
+/// The folder of cached view and style encodings inside a feature-training output folder (see
+/// "Encoding cache" in the module documentation).
+pub const ENCODINGS_DIR: &str = "encodings";
 
 /// Settings of a feature training run.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -408,10 +423,13 @@ pub struct FeatureInputs {
 }
 
 /// The training views of a dataset (every image, or the training part of the every-8th split
-/// when `eval_split` is set) and the records of all its cameras with their held-out flags.
+/// when `eval_split` is set) and the records of all its cameras with their held-out flags. The
+/// images are decoded a few at a time in parallel, reported to `sink` as [`Stage::Prepare`]
+/// progress (`decode views`).
 pub fn dataset_views(
     dataset: &Dataset,
     eval_split: bool,
+    sink: &dyn Sink,
 ) -> Result<(Vec<View>, Vec<CameraRecord>), TrainError> {
     let held_out: Vec<bool> = if eval_split {
         let test = dataset.split().test;
@@ -420,11 +438,249 @@ pub fn dataset_views(
         vec![false; dataset.len()]
     };
     let train: Vec<usize> = (0..dataset.len()).filter(|&i| !held_out[i]).collect();
-    let views = load_views(dataset, &train)?;
+    let mut tally = Tally::start(Stage::Prepare, train.len(), sink);
+    let mut views = Vec::with_capacity(train.len());
+    for chunk in train.chunks(2 * rayon::current_num_threads().max(1)) {
+        views.extend(load_views(dataset, chunk)?);
+        tally.advance(chunk.len(), "decode views");
+    }
+    tally.finish();
     let cameras = (0..dataset.len())
         .map(|i| CameraRecord::new(dataset.names[i].clone(), &dataset.cameras[i], held_out[i]))
         .collect();
     Ok((views, cameras))
+}
+
+/// How [`FeatureTrainer::new_with`] reports its setup and where it keeps the encodings it can
+/// reuse.
+#[derive(Clone, Copy)]
+pub struct FeatureSetup<'a> {
+    /// Where the setup's [`Stage::Prepare`] progress and its summary line go.
+    pub sink: &'a dyn Sink,
+    /// The folder of cached encodings to read and fill (see "Encoding cache" in the module
+    /// documentation; a run's is `OUT/`[`ENCODINGS_DIR`]); `None` encodes everything and
+    /// writes nothing.
+    pub cache: Option<&'a Path>,
+}
+
+impl FeatureSetup<'static> {
+    /// No progress, no cache.
+    pub fn quiet() -> Self {
+        FeatureSetup {
+            sink: &Quiet,
+            cache: None,
+        }
+    }
+}
+
+/// The start of every cache file.
+const ENCODING_MAGIC: &[u8; 8] = b"DSGSENC1";
+
+/// The encoding cache of one setup: the folder, the part of every key that does not depend on
+/// the image, and the files used so far.
+struct EncodingCache<'a> {
+    dir: &'a Path,
+    prefix: String,
+    used: Vec<String>,
+    reused: usize,
+    rebuilt: usize,
+    write_error: Option<String>,
+}
+
+/// What the cached values were computed by: the program's version and its executable's size
+/// and modification time (`None` when they cannot be read: nothing is cached then).
+fn program_identity() -> Option<String> {
+    let exe = std::env::current_exe().ok()?;
+    let meta = std::fs::metadata(exe).ok()?;
+    let modified = meta.modified().ok()?.duration_since(UNIX_EPOCH).ok()?;
+    Some(format!(
+        "{} {} {}",
+        env!("CARGO_PKG_VERSION"),
+        meta.len(),
+        modified.as_nanos()
+    ))
+}
+
+impl<'a> EncodingCache<'a> {
+    fn new(dir: &'a Path, encoder: &Encoder<f32>, variant: Variant) -> Option<Self> {
+        let program = program_identity()?;
+        Some(EncodingCache {
+            dir,
+            prefix: format!(
+                "{program}\n{}\n{}",
+                weights_fingerprint(encoder),
+                variant.as_str()
+            ),
+            used: Vec::new(),
+            reused: 0,
+            rebuilt: 0,
+            write_error: None,
+        })
+    }
+
+    /// The file name of the encoding of a `width x height` RGB image as a `kind` (`view` or
+    /// `style`), and its key.
+    fn entry(&self, kind: &str, width: u32, height: u32, rgb: &[f32]) -> (String, String) {
+        let mut h = Fnv1a::new();
+        h.eat(ENCODING_MAGIC);
+        h.eat(self.prefix.as_bytes());
+        h.eat(kind.as_bytes());
+        h.eat(&width.to_le_bytes());
+        h.eat(&height.to_le_bytes());
+        for &v in rgb {
+            h.eat_f32(v);
+        }
+        let key = h.hex();
+        (format!("{kind}-{key}.bin"), key)
+    }
+
+    /// The `len` values stored under `name` for `key`, if the file is sound (format, key,
+    /// length and checksum); a file that is present but unsound counts as rebuilt.
+    fn read(&mut self, name: &str, key: &str, len: usize) -> Option<Vec<f32>> {
+        self.used.push(name.to_string());
+        let bytes = std::fs::read(self.dir.join(name)).ok()?;
+        let values = decode_entry(&bytes, key, len);
+        match values {
+            Some(_) => self.reused += 1,
+            None => self.rebuilt += 1,
+        }
+        values
+    }
+
+    /// Stores `values` under `name` for `key`; a failure is remembered (and reported once) and
+    /// ends the writing, not the run.
+    fn write(&mut self, name: &str, key: &str, values: &[f32]) {
+        if self.write_error.is_some() {
+            return;
+        }
+        let path = self.dir.join(name);
+        if let Err(e) = base::write_atomic(&path, &encode_entry(key, values)) {
+            self.write_error = Some(format!("{}: {e}", path.display()));
+        }
+    }
+
+    /// Removes the cache files of this folder that the run did not use (best effort).
+    fn prune(&self) {
+        let Ok(entries) = std::fs::read_dir(self.dir) else {
+            return;
+        };
+        for e in entries.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let ours =
+                (name.starts_with("view-") || name.starts_with("style-")) && name.ends_with(".bin");
+            if ours && !self.used.contains(&name) {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
+}
+
+/// A cache file: the magic, the key (16 hexadecimal digits), the number of values (`u64`), the
+/// values (`f32`), all little-endian, then the FNV-1a checksum of everything before it (16
+/// hexadecimal digits).
+fn encode_entry(key: &str, values: &[f32]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(8 + key.len() + 8 + 4 * values.len() + 16);
+    out.extend_from_slice(ENCODING_MAGIC);
+    out.extend_from_slice(key.as_bytes());
+    out.extend_from_slice(&(values.len() as u64).to_le_bytes());
+    for v in values {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    let mut h = Fnv1a::new();
+    h.eat(&out);
+    out.extend_from_slice(h.hex().as_bytes());
+    out
+}
+
+/// The values of a cache file written by [`encode_entry`] for `key` with `len` values, or
+/// `None` if anything does not match.
+fn decode_entry(bytes: &[u8], key: &str, len: usize) -> Option<Vec<f32>> {
+    let head = ENCODING_MAGIC.len() + key.len() + 8;
+    if bytes.len() != head + 4 * len + 16 {
+        return None;
+    }
+    let (body, checksum) = bytes.split_at(bytes.len() - 16);
+    let mut h = Fnv1a::new();
+    h.eat(body);
+    if checksum != h.hex().as_bytes()
+        || &body[..8] != ENCODING_MAGIC
+        || &body[8..8 + key.len()] != key.as_bytes()
+        || body[8 + key.len()..head] != (len as u64).to_le_bytes()
+    {
+        return None;
+    }
+    Some(
+        body[head..]
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect(),
+    )
+}
+
+/// The flat values of per-level statistics: each level's means, then its standard deviations.
+fn stats_values(stats: &StyleFeatureStats<f32>) -> Vec<f32> {
+    stats
+        .levels
+        .iter()
+        .flat_map(|l| l.mean.iter().chain(l.std.iter()).copied())
+        .collect()
+}
+
+/// Statistics of one image at levels of the given widths from [`stats_values`].
+fn stats_from_values(
+    values: &[f32],
+    widths: &[usize],
+) -> Result<StyleFeatureStats<f32>, TrainError> {
+    let mut levels = Vec::with_capacity(widths.len());
+    let mut at = 0;
+    for &c in widths {
+        let row = |from: usize| {
+            ndarray::Array2::from_shape_vec((1, c), values[from..from + c].to_vec())
+                .map_err(|e| TrainError::Shape(e.to_string()))
+        };
+        levels.push(ChannelStats::new(row(at)?, row(at + c)?).map_err(style_err)?);
+        at += 2 * c;
+    }
+    Ok(StyleFeatureStats { levels })
+}
+
+/// One encoded training view: its alignment target and the per-channel mean and std of its
+/// unnormalised deepest features.
+struct ViewEncoding {
+    target: Array4<f32>,
+    mean: Vec<f32>,
+    std: Vec<f32>,
+}
+
+/// Encodes one training view (see the module documentation).
+fn encode_view(
+    encoder: &Encoder<f32>,
+    variant: Variant,
+    v: &View,
+    deepest: usize,
+) -> Result<ViewEncoding, TrainError> {
+    let k = v.camera.intrinsics;
+    let (w, h) = (k.width as usize, k.height as usize);
+    let x = Array4::from_shape_fn((1, 3, h, w), |(_, c, y, x)| v.image[(y * w + x) * 3 + c]);
+    let feats = encoder.forward(x.view()).map_err(net_err)?;
+    let deep = feats.last().expect("encoder depth >= 1");
+    let (fw, fh) = feature_size(encoder, variant, k.width, k.height);
+    if deep.dim() != (1, deepest, fh as usize, fw as usize) {
+        return Err(TrainError::Shape(format!(
+            "view `{}`: the encoder gives {:?}, the feature map is {fw}x{fh}",
+            v.name,
+            deep.shape()
+        )));
+    }
+    let stats = channel_stats(deep).map_err(style_err)?;
+    Ok(ViewEncoding {
+        target: instance_normalize(deep)
+            .map_err(style_err)?
+            .as_standard_layout()
+            .into_owned(),
+        mean: stats.mean.iter().copied().collect(),
+        std: stats.std.iter().copied().collect(),
+    })
 }
 
 /// A training view reduced to what the loss needs.
@@ -507,6 +763,20 @@ pub struct FeatureTrainer {
     geometry_fingerprint: String,
 }
 
+/// Checks that the encoder takes RGB and the decoder its deepest width; returns that width.
+fn check_networks(encoder: &Encoder<f32>, decoder: &Decoder<f32>) -> Result<usize, TrainError> {
+    let deepest = *encoder.widths().last().unwrap_or(&0);
+    if encoder.in_channels() != 3 || decoder.in_channels() != deepest {
+        return Err(TrainError::Config(format!(
+            "the encoder takes {} channels and ends with {deepest}, the decoder takes {} \
+             (expected 3 and a decoder of the encoder's deepest width)",
+            encoder.in_channels(),
+            decoder.in_channels()
+        )));
+    }
+    Ok(deepest)
+}
+
 /// FNV-1a (64-bit) over the geometry's parameter bits (not its colours or features): which
 /// frozen Gaussians a checkpoint belongs to.
 pub fn geometry_fingerprint(scene: &FeatureGaussians<f32>) -> String {
@@ -525,8 +795,21 @@ pub fn geometry_fingerprint(scene: &FeatureGaussians<f32>) -> String {
 
 impl FeatureTrainer {
     /// A run at step 0: initialises the features and the lifter from the seed, encodes every
-    /// training view (alignment targets, scene statistics) and every style image.
+    /// training view (alignment targets, scene statistics) and every style image; silent and
+    /// without a cache ([`FeatureTrainer::new_with`]).
     pub fn new(config: FeatureTrainConfig, inputs: FeatureInputs) -> Result<Self, TrainError> {
+        FeatureTrainer::new_with(config, inputs, &FeatureSetup::quiet())
+    }
+
+    /// [`FeatureTrainer::new`], reporting the setup (decoding the styles, encoding the views and
+    /// styles) as [`Stage::Prepare`] progress and a summary line to `setup.sink`, and reusing
+    /// and filling the encoding cache `setup.cache` (see the module documentation). The result
+    /// is the same with or without the cache.
+    pub fn new_with(
+        config: FeatureTrainConfig,
+        inputs: FeatureInputs,
+        setup: &FeatureSetup,
+    ) -> Result<Self, TrainError> {
         config.validate()?;
         let FeatureInputs {
             geometry,
@@ -538,20 +821,24 @@ impl FeatureTrainer {
             background,
             provenance,
         } = inputs;
-        let deepest = *encoder.widths().last().unwrap_or(&0);
-        if encoder.in_channels() != 3 || decoder.in_channels() != deepest {
-            return Err(TrainError::Config(format!(
-                "the encoder takes {} channels and ends with {deepest}, the decoder takes {} \
-                 (expected 3 and a decoder of the encoder's deepest width)",
-                encoder.in_channels(),
-                decoder.in_channels()
-            )));
-        }
+        let deepest = check_networks(&encoder, &decoder)?;
         if geometry.is_empty() {
             return Err(TrainError::Dataset("the geometry has no Gaussians".into()));
         }
         if views.is_empty() {
             return Err(TrainError::Dataset("no training views".into()));
+        }
+        for v in &views {
+            let k = v.camera.intrinsics;
+            let (w, h) = (k.width as usize, k.height as usize);
+            if w == 0 || h == 0 || v.image.len() != w * h * 3 {
+                return Err(TrainError::Dataset(format!(
+                    "view `{}`: image has {} values, its {w}x{h} camera needs {}",
+                    v.name,
+                    v.image.len(),
+                    w * h * 3
+                )));
+            }
         }
         let res = config.variant.resolution();
         let encoder = encoder.with_resolution(res);
@@ -581,52 +868,123 @@ impl FeatureTrainer {
         } else {
             cameras
         };
+
+        let start = Instant::now();
+        let mut tally = Tally::start(Stage::Prepare, 2 * styles.len() + views.len(), setup.sink);
+        // Every style image is decoded before anything is encoded: a bad file stops the run now.
+        let mut decoded = 0;
+        let style_images = styles.load_all_resized(config.style_size, &mut |done| {
+            tally.advance(done - decoded, "decode styles");
+            decoded = done;
+        })?;
+        let mut cache = setup
+            .cache
+            .and_then(|dir| EncodingCache::new(dir, &encoder, config.variant));
+
         let mut mean_sum = vec![0.0f64; deepest];
         let mut std_sum = vec![0.0f64; deepest];
         let mut cached = Vec::with_capacity(views.len());
         for v in &views {
             let k = v.camera.intrinsics;
-            let (w, h) = (k.width as usize, k.height as usize);
-            if w == 0 || h == 0 || v.image.len() != w * h * 3 {
-                return Err(TrainError::Dataset(format!(
-                    "view `{}`: image has {} values, its {w}x{h} camera needs {}",
-                    v.name,
-                    v.image.len(),
-                    w * h * 3
-                )));
-            }
-            let x =
-                Array4::from_shape_fn((1, 3, h, w), |(_, c, y, x)| v.image[(y * w + x) * 3 + c]);
-            let feats = encoder.forward(x.view()).map_err(net_err)?;
-            let deep = feats.last().expect("encoder depth >= 1");
             let (fw, fh) = feature_size(&encoder, config.variant, k.width, k.height);
-            if deep.dim() != (1, deepest, fh as usize, fw as usize) {
-                return Err(TrainError::Shape(format!(
-                    "view `{}`: the encoder gives {:?}, the feature map is {fw}x{fh}",
-                    v.name,
-                    deep.shape()
-                )));
-            }
-            let stats = channel_stats(deep).map_err(style_err)?;
+            let shape = (1, deepest, fh as usize, fw as usize);
+            let len = deepest * (fh as usize * fw as usize + 2);
+            let entry = cache
+                .as_ref()
+                .map(|c| c.entry("view", k.width, k.height, &v.image));
+            let stored = match (&mut cache, &entry) {
+                (Some(c), Some((name, key))) => c.read(name, key, len),
+                _ => None,
+            };
+            let e = match stored {
+                Some(mut values) => {
+                    let std = values.split_off(len - deepest);
+                    let mean = values.split_off(len - 2 * deepest);
+                    let target = Array4::from_shape_vec(shape, values)
+                        .map_err(|e| TrainError::Shape(e.to_string()))?;
+                    ViewEncoding { target, mean, std }
+                }
+                None => {
+                    let e = encode_view(&encoder, config.variant, v, deepest)?;
+                    if let (Some(c), Some((name, key))) = (&mut cache, &entry) {
+                        let mut values = Vec::with_capacity(len);
+                        values.extend(e.target.iter().copied());
+                        values.extend(&e.mean);
+                        values.extend(&e.std);
+                        c.write(name, key, &values);
+                    }
+                    e
+                }
+            };
             for ch in 0..deepest {
-                mean_sum[ch] += stats.mean[[0, ch]] as f64;
-                std_sum[ch] += stats.std[[0, ch]] as f64;
+                mean_sum[ch] += e.mean[ch] as f64;
+                std_sum[ch] += e.std[ch] as f64;
             }
             cached.push(CachedView {
                 camera: v.camera,
-                target: instance_normalize(deep).map_err(style_err)?,
+                target: e.target,
             });
+            tally.advance(1, "encode views");
         }
         drop(views);
         let nv = cached.len() as f64;
         let scene_mean = mean_sum.iter().map(|&s| (s / nv) as f32).collect();
         let scene_std = std_sum.iter().map(|&s| (s / nv) as f32).collect();
 
-        let mut style_stats = Vec::with_capacity(styles.len());
-        for i in 0..styles.len() {
-            let img = styles.load_resized(i, config.style_size)?;
-            style_stats.push(encode_style(&encoder, &to_tensor(&img)).map_err(style_err)?);
+        let widths = encoder.widths().to_vec();
+        let stats_len = 2 * widths.iter().sum::<usize>();
+        let mut style_stats = Vec::with_capacity(style_images.len());
+        for img in &style_images {
+            let entry = cache
+                .as_ref()
+                .map(|c| c.entry("style", img.width, img.height, &img.data));
+            let stored = match (&mut cache, &entry) {
+                (Some(c), Some((name, key))) => c.read(name, key, stats_len),
+                _ => None,
+            };
+            let stats = match stored {
+                Some(values) => stats_from_values(&values, &widths)?,
+                None => {
+                    let stats = encode_style(&encoder, &to_tensor(img)).map_err(style_err)?;
+                    if let (Some(c), Some((name, key))) = (&mut cache, &entry) {
+                        c.write(name, key, &stats_values(&stats));
+                    }
+                    stats
+                }
+            };
+            style_stats.push(stats);
+            tally.advance(1, "encode styles");
         }
+        drop(style_images);
+        let mut summary = format!(
+            "{} views and {} style images encoded in {:.1} s",
+            cached.len(),
+            style_stats.len(),
+            start.elapsed().as_secs_f64()
+        );
+        if let Some(c) = &cache {
+            c.prune();
+            summary += &format!(
+                " ({} reused from {}{})",
+                c.reused,
+                c.dir.display(),
+                if c.rebuilt > 0 {
+                    format!(", {} unsound cache files encoded again", c.rebuilt)
+                } else {
+                    String::new()
+                }
+            );
+            if let Some(e) = &c.write_error {
+                setup
+                    .sink
+                    .emit(Event::Warning(format!("encodings not cached: {e}")));
+            }
+        }
+        tally.finish();
+        setup.sink.emit(Event::Log {
+            stage: Stage::Prepare,
+            message: summary,
+        });
 
         let mut adam = Adam::new(config.adam);
         adam.add_param("features", config.lr_features, n, f);
@@ -654,18 +1012,29 @@ impl FeatureTrainer {
 
     /// Continues a run from a checkpoint written by [`FeatureTrainer::save_checkpoint`], with
     /// the same inputs (geometry and encoder are checked by fingerprint; the configuration may
-    /// differ, e.g. more iterations).
+    /// differ, e.g. more iterations); silent and without a cache
+    /// ([`FeatureTrainer::resume_with`]).
     pub fn resume(
         checkpoint: &Path,
         config: FeatureTrainConfig,
         inputs: FeatureInputs,
     ) -> Result<Self, TrainError> {
-        let bytes = std::fs::read(checkpoint).map_err(|source| TrainError::Io {
-            path: checkpoint.to_path_buf(),
-            source,
-        })?;
+        FeatureTrainer::resume_with(checkpoint, config, inputs, &FeatureSetup::quiet())
+    }
+
+    /// [`FeatureTrainer::resume`] with the setup of [`FeatureTrainer::new_with`]. The checkpoint
+    /// is read and checked against the inputs before the setup, so a checkpoint that does not
+    /// fit is refused at once.
+    pub fn resume_with(
+        checkpoint: &Path,
+        config: FeatureTrainConfig,
+        inputs: FeatureInputs,
+        setup: &FeatureSetup,
+    ) -> Result<Self, TrainError> {
+        let bytes = std::fs::read(checkpoint).map_err(|e| TrainError::io(checkpoint, e))?;
         let r = StateReader::new(&bytes, checkpoint, FEATURE_CHECKPOINT_FORMAT)?;
-        let mut t = FeatureTrainer::new(config, inputs)?;
+        config.validate()?;
+        let c = check_networks(&inputs.encoder, &inputs.decoder)?;
         let check = |key: &str, want: &str, what: &str| -> Result<(), TrainError> {
             let found = r.meta_str(key)?;
             if found != want {
@@ -675,23 +1044,27 @@ impl FeatureTrainer {
             }
             Ok(())
         };
-        check("geometry_fingerprint", &t.geometry_fingerprint, "geometry")?;
+        // The fingerprint covers the geometry, not the features, which the setup replaces.
+        check(
+            "geometry_fingerprint",
+            &geometry_fingerprint(&inputs.geometry),
+            "geometry",
+        )?;
         check(
             "encoder_fingerprint",
-            &weights_fingerprint(&t.encoder),
+            &weights_fingerprint(&inputs.encoder),
             "encoder",
         )?;
-        let (n, f) = (t.scene.len(), t.config.feature_dim);
-        let c = t.lifter.out_channels();
-        t.scene.features = r.f32s("features", &[n, f])?;
+        let (n, f) = (inputs.geometry.len(), config.feature_dim);
+        let features = r.f32s("features", &[n, f])?;
         let w = r.f32s("lifter.weight", &[c, f, 1, 1])?;
         let b = r.f32s("lifter.bias", &[c])?;
-        t.lifter = Lifter::new(
+        let lifter = Lifter::new(
             Array4::from_shape_vec((c, f, 1, 1), w).expect("checked shape"),
             ndarray::Array1::from_vec(b),
         )
         .map_err(net_err)?;
-        let adam = r.adam(t.config.adam)?;
+        let mut adam = r.adam(config.adam)?;
         let names: Vec<&str> = adam.params().iter().map(|p| p.name.as_str()).collect();
         let rows: Vec<usize> = adam.params().iter().map(|p| p.rows()).collect();
         if names != ["features", "lifter.weight", "lifter.bias"] || rows != [n, c, 1] {
@@ -699,13 +1072,18 @@ impl FeatureTrainer {
                 "optimiser tensors {names:?} with rows {rows:?} do not fit this run"
             )));
         }
-        t.adam = adam;
         // The learning rates follow the (possibly new) configuration.
-        t.adam.set_lr(0, t.config.lr_features);
-        t.adam.set_lr(1, t.config.lr_lifter);
-        t.adam.set_lr(2, t.config.lr_lifter);
-        t.step = r.meta_parse("step")?;
-        t.ema = r.ema()?;
+        adam.set_lr(0, config.lr_features);
+        adam.set_lr(1, config.lr_lifter);
+        adam.set_lr(2, config.lr_lifter);
+        let step = r.meta_parse("step")?;
+        let ema = r.ema()?;
+        let mut t = FeatureTrainer::new_with(config, inputs, setup)?;
+        t.scene.features = features;
+        t.lifter = lifter;
+        t.adam = adam;
+        t.step = step;
+        t.ema = ema;
         Ok(t)
     }
 

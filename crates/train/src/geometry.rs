@@ -15,6 +15,41 @@
 //!    `optimizer.step()`), and an opacity reset replaces the opacity tensor. The last iteration
 //!    takes no optimiser step (`if iteration < opt.iterations`).
 //!
+//! # Run length
+//!
+//! The defaults are the 30,000-iteration schedule of 3DGS. [`GeometryConfig::scaled_to`] gives
+//! the same schedule stretched or compressed to `n` iterations:
+//!
+//! * points in time scale by `n / iterations`, rounded to the nearest step (halves up), 0
+//!   staying 0, a point of the run (`1..=iterations`) staying in it (`1..=n`) and a later one
+//!   after it: the position learning rate's decay length (`position_lr_max_steps`) and warm-up
+//!   (`position_lr_delay_steps`), the densification window (`densify_from_iter`,
+//!   `densify_until_iter`), and the test, save and checkpoint iterations (in their order, equal
+//!   neighbours merged). So the position rate reaches its final value at the end of the run,
+//!   and, with the defaults, densification stops half-way through it as in 3DGS, leaving the
+//!   second half to refine: the last density-control pass never falls on the last iteration;
+//! * intervals scale by `n / iterations` too, rounded the same way, at least 1 (0, off, stays
+//!   0): `sh_degree_interval` (so the full SH degree arrives at the same fraction of the run),
+//!   `densification_interval` and `opacity_reset_interval`. These last two set how many views a
+//!   density decision averages and how long opacities have to recover after a reset: times
+//!   that depend on the views and the learning rates, not on the run length. So when a run is
+//!   shortened they stay at least
+//!   [`density::MIN_DENSIFICATION_INTERVAL`](crate::density::MIN_DENSIFICATION_INTERVAL) (50)
+//!   and [`density::MIN_OPACITY_RESET_INTERVAL`](crate::density::MIN_OPACITY_RESET_INTERVAL)
+//!   (300) steps (or their configured values, if smaller). At 600 iterations, say, that is a
+//!   density-control pass every 50 steps in (10, 300) and no periodic opacity reset (only the
+//!   white-background one at `densify_from_iter`), where pure proportion would densify every 2
+//!   steps and reset every 60 (on lego at 1/8 scale, white, 600 iterations: 27.6 dB held-out
+//!   PSNR with 14k Gaussians, against 26.0 dB for pure proportion and 23.8 dB for the unscaled
+//!   30,000-step schedule, whose first density-control pass is a prune at the last iteration);
+//! * `checkpoint_interval` and `log_interval` are kept: they pace the safety copies and the
+//!   log, not the optimisation.
+//!
+//! Scaling to the configured length changes nothing. Scaling to another length and back
+//! restores every point in time to within rounding, and every interval too, except one that a
+//! minimum raised on the way (shortened below it, or configured below it and stretched and
+//! shortened back).
+//!
 //! Randomness (view order, split samples) comes from a generator seeded by the run seed and the
 //! iteration number, so a run resumed from a checkpoint continues exactly as the uninterrupted
 //! run would. Every kernel is deterministic for any thread count.
@@ -29,7 +64,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::adam::AdamConfig;
 use crate::checkpoint::GeometryCheckpoint;
-use crate::density::{DensifyConfig, DensifyReport};
+use crate::density::{scale_interval, scale_point, DensifyConfig, DensifyReport};
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop, DEFAULT_CHECKPOINT_INTERVAL};
 use crate::error::TrainError;
 use crate::event::{Event, Metric, Sink, Stage};
@@ -106,6 +141,34 @@ impl Default for GeometryConfig {
 }
 
 impl GeometryConfig {
+    /// The same schedule stretched or compressed to `n` iterations (the rule is in the
+    /// [module documentation](self#run-length)). `n == iterations` returns the configuration
+    /// unchanged; so does a configuration of 0 iterations (no schedule to scale), except for
+    /// `iterations` itself.
+    pub fn scaled_to(&self, n: u64) -> GeometryConfig {
+        let from = self.iterations;
+        let mut c = self.clone();
+        c.iterations = n;
+        if from == 0 || from == n {
+            return c;
+        }
+        let step = |x: u64| scale_point(x, from, n);
+        let events = |list: &[u64]| {
+            let mut out: Vec<u64> = list.iter().map(|&x| step(x)).collect();
+            out.dedup();
+            out
+        };
+        c.sh_degree_interval = scale_interval(self.sh_degree_interval, from, n, 1);
+        let lr = &mut c.learning_rates;
+        lr.position_lr_max_steps = step(self.learning_rates.position_lr_max_steps);
+        lr.position_lr_delay_steps = step(self.learning_rates.position_lr_delay_steps);
+        c.densify = self.densify.scaled(from, n);
+        c.test_iterations = events(&self.test_iterations);
+        c.save_iterations = events(&self.save_iterations);
+        c.checkpoint_iterations = events(&self.checkpoint_iterations);
+        c
+    }
+
     fn validate(&self) -> Result<(), TrainError> {
         if self.sh_degree > 3 {
             return Err(TrainError::Config(format!(
@@ -390,10 +453,7 @@ impl GeometryTrainer {
     /// Writes the scene as an official 3DGS `.ply` (atomically).
     pub fn save_ply(&self, path: &Path) -> Result<(), TrainError> {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).map_err(|source| TrainError::Io {
-                path: dir.to_path_buf(),
-                source,
-            })?;
+            std::fs::create_dir_all(dir).map_err(|e| TrainError::io(dir, e))?;
         }
         gaussian::ply::save_ply(path, &self.model.scene)?;
         Ok(())

@@ -7,8 +7,10 @@
 //! * [`ImageSet`] holds the files (checked to be decodable images by their headers when the set
 //!   is opened, so a bad file is reported before training starts) or images already in memory.
 //!   Files are decoded when they are used, so a set of many thousands of images costs nothing
-//!   until then. Colours are RGB in `[0, 1]` ([`load_rgb`]); an alpha channel is composited onto
-//!   white ([`ALPHA_BACKGROUND`]).
+//!   until then; a header can be sound while the pixels after it are not (a truncated file), so
+//!   a stage that must not fail later decodes the whole set first ([`ImageSet::check_decodes`],
+//!   [`ImageSet::load_all_resized`]). Colours are RGB in `[0, 1]` ([`load_rgb`]); an alpha
+//!   channel is composited onto white ([`ALPHA_BACKGROUND`]).
 //! * The training crop ([`ImageSet::random_crop`]) resizes the image so that its short side is
 //!   `S`, keeping the aspect ratio (the long side becomes `floor(long * S / short)`, as
 //!   torchvision's `Resize(S)`), then takes a `C x C` window at a uniformly random offset drawn
@@ -80,7 +82,7 @@ pub fn collect_images<P: AsRef<Path>>(
     recursive: bool,
 ) -> Result<Vec<PathBuf>, TrainError> {
     if sources.is_empty() {
-        return Err(TrainError::Dataset(
+        return Err(TrainError::Images(
             "no image folders or files given".into(),
         ));
     }
@@ -97,7 +99,7 @@ pub fn collect_images<P: AsRef<Path>>(
                 } else {
                     " (sub-folders are not searched unless recursion is enabled)"
                 };
-                return Err(TrainError::Dataset(format!(
+                return Err(TrainError::Images(format!(
                     "{}: no jpg, jpeg or png images in this folder{hint}",
                     src.display()
                 )));
@@ -105,7 +107,7 @@ pub fn collect_images<P: AsRef<Path>>(
         } else if is_image_path(src) {
             out.push(src.to_path_buf());
         } else {
-            return Err(TrainError::Dataset(format!(
+            return Err(TrainError::Images(format!(
                 "{}: not an image file (expected a .jpg, .jpeg or .png extension)",
                 src.display()
             )));
@@ -229,13 +231,13 @@ impl ImageSet {
     /// A set of the given image files, each checked by its header.
     pub fn from_files(paths: Vec<PathBuf>) -> Result<ImageSet, TrainError> {
         if paths.is_empty() {
-            return Err(TrainError::Dataset("no image files given".into()));
+            return Err(TrainError::Images("no image files given".into()));
         }
         let checks: Vec<Result<(), TrainError>> = paths
             .par_iter()
             .map(|p| match image_size(p) {
                 Ok((w, h)) if w > 0 && h > 0 => Ok(()),
-                Ok(_) => Err(TrainError::Dataset(format!(
+                Ok(_) => Err(TrainError::Images(format!(
                     "{}: the image is empty",
                     p.display()
                 ))),
@@ -251,12 +253,12 @@ impl ImageSet {
     /// A set of images already in memory, with names for messages.
     pub fn from_images(images: Vec<(String, RgbImage)>) -> Result<ImageSet, TrainError> {
         if images.is_empty() {
-            return Err(TrainError::Dataset("no images given".into()));
+            return Err(TrainError::Images("no images given".into()));
         }
         for (name, img) in &images {
             let n = img.width as usize * img.height as usize * 3;
             if n == 0 || img.data.len() != n {
-                return Err(TrainError::Dataset(format!(
+                return Err(TrainError::Images(format!(
                     "image `{name}`: {} values for a {}x{} RGB image",
                     img.data.len(),
                     img.width,
@@ -292,7 +294,7 @@ impl ImageSet {
 
     fn check_index(&self, index: usize) -> Result<(), TrainError> {
         if index >= self.len() {
-            return Err(TrainError::Dataset(format!(
+            return Err(TrainError::Images(format!(
                 "image index {index} out of range for a set of {} images",
                 self.len()
             )));
@@ -344,7 +346,51 @@ impl ImageSet {
         Ok(to_tensor(&c))
     }
 
+    /// Decodes every image of the set, in parallel a few at a time, and drops the pixels:
+    /// a file that does not decode is reported by name (the first in the set's order) before
+    /// any of it is used. `progress` is called with the number of images decoded so far.
+    pub fn check_decodes(&self, progress: &mut dyn FnMut(usize)) -> Result<(), TrainError> {
+        self.decode_all(drop, progress).map(drop)
+    }
+
+    /// Every image with its short side resized to `short_side` ([`ImageSet::load_resized`]),
+    /// decoded in parallel a few at a time; `progress` is called with the number done so far.
+    /// The result does not depend on the thread count.
+    pub fn load_all_resized(
+        &self,
+        short_side: u32,
+        progress: &mut dyn FnMut(usize),
+    ) -> Result<Vec<RgbImage>, TrainError> {
+        if short_side == 0 {
+            return Err(TrainError::Config("the resize size is 0".into()));
+        }
+        self.decode_all(|img| resize_short_side(&img, short_side), progress)
+    }
+
+    /// `f` of every image, decoded in chunks of a few per thread, in order; the first error in
+    /// the set's order is returned.
+    fn decode_all<T: Send>(
+        &self,
+        f: impl Fn(RgbImage) -> T + Sync,
+        progress: &mut dyn FnMut(usize),
+    ) -> Result<Vec<T>, TrainError> {
+        let chunk = 2 * rayon::current_num_threads().max(1);
+        let mut out = Vec::with_capacity(self.len());
+        for start in (0..self.len()).step_by(chunk) {
+            let end = (start + chunk).min(self.len());
+            let done: Vec<Result<T, TrainError>> = (start..end)
+                .into_par_iter()
+                .map(|i| self.load(i).map(&f))
+                .collect();
+            for r in done {
+                out.push(r?);
+            }
+            progress(end);
+        }
+        Ok(out)
+    }
+
     fn named(&self, index: usize, e: TrainError) -> TrainError {
-        TrainError::Dataset(format!("{}: {e}", self.name(index)))
+        TrainError::Images(format!("{}: {e}", self.name(index)))
     }
 }

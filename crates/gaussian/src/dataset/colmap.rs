@@ -173,9 +173,9 @@ pub fn model_dir(scene_dir: &Path) -> Option<PathBuf> {
 }
 
 fn read_bytes(path: &Path) -> Result<Vec<u8>, DatasetError> {
-    fs::read(path).map_err(|source| DatasetError::Io {
+    fs::read(path).map_err(|error| DatasetError::Io {
         path: path.to_path_buf(),
-        source,
+        error,
     })
 }
 

@@ -110,9 +110,9 @@ pub(super) fn load(dir: &Path, options: &LoadOptions) -> Result<Dataset, Dataset
     let poses = poses_from_array(&read_npy(&npy)?, &npy)?;
     // The image names, in the sorted order the poses follow.
     let images_dir = dir.join("images");
-    let listing = std::fs::read_dir(&images_dir).map_err(|source| DatasetError::Io {
+    let listing = std::fs::read_dir(&images_dir).map_err(|error| DatasetError::Io {
         path: images_dir.clone(),
-        source,
+        error,
     })?;
     let mut names: Vec<String> = listing
         .flatten()
@@ -142,15 +142,16 @@ pub(super) fn load(dir: &Path, options: &LoadOptions) -> Result<Dataset, Dataset
         Some(model) => colmap::read_points(&model)?.map(|p| PointCloud::from_colmap(&p)),
         None => None,
     };
-    Ok(Dataset {
-        kind: DatasetKind::Llff,
-        distortions: vec![None; names.len()],
-        cameras: resolved.cameras,
-        image_paths: resolved.paths,
+    let distortions = vec![None; names.len()];
+    Ok(Dataset::assemble(
+        DatasetKind::Llff,
+        resolved.cameras,
+        resolved.paths,
         names,
+        distortions,
         points,
-        near_far: Some(poses.iter().map(|p| p.near_far).collect()),
-        background: options.background,
-        warnings: resolved.warnings,
-    })
+        Some(poses.iter().map(|p| p.near_far).collect()),
+        options,
+        resolved.warnings,
+    ))
 }

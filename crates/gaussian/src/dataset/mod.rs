@@ -3,7 +3,8 @@
 //!
 //! Every camera is a [`Camera`] (`camera_from_world` in OpenCV axes, pixel centres at
 //! `i + 0.5`) sized for the images as they are loaded, so `cameras[i]` and
-//! [`Dataset::load_image`]`(i)` always agree.
+//! [`Dataset::load_image`]`(i)` always agree, and all of them have the same size (see
+//! [Image size](#image-size)).
 //!
 //! # Resolution
 //! [`Resolution::Full`] loads the images as they are; [`Resolution::Folder`]`(n)` loads them from
@@ -12,6 +13,18 @@
 //! with a warning); [`Resolution::Downscale`]`(f)` decodes the full-resolution images and
 //! resizes them on load by `1 / f` (cameras scaled to match). Resizing uses a bicubic filter
 //! that averages when shrinking.
+//!
+//! # Image size
+//! Every view of a dataset is loaded at one size. After the resolution is applied, the most
+//! common image size among the views (on a tie, the one that comes first) is the dataset's
+//! size ([`Dataset::image_size`]); any other view (photos a few pixels taller, or rounding
+//! that differs after downscaling) has its camera resized to it exactly, `fx` and `cx` scaled
+//! by the ratio of the widths and `fy` and `cy` by the ratio of the heights
+//! ([`Camera::resized`]), and its image is resized to match on load. Such views are listed in
+//! [`Dataset::resized`] (index, name, former size) for the caller to report; a view whose
+//! aspect ratio changes by more than [`ASPECT_TOLERANCE`] beyond one pixel of rounding (a
+//! portrait photo among landscape ones) is also named in [`Dataset::warnings`], since its
+//! pixels are stretched. Image files are decoded under limits (see [`images`]).
 //!
 //! # Lens distortion
 //! PINHOLE and SIMPLE_PINHOLE cameras are used exactly. For SIMPLE_RADIAL, RADIAL and OPENCV
@@ -46,6 +59,8 @@ use rayon::prelude::*;
 pub use distortion::Distortion;
 pub use images::RgbImage;
 
+use crate::camera::plain_numbers;
+use crate::error_text;
 use crate::npy::NpyError;
 use crate::{Camera, Intrinsics};
 use colmap::CameraModel;
@@ -57,12 +72,15 @@ pub const LLFF_HOLD: usize = 8;
 #[derive(Debug, thiserror::Error)]
 pub enum DatasetError {
     /// A file or folder could not be read.
-    #[error("{}: {source}", path.display())]
+    ///
+    /// The message includes the I/O error's text; the error is not also returned as
+    /// [`std::error::Error::source`], so a report of the whole chain shows it once.
+    #[error("{}: {}", path.display(), error_text(error))]
     Io {
         /// The path being read.
         path: PathBuf,
         /// The underlying I/O error.
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// A file or folder does not hold what the format requires (bad COLMAP records, JSON,
     /// poses, missing images, ...).
@@ -74,12 +92,27 @@ pub enum DatasetError {
         problem: String,
     },
     /// An image file could not be decoded.
-    #[error("{}: cannot decode image: {source}", path.display())]
+    ///
+    /// The message includes the decoder's error and its causes, each once; the decoder's error
+    /// is not also returned as [`std::error::Error::source`] (the `image` crate's errors repeat
+    /// their cause's text in their own message, so a report of the whole chain would show it
+    /// up to three times).
+    #[error("{}: cannot decode image: {}", path.display(), error_text(error))]
     Image {
         /// The image file.
         path: PathBuf,
         /// The decoder's error.
-        source: image::ImageError,
+        error: image::ImageError,
+    },
+    /// An image file exceeds the decoding limits: a side above
+    /// [`MAX_IMAGE_SIDE`](crate::camera::MAX_IMAGE_SIDE) pixels, or more than
+    /// [`MAX_DECODE_BYTES`](crate::camera::MAX_DECODE_BYTES) to decode.
+    #[error("{}: {problem}", path.display())]
+    ImageTooLarge {
+        /// The image file.
+        path: PathBuf,
+        /// Which limit, and the image's size when the header gives it.
+        problem: String,
     },
     /// A COLMAP camera uses a model that is not supported, or a distorted model under
     /// [`DistortionHandling::Reject`].
@@ -229,6 +262,115 @@ pub struct Dataset {
     pub background: [f32; 3],
     /// Things the caller should know about (ignored distortion, resized fallbacks, ...).
     pub warnings: Vec<String>,
+    /// The views whose size differed from the dataset's common size and were resized to it on
+    /// load (see [Image size](crate::dataset#image-size)), in index order; empty when every image
+    /// already had that size.
+    pub resized: Vec<ResizedView>,
+}
+
+/// A view brought to the dataset's common image size on load: its camera was resized to that
+/// size ([`Camera::resized`]: `fx`, `cx` scaled by the ratio of the widths, `fy`, `cy` by the
+/// ratio of the heights) and [`Dataset::load_image`] resizes its image to match.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ResizedView {
+    /// The view's index in the dataset.
+    pub index: usize,
+    /// The view's image name.
+    pub name: String,
+    /// The `(width, height)` the view would have had at the chosen [`Resolution`].
+    pub from: (u32, u32),
+}
+
+/// How far (relative) a view's aspect ratio may be from the common size's, beyond one pixel of
+/// rounding, before bringing it to that size is reported in [`Dataset::warnings`] as a
+/// stretch; also how far an `images_n` file may be from its camera's aspect ratio.
+pub const ASPECT_TOLERANCE: f64 = 0.02;
+
+/// Brings every camera to the most common image size among them (ties: the size that comes
+/// first), resizing the others with [`Camera::resized`]. Returns the resized views and, when
+/// some of them change aspect ratio by more than [`ASPECT_TOLERANCE`] beyond one pixel of
+/// rounding, a warning.
+fn unify_sizes(cameras: &mut [Camera], names: &[String]) -> (Vec<ResizedView>, Option<String>) {
+    let size = |c: &Camera| (c.intrinsics.width, c.intrinsics.height);
+    let mut counts: Vec<((u32, u32), usize)> = Vec::new();
+    for c in cameras.iter() {
+        match counts.iter_mut().find(|(s, _)| *s == size(c)) {
+            Some((_, n)) => *n += 1,
+            None => counts.push((size(c), 1)),
+        }
+    }
+    // `max_by_key` keeps the last of equal maxima; the reversed order makes it the first.
+    let Some(&(common, _)) = counts.iter().rev().max_by_key(|(_, n)| *n) else {
+        return (Vec::new(), None);
+    };
+    let (w, h) = common;
+    let mut resized = Vec::new();
+    let mut stretched = Vec::new();
+    for (index, (cam, name)) in cameras.iter_mut().zip(names).enumerate() {
+        let from = size(cam);
+        if from == common {
+            continue;
+        }
+        *cam = cam.resized(w, h);
+        // The change of aspect ratio, beyond what rounding to whole pixels explains.
+        let (sx, sy) = (w as f64 / from.0 as f64, h as f64 / from.1 as f64);
+        let rounding = 1.0 / from.0.min(from.1).min(w).min(h).max(1) as f64;
+        if (sx / sy - 1.0).abs() > ASPECT_TOLERANCE + rounding {
+            stretched.push(format!("{name} ({}x{})", from.0, from.1));
+        }
+        resized.push(ResizedView {
+            index,
+            name: name.clone(),
+            from,
+        });
+    }
+    let warning = (!stretched.is_empty()).then(|| {
+        format!(
+            "{} of {} views differ in aspect ratio by more than {}% from the common size {w}x{h}; their images are stretched to it (first: {})",
+            stretched.len(),
+            cameras.len(),
+            ASPECT_TOLERANCE * 100.0,
+            stretched[0]
+        )
+    });
+    (resized, warning)
+}
+
+impl Dataset {
+    /// Assembles a loaded dataset, bringing every view to one image size ([`unify_sizes`]).
+    #[allow(clippy::too_many_arguments)]
+    fn assemble(
+        kind: DatasetKind,
+        mut cameras: Vec<Camera>,
+        image_paths: Vec<PathBuf>,
+        names: Vec<String>,
+        distortions: Vec<Option<Distortion>>,
+        points: Option<PointCloud>,
+        near_far: Option<Vec<[f64; 2]>>,
+        options: &LoadOptions,
+        mut warnings: Vec<String>,
+    ) -> Dataset {
+        let (resized, warning) = unify_sizes(&mut cameras, &names);
+        warnings.extend(warning);
+        Dataset {
+            kind,
+            cameras,
+            image_paths,
+            names,
+            distortions,
+            points,
+            near_far,
+            background: options.background,
+            warnings,
+            resized,
+        }
+    }
+
+    /// The image size every view is loaded at (`None` for an empty dataset).
+    pub fn image_size(&self) -> Option<(u32, u32)> {
+        let k = self.cameras.first()?.intrinsics;
+        Some((k.width, k.height))
+    }
 }
 
 impl Dataset {
@@ -326,17 +468,17 @@ impl Dataset {
         let names: Vec<String> = images.iter().map(|im| im.name.clone()).collect();
         let resolved = resolve_images(dir, &names, cameras, options.resolution)?;
         warnings.extend(resolved.warnings);
-        Ok(Dataset {
-            kind: DatasetKind::Colmap,
-            cameras: resolved.cameras,
-            image_paths: resolved.paths,
+        Ok(Dataset::assemble(
+            DatasetKind::Colmap,
+            resolved.cameras,
+            resolved.paths,
             names,
             distortions,
-            points: Some(PointCloud::from_colmap(&model.points)),
-            near_far: None,
-            background: options.background,
+            Some(PointCloud::from_colmap(&model.points)),
+            None,
+            options,
             warnings,
-        })
+        ))
     }
 
     /// Loads a NeRF-synthetic scene from `dir/transforms_{split}.json`.
@@ -396,6 +538,17 @@ impl Dataset {
                 .map(|nf| indices.iter().map(|&i| nf[i]).collect()),
             background: self.background,
             warnings: self.warnings.clone(),
+            resized: indices
+                .iter()
+                .enumerate()
+                .filter_map(|(at, &i)| {
+                    let r = self.resized.iter().find(|r| r.index == i)?;
+                    Some(ResizedView {
+                        index: at,
+                        ..r.clone()
+                    })
+                })
+                .collect(),
         })
     }
 
@@ -501,7 +654,11 @@ fn colmap_intrinsics(
     {
         return Err(DatasetError::Malformed {
             path: file.to_path_buf(),
-            problem: format!("camera {} has invalid parameters {:?}", cam.id, p),
+            problem: format!(
+                "camera {} has invalid parameters {}",
+                cam.id,
+                plain_numbers(p)
+            ),
         });
     }
     Ok((
@@ -523,7 +680,11 @@ fn colmap_pose(qvec: [f64; 4], tvec: [f64; 3]) -> Result<DMat4, String> {
     let q = DQuat::from_xyzw(x, y, z, w);
     let n = q.length();
     if !(n.is_finite() && n > 1e-12) || tvec.iter().any(|v| !v.is_finite()) {
-        return Err(format!("invalid pose qvec {qvec:?} tvec {tvec:?}"));
+        return Err(format!(
+            "invalid pose qvec {} tvec {}",
+            plain_numbers(&qvec),
+            plain_numbers(&tvec)
+        ));
     }
     let r = DMat3::from_quat(q / n);
     let mut m = DMat4::from_mat3(r);
@@ -559,7 +720,7 @@ fn index_folder(dir: &Path) -> HashMap<String, PathBuf> {
 }
 
 /// Checks that an image file of size `(w, h)` shows the frame of `cam` (same aspect ratio
-/// within 2%) and returns `cam` resized to it.
+/// within [`ASPECT_TOLERANCE`]) and returns `cam` resized to it.
 fn fit_camera(cam: &Camera, path: &Path, (w, h): (u32, u32)) -> Result<Camera, DatasetError> {
     let k = &cam.intrinsics;
     if (w, h) == (k.width, k.height) {
@@ -567,7 +728,7 @@ fn fit_camera(cam: &Camera, path: &Path, (w, h): (u32, u32)) -> Result<Camera, D
     }
     let file_aspect = w as f64 / h.max(1) as f64;
     let cam_aspect = k.width as f64 / k.height.max(1) as f64;
-    if w == 0 || h == 0 || ((file_aspect - cam_aspect) / cam_aspect).abs() > 0.02 {
+    if w == 0 || h == 0 || ((file_aspect - cam_aspect) / cam_aspect).abs() > ASPECT_TOLERANCE {
         return Err(DatasetError::Malformed {
             path: path.to_path_buf(),
             problem: format!(

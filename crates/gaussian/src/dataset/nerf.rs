@@ -277,9 +277,9 @@ pub(super) fn load(
     options: &LoadOptions,
 ) -> Result<Dataset, DatasetError> {
     let json = dir.join(format!("transforms_{split}.json"));
-    let text = std::fs::read_to_string(&json).map_err(|source| DatasetError::Io {
+    let text = std::fs::read_to_string(&json).map_err(|error| DatasetError::Io {
         path: json.clone(),
-        source,
+        error,
     })?;
     let t = parse_transforms(&text, &json)?;
     let mut warnings = Vec::new();
@@ -333,15 +333,16 @@ pub(super) fn load(
         );
         paths.push(path);
     }
-    Ok(Dataset {
-        kind: DatasetKind::NerfSynthetic,
-        distortions: vec![None; cameras.len()],
+    let distortions = vec![None; cameras.len()];
+    Ok(Dataset::assemble(
+        DatasetKind::NerfSynthetic,
         cameras,
-        image_paths: paths,
+        paths,
         names,
-        points: None,
-        near_far: None,
-        background: options.background,
+        distortions,
+        None,
+        None,
+        options,
         warnings,
-    })
+    ))
 }

@@ -59,9 +59,9 @@ const MAX_NAME_LEN: usize = 4096;
 
 /// Reads the PyTorch checkpoint at `path` (zip or legacy format).
 pub fn load_checkpoint(path: &Path) -> Result<StateDict, CheckpointError> {
-    let bytes = std::fs::read(path).map_err(|source| CheckpointError::Io {
+    let bytes = std::fs::read(path).map_err(|error| CheckpointError::Io {
         path: path.to_owned(),
-        source,
+        error,
     })?;
     load_checkpoint_bytes(&bytes).map_err(|problem| CheckpointError::Invalid {
         path: path.to_owned(),

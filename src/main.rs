@@ -318,8 +318,9 @@ struct FitGeometryArgs {
     config: Option<PathBuf>,
     #[arg(long, value_parser = at_least_one::<u64>(), help = with_default(
         "Total iterations (at least 1); the configuration's schedule (learning-rate decay, \
-         densification, opacity resets, SH degree steps, test, save and checkpoint iterations) \
-         is stretched or compressed to it",
+         densification window and interval, opacity resets, SH degree steps, test, save and \
+         checkpoint iterations) is stretched or compressed to it, keeping density control at \
+         least 50 and opacity resets at least 300 steps apart",
         FitGeometryConfig::default().geometry.iterations,
     ))]
     iterations: Option<u64>,
@@ -504,6 +505,10 @@ struct FitFeaturesArgs {
     /// Train on every image (no held-out split).
     #[arg(long)]
     no_eval: bool,
+    /// Do not keep the view and style encodings in OUT/encodings/ (they take about as much disk
+    /// as memory; without them a resumed or repeated run encodes everything again).
+    #[arg(long)]
+    no_encoding_cache: bool,
     #[command(flatten)]
     run: RunArgs,
     /// Output directory (the bundle goes to OUT/bundle).
@@ -1089,6 +1094,7 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
             log_every: a.run.log_every,
             checkpoint_every: a.run.checkpoint_every,
         },
+        encoding_cache: !a.no_encoding_cache,
     };
     let r = with_control("fit-features", a.run.no_progress, |c| {
         Ok(pipeline::fit_features::run(&settings, c)?)
@@ -1210,10 +1216,11 @@ fn demo(a: DemoArgs) -> Result<()> {
             None => println!("{stage:>9}: done before, skipped"),
         }
     }
+    // Outputs of this run or, for a skipped stage, of the run that made them.
     for p in r.stylized.gifs.iter().chain(&r.stylized.contact_sheet) {
-        println!("wrote {}", p.display());
+        println!("output {}", p.display());
     }
-    println!("wrote {}", r.eval_json.display());
+    println!("output {}", r.eval_json.display());
     Ok(())
 }
 

@@ -158,7 +158,7 @@ fn bad_stylize_input_is_refused_with_a_message() {
     assert!(!err.contains("os error"), "{err}");
     // Weights that do not match the styles.
     let err = fails(base("o5").arg("--style").arg(&a).args(["--mix", "1,2"]));
-    assert!(err.contains("has 2 values for 1 style"), "{err}");
+    assert!(err.contains("--mix has 2 values for 1 style"), "{err}");
     // MP4 without ffmpeg on PATH.
     let empty = dir.join("empty-path");
     std::fs::create_dir_all(&empty).unwrap();
@@ -181,7 +181,7 @@ fn bad_stylize_input_is_refused_with_a_message() {
             .arg(&a)
             .args(["--mix", "0,0"]),
     );
-    assert!(err.contains("all zero"), "{err}");
+    assert!(err.contains("--mix 0,0: the weights are all zero"), "{err}");
     // Nothing was written for any of the refused runs.
     for o in ["o1", "o2", "o3", "o4", "o5", "o6", "o7", "o8", "o9"] {
         assert!(!dir.join(o).exists(), "{o} was written");

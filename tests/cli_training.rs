@@ -378,12 +378,22 @@ fn fit_features_writes_a_bundle_that_stylizes() {
         log.contains("5 views and 2 style images encoded") && log.contains("(7 reused from"),
         "{log}"
     );
+    // The straight run keeps no cache: it encodes everything and leaves no OUT/encodings.
     let straight = dir.join("straight");
     let (_, log) = features_run(
         &straight,
-        &["--config", out.join("config.toml").to_str().unwrap()],
+        &[
+            "--config",
+            out.join("config.toml").to_str().unwrap(),
+            "--no-encoding-cache",
+        ],
     );
-    assert!(log.contains("(0 reused from"), "{log}");
+    assert!(
+        log.contains("5 views and 2 style images encoded") && !log.contains("reused"),
+        "{log}"
+    );
+    assert!(out.join("encodings").is_dir());
+    assert!(!straight.join("encodings").exists());
     let a = SceneBundle::load(&out.join("bundle")).unwrap();
     let b = SceneBundle::load(&straight.join("bundle")).unwrap();
     assert_eq!(a.scene.features, b.scene.features);
@@ -546,7 +556,7 @@ fn bake_writes_a_plain_ply_and_a_report() {
             .arg("-o")
             .arg(dir.join("two.ply")),
     );
-    assert!(err.contains("mix"), "{err}");
+    assert!(err.contains("--mix"), "{err}");
     // A directory that is not a bundle is named.
     let not_bundle = dir.join("not-a-bundle");
     std::fs::create_dir_all(&not_bundle).unwrap();

@@ -14,7 +14,7 @@
 //! `DSGS_FUZZ_CASES=100000 cargo test --release -p dsgs-gaussian --test fuzz -- --nocapture`
 //! (see `docs/robustness.md`).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use dsgs_testkit::fuzz::{text_mutators, write_input, CappedAlloc, Target, Truncations};
 use dsgs_testkit::{repo_fixture, scratch_dir, shared_path};
@@ -197,11 +197,11 @@ fn colmap_text_never_panics() {
 fn real_colmap_binaries_never_panic() {
     let dir = shared_path("data/scenes/beer_can/sparse/0");
     let read = |f: &str| std::fs::read(dir.join(f)).unwrap();
-    Target::new("beer_can images.bin", 300)
+    Target::new("beer_can images.bin", 1_000)
         .seed(read("images.bin"))
         .truncations(Truncations::Spread(150))
         .run(|b| parse_images_bin(b, Path::new(BIN)).is_ok());
-    Target::new("beer_can points3D.bin", 300)
+    Target::new("beer_can points3D.bin", 1_000)
         .seed(read("points3D.bin"))
         .truncations(Truncations::Spread(150))
         .run(|b| parse_points3d_bin(b, Path::new(BIN)).is_ok());
@@ -227,7 +227,7 @@ fn colmap_dataset_loading_never_panics() {
     for file in ["cameras.txt", "images.txt"] {
         let good = std::fs::read(src.join(file)).unwrap();
         let (root, target) = (root.clone(), sparse.join(file));
-        Target::new(&format!("COLMAP dataset {file}"), 600)
+        Target::new(&format!("COLMAP dataset {file}"), 3_000)
             .seed(good.clone())
             .mutators(text_mutators())
             .truncations(Truncations::Spread(60))
@@ -238,7 +238,7 @@ fn colmap_dataset_loading_never_panics() {
 }
 
 /// Writes `bytes` to `file` and loads the dataset at `root` with all its images.
-fn load_dataset(root: &PathBuf, file: &Path, bytes: &[u8]) -> bool {
+fn load_dataset(root: &Path, file: &Path, bytes: &[u8]) -> bool {
     write_input(file, bytes);
     let Ok(d) = Dataset::load(root, &LoadOptions::default()) else {
         return false;
@@ -275,7 +275,7 @@ fn corrupted_images_give_errors() {
     let jpg = std::fs::read(shared_path("data/scenes/beer_can/images_8/0000.jpg")).unwrap();
     let dir = scratch_dir("fuzz", "jpeg");
     let file = dir.join("x.jpg");
-    Target::new("JPEG image", 300)
+    Target::new("JPEG image", 2_000)
         .seed(jpg)
         .truncations(Truncations::Spread(100))
         .run(move |b| {

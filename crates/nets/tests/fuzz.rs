@@ -218,7 +218,7 @@ fn zip_checkpoints_never_panic() {
         focused.push(m.within(0..8192));
         focused.push(m.within_last(8192));
     }
-    Target::new("zip checkpoint", 2_000)
+    Target::new("zip checkpoint", 5_000)
         .seed(zip)
         .seed(unchecked)
         .mutators(focused)

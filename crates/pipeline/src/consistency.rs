@@ -53,12 +53,12 @@ use glam::DVec3;
 use ndarray::Array4;
 use nets::{Encoder, Resolution};
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::image_io::{clamped, nchw_from_rgb, RgbImage};
 
 /// Masking thresholds of the warp.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct WarpOptions {
     /// Pixels with alpha at or below this are not compared.
     pub alpha_threshold: f32,
@@ -412,7 +412,7 @@ fn compare_warped(
 }
 
 /// Consistency over the pairs `(i, i + offset)` of a sequence.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RangeMetrics {
     /// Distance between the compared views in the sequence (1: short range, 7: long range).
     pub offset: usize,

@@ -373,6 +373,7 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
             config: Some(cfg_path),
             resume: checkpoint.is_file().then_some(checkpoint),
             overrides: FeatureOverrides::default(),
+            encoding_cache: true,
         };
         let (r, t) = timed(|| crate::fit_features::run(&settings, control))?;
         if r.run.interrupted {
@@ -678,90 +679,8 @@ mod record {
     /// Reads an evaluation report written by [`crate::eval::write_report`].
     pub fn read_eval_report(path: &Path) -> Result<EvalReport> {
         let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-        let mut de = serde_json::Deserializer::from_slice(&bytes);
-        report::EvalReportDef::deserialize(&mut de)
+        serde_json::from_slice(&bytes)
             .with_context(|| format!("{}: not an evaluation report", path.display()))
-    }
-
-    /// `Deserialize` for the report types, which derive only `Serialize`: serde's remote
-    /// derive, which the compiler checks field by field against the types themselves.
-    mod report {
-        use serde::{Deserialize, Deserializer};
-
-        use crate::consistency::{RangeMetrics, WarpOptions};
-        use crate::eval::{EvalReport, OutputReport};
-        use crate::stylize::StageSeconds;
-
-        #[derive(Deserialize)]
-        #[serde(remote = "WarpOptions")]
-        struct WarpOptionsDef {
-            alpha_threshold: f32,
-            depth_tolerance: f64,
-        }
-
-        #[derive(Deserialize)]
-        #[serde(remote = "RangeMetrics")]
-        struct RangeMetricsDef {
-            offset: usize,
-            pairs: usize,
-            valid_fraction: f64,
-            rmse: Option<f64>,
-            perceptual: Option<f64>,
-        }
-
-        #[derive(Deserialize)]
-        #[serde(remote = "StageSeconds")]
-        struct StageSecondsDef {
-            raster: f64,
-            lift_transform: f64,
-            decode: f64,
-        }
-
-        #[derive(Deserialize)]
-        #[serde(remote = "OutputReport")]
-        struct OutputReportDef {
-            name: String,
-            #[serde(with = "RangeMetricsDef")]
-            short_range: RangeMetrics,
-            #[serde(with = "RangeMetricsDef")]
-            long_range: RangeMetrics,
-            style_loss: Option<f64>,
-            content_loss: Option<f64>,
-        }
-
-        #[derive(Deserialize)]
-        struct Output(#[serde(with = "OutputReportDef")] OutputReport);
-
-        #[derive(Deserialize)]
-        struct Seconds(#[serde(with = "StageSecondsDef")] StageSeconds);
-
-        fn outputs<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<OutputReport>, D::Error> {
-            Ok(Vec::<Output>::deserialize(d)?
-                .into_iter()
-                .map(|o| o.0)
-                .collect())
-        }
-
-        fn seconds<'de, D: Deserializer<'de>>(d: D) -> Result<Option<StageSeconds>, D::Error> {
-            Ok(Option::<Seconds>::deserialize(d)?.map(|s| s.0))
-        }
-
-        #[derive(Deserialize)]
-        #[serde(remote = "EvalReport")]
-        pub struct EvalReportDef {
-            scene: String,
-            variant: Option<String>,
-            alpha: Option<f64>,
-            frames: usize,
-            width: u32,
-            height: u32,
-            #[serde(with = "WarpOptionsDef")]
-            warp: WarpOptions,
-            #[serde(deserialize_with = "outputs")]
-            outputs: Vec<OutputReport>,
-            #[serde(deserialize_with = "seconds")]
-            seconds_per_view: Option<StageSeconds>,
-        }
     }
 }
 

@@ -29,7 +29,7 @@ use crate::error::{bail, Context, Result};
 use gaussian::dataset::images::image_size;
 use gaussian::Camera;
 use nets::Encoder;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use train::SceneBundle;
 
 use crate::cameras::evenly_spaced;
@@ -46,7 +46,7 @@ pub const SHORT_RANGE: usize = 1;
 pub const LONG_RANGE: usize = 7;
 
 /// The metrics of one output sequence.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct OutputReport {
     /// The output: `colour` (the plain colour render), a style's name, `mix` (a mixture), or
     /// the name of an evaluated frames directory.
@@ -63,7 +63,7 @@ pub struct OutputReport {
 }
 
 /// The report of `dsgs eval`.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct EvalReport {
     /// The evaluated scene: the bundle's name, or the path of the `.ply` or bundle whose
     /// geometry the frames were evaluated against.

@@ -157,6 +157,9 @@ pub struct FitFeaturesSettings {
     pub resume: Option<PathBuf>,
     /// Command-line values applied on top of the configuration.
     pub overrides: FeatureOverrides,
+    /// Keep the view and style encodings in `OUT/encodings/` for a resumed or repeated run
+    /// (`true` unless `--no-encoding-cache`); they take about as much disk as memory.
+    pub encoding_cache: bool,
 }
 
 /// What a run did.
@@ -246,7 +249,7 @@ pub fn run(settings: &FitFeaturesSettings, control: &Control) -> Result<FitFeatu
     let cache = settings.out_dir.join(ENCODINGS_DIR);
     let setup = FeatureSetup {
         sink: control.sink,
-        cache: Some(&cache),
+        cache: settings.encoding_cache.then_some(cache.as_path()),
     };
     let mut trainer = match &settings.resume {
         Some(ck) => FeatureTrainer::resume_with(ck, cfg.features.clone(), inputs, &setup)

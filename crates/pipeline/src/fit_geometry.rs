@@ -242,9 +242,7 @@ pub fn run(settings: &FitSettings, control: &Control) -> Result<FitReport> {
     let options = cfg.load_options()?;
     let dataset = Dataset::load(&settings.dataset, &options)
         .with_context(|| format!("loading the dataset {}", settings.dataset.display()))?;
-    for w in &dataset.warnings {
-        control.warn(w.to_string());
-    }
+    control.report_dataset(&dataset);
     config::save(&cfg, &settings.out_dir)?;
     let eval = cfg.dataset.eval;
     let mut trainer = match &settings.resume {

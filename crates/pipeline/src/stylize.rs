@@ -34,7 +34,7 @@ use crate::error::{bail, Context, Result};
 use gaussian::dataset::images::resize;
 use gaussian::Camera;
 use ndarray::Array4;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use style::{ChannelStats, StyleFeatureStats};
 use train::{SceneBundle, Variant};
 
@@ -294,7 +294,7 @@ pub fn render_feature_view(bundle: &SceneBundle, camera: &Camera) -> Result<Feat
 }
 
 /// Wall time of the stages of one decoded view, in seconds.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct StageSeconds {
     /// Rasterizing the feature map.
     pub raster: f64,

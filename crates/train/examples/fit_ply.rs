@@ -50,7 +50,7 @@ fn main() -> Result<()> {
         test_iterations: vec![iterations],
         save_iterations: vec![],
         log_interval: (iterations / 10).max(1),
-        ..GeometryConfig::default()
+        ..GeometryConfig::default().scaled_to(iterations)
     };
     let mut trainer = GeometryTrainer::from_dataset(config, &dataset, true)?;
     let k = trainer.train_views[0].camera.intrinsics;

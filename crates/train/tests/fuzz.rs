@@ -206,7 +206,7 @@ fn bundle_json_never_panics() {
     let info_path = dir.join(INFO_FILE);
     let seed = std::fs::read(&info_path).unwrap();
     let folder = dir.clone();
-    Target::new("bundle.json", 3_000)
+    Target::new("bundle.json", 5_000)
         .seed(seed)
         .mutators(text_mutators())
         .mutators([json_value()])

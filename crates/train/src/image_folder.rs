@@ -82,9 +82,7 @@ pub fn collect_images<P: AsRef<Path>>(
     recursive: bool,
 ) -> Result<Vec<PathBuf>, TrainError> {
     if sources.is_empty() {
-        return Err(TrainError::Images(
-            "no image folders or files given".into(),
-        ));
+        return Err(TrainError::Images("no image folders or files given".into()));
     }
     let mut out = Vec::new();
     for src in sources {

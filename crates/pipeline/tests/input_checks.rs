@@ -382,7 +382,7 @@ fn bad_weights() -> Vec<(Vec<f64>, &'static str)> {
         (vec![-1.0, 1.0], "weight 1 is -1"),
         (vec![1.0, f64::NAN], "weight 2 is NaN"),
         (vec![f64::INFINITY, 1.0], "weight 1 is inf"),
-        (vec![0.0, 0.0], "--weights 0,0"),
+        (vec![0.0, 0.0], "--mix 0,0"),
     ]
 }
 

@@ -172,7 +172,7 @@ fn named_levels(pairs: &[Numbered], what: &str) -> Result<Vec<Vec<Numbered>>, Ne
     for (k, j, p) in sorted {
         if k == levels.len() + 1 && j == 1 {
             levels.push(vec![(k, j, p)]);
-        } else if k == levels.len() && j == levels[k - 1].len() + 1 {
+        } else if k >= 1 && k == levels.len() && j == levels[k - 1].len() + 1 {
             levels[k - 1].push((k, j, p));
         } else {
             return Err(NetError::Layout(format!(

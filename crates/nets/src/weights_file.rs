@@ -42,12 +42,16 @@ use crate::state_dict::{sub_dict, StateDict, TensorF32};
 /// `safetensors::serialize` with the header's keys and the metadata's keys in sorted order, so
 /// that the same tensors and metadata always give the same bytes. The tensor data and their
 /// offsets are those of `safetensors::serialize`; the header is padded with spaces to a multiple
-/// of 8 bytes, as the format asks.
+/// of 8 bytes, as the format asks. Two tensors of one name are an error.
 pub fn serialize_canonical(
     views: Vec<(String, TensorView<'_>)>,
     metadata: HashMap<String, String>,
 ) -> Result<Vec<u8>, String> {
-    use std::collections::BTreeMap;
+    use std::collections::{BTreeMap, BTreeSet};
+    let mut names = BTreeSet::new();
+    if let Some((name, _)) = views.iter().find(|(name, _)| !names.insert(name.as_str())) {
+        return Err(format!("two tensors are both named `{name}`"));
+    }
     let bytes = safetensors::serialize(views, Some(metadata)).map_err(|e| e.to_string())?;
     let n = u64::from_le_bytes(bytes[..8].try_into().expect("8 bytes")) as usize;
     let (header, data) = bytes[8..].split_at(n);

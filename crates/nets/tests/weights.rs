@@ -187,6 +187,45 @@ fn named_layout_and_its_flags_round_trip() {
     );
 }
 
+/// A named layout whose levels do not start at 1 (a `conv01` or `conv0_1` level 0) is a
+/// layout error naming the layer, in the decoder and the encoder alike.
+#[test]
+fn a_level_numbered_zero_is_a_layout_error() {
+    for names in [["conv01", "conv11"], ["conv0_1", "conv1_1"]] {
+        let mut rng = TestRng::new(6);
+        let mut d = StateDict::new();
+        for name in names {
+            rng.conv_into(&mut d, name, 3, 3, 3);
+        }
+        let err = Decoder::<f32>::from_state_dict(&d).expect_err("level 0 refused");
+        assert!(matches!(err, NetError::Layout(_)), "{err}");
+        assert!(err.to_string().contains(names[0]), "{err}");
+        // The encoder's own 1x1 `conv0` present, so the numbering is what is refused.
+        rng.conv_into(&mut d, "conv0", 3, 3, 1);
+        let err = Encoder::<f32>::from_state_dict(&d).expect_err("level 0 refused");
+        assert!(matches!(err, NetError::Layout(_)), "{err}");
+    }
+}
+
+/// Two tensors of one name cannot be written (the safetensors serializer would otherwise
+/// index past its table).
+#[test]
+fn two_tensors_of_one_name_are_not_serialized() {
+    let data = [0u8; 4];
+    let view =
+        || safetensors::tensor::TensorView::new(safetensors::Dtype::F32, vec![1], &data).unwrap();
+    let err = nets::weights_file::serialize_canonical(
+        vec![
+            ("a".into(), view()),
+            ("b".into(), view()),
+            ("a".into(), view()),
+        ],
+        Default::default(),
+    )
+    .expect_err("a repeated name is refused");
+    assert!(err.contains("`a`"), "{err}");
+}
+
 fn expect_err<T: std::fmt::Debug>(r: Result<T, NetError>) -> String {
     r.expect_err("expected an error").to_string()
 }

@@ -143,19 +143,17 @@ impl GaussianModel {
         let n = scene.len();
         let k = scene.sh_coeffs_per_gaussian();
         let mut opt = Adam::new(adam);
-        opt.add_param(XYZ, lrs.position_schedule(spatial_lr_scale).at(0), n, 3);
-        opt.add_param(F_DC, lrs.feature_lr, n, 3);
-        if k > 1 {
-            opt.add_param(
-                F_REST,
-                lrs.feature_lr / lrs.feature_rest_divisor,
-                n,
-                3 * (k - 1),
-            );
+        for (name, width) in groups(k) {
+            let lr = match name {
+                XYZ => lrs.position_schedule(spatial_lr_scale).at(0),
+                F_DC => lrs.feature_lr,
+                F_REST => lrs.feature_lr / lrs.feature_rest_divisor,
+                OPACITY => lrs.opacity_lr,
+                SCALING => lrs.scaling_lr,
+                _ => lrs.rotation_lr,
+            };
+            opt.add_param(name, lr, n, width);
         }
-        opt.add_param(OPACITY, lrs.opacity_lr, n, 1);
-        opt.add_param(SCALING, lrs.scaling_lr, n, 3);
-        opt.add_param(ROTATION, lrs.rotation_lr, n, 4);
         Ok(GaussianModel {
             scene,
             active_sh_degree: 0,
@@ -293,6 +291,27 @@ impl GaussianModel {
     pub fn check_consistency(&self) -> Result<(), TrainError> {
         check_scene(&self.scene)?;
         let n = self.len();
+        let expected = groups(self.scene.sh_coeffs_per_gaussian());
+        let found: Vec<(&str, usize)> = self
+            .adam
+            .params()
+            .iter()
+            .map(|p| (p.name.as_str(), p.width()))
+            .collect();
+        if found != expected {
+            let list = |g: &[(&str, usize)]| {
+                g.iter()
+                    .map(|(name, w)| format!("{name} ({w})"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            };
+            return Err(TrainError::Shape(format!(
+                "the optimiser groups are {}; a scene of SH degree {} needs {}",
+                list(&found),
+                self.scene.sh_degree,
+                list(&expected)
+            )));
+        }
         for p in self.adam.params() {
             if p.rows() != n {
                 return Err(TrainError::Shape(format!(
@@ -316,6 +335,18 @@ impl GaussianModel {
         }
         Ok(())
     }
+}
+
+/// The optimiser groups of a scene with `k` SH coefficients per colour channel, in order, with
+/// their widths: the layout [`GaussianModel::new`] builds and [`GaussianModel::check_consistency`]
+/// requires (`f_rest` only when `k > 1`).
+fn groups(k: usize) -> Vec<(&'static str, usize)> {
+    let mut g = vec![(XYZ, 3), (F_DC, 3)];
+    if k > 1 {
+        g.push((F_REST, 3 * (k - 1)));
+    }
+    g.extend([(OPACITY, 1), (SCALING, 3), (ROTATION, 4)]);
+    g
 }
 
 /// Array lengths of a scene without features, as the geometry stage trains it.

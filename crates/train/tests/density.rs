@@ -359,3 +359,39 @@ fn schedule_of_density_control() {
     assert!(c.prunes_large_at(3100));
     assert!(c.gathers_stats(14_999) && !c.gathers_stats(15_000));
 }
+
+/// The optimiser must hold exactly the groups of the scene's SH degree, in order and with their
+/// widths: a repeated group (which a damaged checkpoint could carry, and which would break the
+/// next checkpoint write), a missing one or one of another width is refused, naming the groups.
+#[test]
+fn the_optimiser_groups_must_be_those_of_the_scene() {
+    let fresh = || {
+        GaussianModel::new(
+            scene(3),
+            &LearningRates::default(),
+            AdamConfig::default(),
+            1.0,
+        )
+        .unwrap()
+    };
+    let m = fresh();
+    m.check_consistency().unwrap();
+    let names: Vec<&str> = m.adam.params().iter().map(|p| p.name.as_str()).collect();
+    assert_eq!(names, GROUPS);
+
+    let mut repeated = fresh();
+    repeated.adam.add_param(F_REST, 1e-3, 3, 9);
+    let err = repeated.check_consistency().unwrap_err().to_string();
+    // Named twice among the groups found, once among those expected.
+    assert!(err.contains("optimiser groups"), "{err}");
+    assert_eq!(err.matches("f_rest (9)").count(), 3, "{err}");
+
+    // Degree 0: no f_rest group is expected, so the degree-1 layout does not fit it.
+    let mut s = scene(3);
+    s.sh_degree = 0;
+    s.sh = s.sh.into_iter().step_by(4).collect();
+    let mut m = fresh();
+    m.scene = s;
+    let err = m.check_consistency().unwrap_err().to_string();
+    assert!(err.contains("SH degree 0"), "{err}");
+}

@@ -9,13 +9,10 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use common::{fixture_networks, sphere_cameras, synthetic_scene};
 use dsgs_testkit::scratch_dir;
-use ndarray::{Array1, Array4};
-use nets::Lifter;
 use serde_json::Value;
-use train::bundle::{BundleInfo, CameraRecord, SceneBundle, INFO_FILE, MAX_IMAGE_SIDE};
-use train::{TrainError, Variant};
+use train::bundle::{BundleInfo, SceneBundle, INFO_FILE, MAX_IMAGE_SIDE};
+use train::TrainError;
 
 /// Feature channels of the test bundle.
 const FEATURES: usize = 4;
@@ -26,42 +23,7 @@ const BAD_NAME: &str = "view002";
 /// The valid bundle, built once for all tests of this file.
 fn valid_bundle() -> &'static SceneBundle {
     static BUNDLE: OnceLock<SceneBundle> = OnceLock::new();
-    BUNDLE.get_or_init(|| {
-        let (encoder, decoder) = fixture_networks();
-        let c = *encoder.widths().last().unwrap();
-        let mut scene = synthetic_scene(50, 3);
-        scene.feature_dim = FEATURES;
-        scene.features = (0..scene.len() * FEATURES)
-            .map(|i| (i % 7) as f32 / 7.0)
-            .collect();
-        let lifter = Lifter::new(
-            Array4::from_shape_fn((c, FEATURES, 1, 1), |(o, i, _, _)| {
-                0.1 * ((o + i) % 3) as f32
-            }),
-            Array1::zeros(c),
-        )
-        .unwrap();
-        let records = sphere_cameras(4, 4.0, 32, 36.0)
-            .iter()
-            .enumerate()
-            .map(|(i, cam)| CameraRecord::new(format!("view{i:03}"), cam, i == 3))
-            .collect();
-        let info = BundleInfo::new(
-            &encoder,
-            Variant::Standard,
-            FEATURES,
-            [0.0; 3],
-            (vec![0.0; c], vec![1.0; c]),
-            records,
-        );
-        SceneBundle {
-            scene,
-            encoder,
-            decoder,
-            lifter,
-            info,
-        }
-    })
+    BUNDLE.get_or_init(|| common::small_bundle(FEATURES))
 }
 
 /// The valid bundle saved in a directory of its own, with `edit` applied to its `bundle.json`.

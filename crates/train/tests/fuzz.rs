@@ -30,22 +30,19 @@ mod common;
 
 use std::path::Path;
 
-use common::{fixture_networks, shared_images, sphere_cameras, synthetic_scene};
+use common::{fixture_networks, shared_images, synthetic_scene};
 use dsgs_testkit::fuzz::{
     below, byte_mutators, pick, safetensors_header, text_mutators, write_input, CappedAlloc,
     Mutator, Target,
 };
 use dsgs_testkit::scratch_dir;
 use glam::DVec3;
-use ndarray::{Array1, Array2, Array4};
-use nets::Lifter;
+use ndarray::Array2;
 use serde_json::{json, Value};
 use style::ChannelStats;
-use train::bundle::{BundleInfo, CameraRecord, SceneBundle, INFO_FILE};
+use train::bundle::{BundleInfo, SceneBundle, INFO_FILE};
 use train::checkpoint::{checkpoint_step, GeometryCheckpoint};
-use train::{
-    AdamConfig, DecoderTrainConfig, DecoderTrainer, GaussianModel, LearningRates, Variant,
-};
+use train::{AdamConfig, DecoderTrainConfig, DecoderTrainer, GaussianModel, LearningRates};
 
 #[global_allocator]
 static ALLOC: CappedAlloc = CappedAlloc;
@@ -135,45 +132,9 @@ fn json_value() -> Mutator {
     })
 }
 
-/// A small valid bundle saved in `dir`: the oracle's networks, 50 Gaussians with 4 feature
-/// channels, four 32x32 cameras (the last held out).
+/// A small valid bundle saved in `dir` ([`common::small_bundle`] with 4 feature channels).
 fn save_bundle(dir: &Path) {
-    const FEATURES: usize = 4;
-    let (encoder, decoder) = fixture_networks();
-    let c = *encoder.widths().last().unwrap();
-    let mut scene = synthetic_scene(50, 3);
-    scene.feature_dim = FEATURES;
-    scene.features = (0..scene.len() * FEATURES)
-        .map(|i| (i % 7) as f32 / 7.0)
-        .collect();
-    let lifter = Lifter::new(
-        Array4::from_shape_fn((c, FEATURES, 1, 1), |(o, i, _, _)| {
-            0.1 * ((o + i) % 3) as f32
-        }),
-        Array1::zeros(c),
-    )
-    .unwrap();
-    let records = sphere_cameras(4, 4.0, 32, 36.0)
-        .iter()
-        .enumerate()
-        .map(|(i, cam)| CameraRecord::new(format!("view{i:03}"), cam, i == 3))
-        .collect();
-    let info = BundleInfo::new(
-        &encoder,
-        Variant::Standard,
-        FEATURES,
-        [0.0; 3],
-        (vec![0.0; c], vec![1.0; c]),
-        records,
-    );
-    let bundle = SceneBundle {
-        scene,
-        encoder,
-        decoder,
-        lifter,
-        info,
-    };
-    bundle.save(dir).unwrap();
+    common::small_bundle(4).save(dir).unwrap();
 }
 
 /// What a bundle that loads must allow: rendering the features of its first camera (shrunk to

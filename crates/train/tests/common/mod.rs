@@ -9,12 +9,15 @@ use dsgs_testkit::shared_path;
 use gaussian::camera_path::look_at;
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
 use glam::DVec3;
-use nets::{ConvLayer, Decoder, Encoder, Resolution};
+use ndarray::{Array1, Array4};
+use nets::{ConvLayer, Decoder, Encoder, Lifter, Resolution};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
+use train::bundle::{BundleInfo, CameraRecord, SceneBundle};
 use train::geometry::View;
 use train::image_folder::ImageSet;
 use train::render::render_color;
+use train::Variant;
 
 /// A known scene: `n` opaque-ish Gaussians of degree-0 colour in the cube `[-0.8, 0.8]^3`.
 pub fn synthetic_scene(n: usize, seed: u64) -> FeatureGaussians<f32> {
@@ -116,4 +119,44 @@ pub fn net_bits<'a>(layers: impl Iterator<Item = &'a ConvLayer<f32>>) -> Vec<u32
     layers
         .flat_map(|l| l.weight.iter().chain(l.bias.iter()).map(|v| v.to_bits()))
         .collect()
+}
+
+/// A small valid scene bundle: the oracle's networks, 50 Gaussians with `features` feature
+/// channels, a fixed lifter, identity scene statistics and four 32x32 sphere cameras (the last
+/// held out, named `view000` to `view003`).
+pub fn small_bundle(features: usize) -> SceneBundle {
+    let (encoder, decoder) = fixture_networks();
+    let c = *encoder.widths().last().unwrap();
+    let mut scene = synthetic_scene(50, 3);
+    scene.feature_dim = features;
+    scene.features = (0..scene.len() * features)
+        .map(|i| (i % 7) as f32 / 7.0)
+        .collect();
+    let lifter = Lifter::new(
+        Array4::from_shape_fn((c, features, 1, 1), |(o, i, _, _)| {
+            0.1 * ((o + i) % 3) as f32
+        }),
+        Array1::zeros(c),
+    )
+    .unwrap();
+    let records = sphere_cameras(4, 4.0, 32, 36.0)
+        .iter()
+        .enumerate()
+        .map(|(i, cam)| CameraRecord::new(format!("view{i:03}"), cam, i == 3))
+        .collect();
+    let info = BundleInfo::new(
+        &encoder,
+        Variant::Standard,
+        features,
+        [0.0; 3],
+        (vec![0.0; c], vec![1.0; c]),
+        records,
+    );
+    SceneBundle {
+        scene,
+        encoder,
+        decoder,
+        lifter,
+        info,
+    }
 }

@@ -6,6 +6,7 @@
 use std::error::Error;
 use std::path::Path;
 
+use dsgs_testkit::error_chain as chain;
 use dsgs_testkit::{scratch_dir, shared_path};
 use gaussian::camera::check_rigid;
 use gaussian::camera_path::CameraPathError;
@@ -17,17 +18,6 @@ use gaussian::scene::{
     MIN_QUAT_NORM,
 };
 use glam::{DMat4, DVec3, DVec4};
-
-/// The error and its causes joined by `": "`, as `anyhow` prints an error chain with `{:#}`.
-fn chain(e: &(dyn Error + 'static)) -> String {
-    let mut parts = vec![e.to_string()];
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        parts.push(c.to_string());
-        cause = c.source();
-    }
-    parts.join(": ")
-}
 
 /// The text of the innermost cause of `e` (itself when it has none).
 fn root_cause(e: &(dyn Error + 'static)) -> String {

@@ -227,18 +227,7 @@ pub(crate) use bail;
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// The chain as `anyhow` prints it with `{:#}`.
-    fn chain(e: &dyn std::error::Error) -> String {
-        let mut s = e.to_string();
-        let mut cause = e.source();
-        while let Some(c) = cause {
-            s.push_str(": ");
-            s.push_str(&c.to_string());
-            cause = c.source();
-        }
-        s
-    }
+    use dsgs_testkit::error_chain as chain;
 
     fn missing() -> std::io::Result<String> {
         std::fs::read_to_string("/nonexistent/dsgs-pipeline-error-test")

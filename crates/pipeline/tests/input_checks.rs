@@ -24,19 +24,9 @@ use pipeline::stylize::{StylizeSettings, DEFAULT_STYLE_SIDE};
 use pipeline::{Control, Quiet};
 use train::{BundleInfo, CameraRecord, SceneBundle, Variant};
 
-const FEATURES: usize = 4;
+use dsgs_testkit::error_chain as chain;
 
-/// The error and its sources as `anyhow` prints them with `{:#}`.
-fn chain(e: &dyn std::error::Error) -> String {
-    let mut s = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        s.push_str(": ");
-        s.push_str(&c.to_string());
-        cause = c.source();
-    }
-    s
-}
+const FEATURES: usize = 4;
 
 fn scratch(name: &str) -> PathBuf {
     scratch_dir("pipeline-input", name)

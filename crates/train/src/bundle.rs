@@ -657,21 +657,10 @@ pub fn bundle_file(dir: &Path, name: &str) -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use dsgs_testkit::error_chain as chain;
 
     fn scratch(name: &str) -> PathBuf {
         dsgs_testkit::scratch_dir("bundle-unit", name)
-    }
-
-    /// The error and its sources as `anyhow` prints them with `{:#}`.
-    fn chain(e: &dyn std::error::Error) -> String {
-        let mut s = e.to_string();
-        let mut cause = e.source();
-        while let Some(c) = cause {
-            s.push_str(": ");
-            s.push_str(&c.to_string());
-            cause = c.source();
-        }
-        s
     }
 
     #[test]

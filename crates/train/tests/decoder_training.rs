@@ -18,7 +18,8 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use train::bundle::Variant;
 use train::decoder_training::{
-    init_decoder, DecoderTrainConfig, DecoderTrainer, DECODER_CHECKPOINT_FILE, DECODER_WEIGHTS_FILE,
+    init_decoder, DecoderStepReport, DecoderTrainConfig, DecoderTrainer, DECODER_CHECKPOINT_FILE,
+    DECODER_WEIGHTS_FILE,
 };
 use train::image_folder::{
     center_crop, collect_images, random_crop, resize_short_side, stack, to_tensor, ImageSet,
@@ -76,6 +77,20 @@ fn weights_of(d: &Decoder<f32>) -> Vec<Vec<u32>> {
         .collect()
 }
 
+/// Step `i` of `t`, checking its report: the step number, the learning rate of the AdaIN code's
+/// inverse-time decay (with the 0-based iteration count), finite positive loss terms and the
+/// total `content + style_weight * style`.
+fn checked_step(t: &mut DecoderTrainer, cfg: &DecoderTrainConfig, i: u64) -> DecoderStepReport {
+    let r = t.train_step().unwrap();
+    assert_eq!(r.step, i);
+    let lr = cfg.lr / (1.0 + cfg.lr_decay * (i - 1) as f64);
+    assert_eq!(r.lr, lr);
+    assert!(r.loss.is_finite() && r.loss_content > 0.0 && r.loss_style > 0.0);
+    let total = r.loss_content + cfg.style_weight * r.loss_style;
+    assert!((r.loss - total).abs() <= 1e-6 * total, "{r:?}");
+    r
+}
+
 /// Trains `config.iterations` steps and returns the held-out loss before and after.
 fn held_out_drop(variant: Variant) -> (f64, f64, DecoderTrainer) {
     let (enc, dec) = fixture_networks();
@@ -83,14 +98,7 @@ fn held_out_drop(variant: Variant) -> (f64, f64, DecoderTrainer) {
     let mut t = DecoderTrainer::new(enc, dec, contents(), styles(), cfg.clone()).unwrap();
     let before = t.evaluate().unwrap().unwrap();
     for i in 1..=cfg.iterations {
-        let r = t.train_step().unwrap();
-        assert_eq!(r.step, i);
-        // the inverse-time decay of the AdaIN code, with the 0-based iteration count
-        let lr = cfg.lr / (1.0 + cfg.lr_decay * (i - 1) as f64);
-        assert_eq!(r.lr, lr);
-        assert!(r.loss.is_finite() && r.loss_content > 0.0 && r.loss_style > 0.0);
-        let total = r.loss_content + cfg.style_weight * r.loss_style;
-        assert!((r.loss - total).abs() <= 1e-6 * total, "{r:?}");
+        checked_step(&mut t, &cfg, i);
     }
     let after = t.evaluate().unwrap().unwrap();
     assert_eq!(after.pairs, 4);
@@ -170,14 +178,7 @@ fn training_lowers_the_held_out_loss_and_changes_only_the_decoder() {
         // each report carries the loss at the parameters its step started from
         let mut losses = vec![before];
         for i in 1..=cfg.iterations {
-            let r = t.train_step().unwrap();
-            assert_eq!(r.step, i);
-            // the inverse-time decay of the AdaIN code, with the 0-based iteration count
-            let lr = cfg.lr / (1.0 + cfg.lr_decay * (i - 1) as f64);
-            assert_eq!(r.lr, lr);
-            assert!(r.loss.is_finite() && r.loss_content > 0.0 && r.loss_style > 0.0);
-            let total = r.loss_content + cfg.style_weight * r.loss_style;
-            assert!((r.loss - total).abs() <= 1e-6 * total, "{r:?}");
+            let r = checked_step(&mut t, &cfg, i);
             if i > 1 {
                 losses.push(r.loss);
             }

@@ -181,7 +181,9 @@ pub fn rasterize_backward_with<T: Real>(
         (Some(token), Some(s), Some(b), Some(c)) => Some((token, s, b, c)),
         _ => None,
     };
-    let packed32 = lanes_in.map(|(_, s, _, _)| s.packed()).unwrap_or_default();
+    let packed32 = lanes_in
+        .map(|(_, s, _, _)| lanes::pack(s, height))
+        .unwrap_or_default();
     let packed = if lanes_in.is_some() {
         Vec::new()
     } else {

@@ -194,7 +194,7 @@ pub fn rasterize_binned_with<T: Real>(
     let lanes_in = token.and(splats.as_f32().zip(T::as_f32_slice(background)));
     let packed32 = lanes_in
         .as_ref()
-        .map(|(s, _)| s.packed())
+        .map(|(s, _)| lanes::pack(s, height))
         .unwrap_or_default();
     let packed = if lanes_in.is_some() {
         Vec::new()
@@ -226,8 +226,9 @@ pub fn rasterize_binned_with<T: Real>(
                     depth,
                     count,
                 };
-                let rows = match (token, &lanes_in, out.as_f32()) {
+                match (token, &lanes_in, out.as_f32()) {
                     (Some(token), Some((splats, background)), Some(out)) => {
+                        // The lane kernels build no row lists.
                         token.run(lanes::ForwardTile {
                             splats,
                             packed: &packed32,
@@ -237,7 +238,6 @@ pub fn rasterize_binned_with<T: Real>(
                             scratch: lane_scratch,
                             out,
                         });
-                        lane_scratch.rows()
                     }
                     _ => {
                         scalar::forward_tile(
@@ -249,18 +249,20 @@ pub fn rasterize_binned_with<T: Real>(
                             scalar_scratch,
                             out,
                         );
-                        scalar_scratch.rows()
+                        let rows = scalar_scratch.rows();
+                        let bytes = rows.kept_bytes();
+                        if kept_bytes.fetch_add(bytes, Ordering::Relaxed) + bytes
+                            <= ROW_LIST_BUDGET_BYTES
+                        {
+                            *keep = rows.take_kept();
+                        }
                     }
-                };
-                let bytes = rows.kept_bytes();
-                if kept_bytes.fetch_add(bytes, Ordering::Relaxed) + bytes <= ROW_LIST_BUDGET_BYTES {
-                    *keep = rows.take_kept();
                 }
             },
         );
 
-    // Keep the row lists only if all of them fit.
-    let all_fit = kept_bytes.into_inner() <= ROW_LIST_BUDGET_BYTES;
+    // Keep the scalar loops' row lists only if all of them fit.
+    let all_fit = lanes_in.is_none() && kept_bytes.into_inner() <= ROW_LIST_BUDGET_BYTES;
     bins.keep_rows(all_fit.then_some(kept));
 
     // Tile-major staging to row-major images.

@@ -33,7 +33,7 @@ use gaussian::Real;
 
 use crate::blend::{Splat, TILE_SIZE};
 
-/// Columns per list segment of a row: the lane count of the vector kernels.
+/// Columns per list segment of a row.
 pub(crate) const SPAN: usize = 8;
 /// Segments per tile row.
 pub(crate) const SEGMENTS: usize = TILE_SIZE as usize / SPAN;
@@ -158,6 +158,20 @@ pub(crate) fn at_column(list: &[RowEntry], lx: u8) -> impl Iterator<Item = usize
     list.iter()
         .filter(move |e| e.x_lo <= lx && lx <= e.x_hi)
         .map(|e| e.k as usize)
+}
+
+/// The image rows `lo..hi` (of `height`) outside which `s` is certainly skipped: the rows of its
+/// widened ellipse (see the module docs; the image taken as one tile), every row when the reach
+/// is not computed, none when it reaches nothing.
+pub(crate) fn reach_rows<T: Real>(s: &Splat<T>, height: u32) -> (u32, u32) {
+    match Reach::of(s, 0, 0) {
+        Reach::Nothing => (0, 0),
+        Reach::Whole => (0, height),
+        Reach::Ellipse(e) => {
+            let rows = e.rows(height as usize);
+            (rows.start as u32, rows.end as u32)
+        }
+    }
 }
 
 /// Where a Gaussian can be blended in a tile.

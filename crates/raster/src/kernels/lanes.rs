@@ -1,20 +1,31 @@
-//! The `f32` vector tile loops: [`LANES`] consecutive pixels of a tile row walk the row's
-//! Gaussian list together, one Gaussian at a time.
+//! The `f32` vector tile loops: a tile row of [`LANES`] = 16 pixels is one vector, and a
+//! tile's Gaussians are taken one at a time, front to back, each evaluated on the rows of the
+//! tile it can reach.
 //!
-//! Per Gaussian, the falloff, alpha, skip, clamp and stop decisions of all lanes are computed
-//! at once, as fixed-size arrays that the compiler turns into vector instructions of the
-//! instruction set [`super::Token::run`] compiles them for; a lane mask says which pixels blend
-//! it. The channel accumulation (and its backward) then runs per blended lane, vectorised across
-//! the channels. A row block stops when every lane has reached the transmittance threshold.
+//! Per Gaussian and row, the falloff, alpha, skip, clamp and stop decisions of the row's 16
+//! pixels are computed at once, as fixed-size arrays that the compiler turns into vector
+//! instructions of the instruction set [`super::Token::run`] compiles them for (one 512-bit
+//! vector with AVX-512, two 256-bit ones with AVX2, four 128-bit ones with NEON or SSE2); a lane
+//! mask says which pixels blend it. The rows a Gaussian can reach come from its ellipse, once
+//! per Gaussian ([`crate::rows::reach_rows`]); no per-row list is built. The tile keeps every
+//! pixel's transmittance and stop state, so walking the Gaussians in the outer loop gives each
+//! pixel the same Gaussians in the same order as the scalar loops' per-pixel walk. A tile stops
+//! when every pixel has reached the transmittance threshold.
+//!
+//! Forward, the channel accumulation runs per blended lane, vectorised across channels.
+//! Backward, a first front-to-back walk keeps, for every row a Gaussian blends in, its lanes,
+//! transmittances and falloffs; a second walk takes the Gaussians back to front (the rows of one
+//! Gaussian in ascending order), computing every pixel's gradient terms at once across the row
+//! and adding them to the Gaussian's record lane by lane in ascending pixel order.
 //!
 //! Each lane performs exactly the operations of the scalar loops ([`super::scalar`]) in the
 //! same order, with the same constants and the same exponential ([`gaussian::exp_f32`]); a
-//! value is combined into a lane's state only where that lane's mask is set, and record sums
-//! take the blended lanes in ascending pixel order, which is the scalar loops' pixel order. The
-//! results are therefore bit-identical to the scalar loops in `f32`.
+//! value is combined into a lane's state only where that lane's mask is set, and every record
+//! sum takes the pixels in the scalar loops' order (tile raster order). The results are
+//! therefore bit-identical to the scalar loops in `f32`.
 
 use gaussian::exp_f32;
-use pulp::{Simd, WithSimd};
+use rayon::prelude::*;
 
 use super::record::{CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY};
 use super::scalar::dot;
@@ -22,70 +33,279 @@ use super::TileOut;
 use crate::backward::Cotangents;
 use crate::blend::{pixel_centre, Splat, ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN};
 use crate::forward::Splats;
-use crate::rows::{RowEntry, RowLists};
+use crate::rows::reach_rows;
 use crate::tiles::TileBins;
 
-/// Pixels evaluated together: one 256-bit vector of `f32`, one segment of the row lists.
-pub(crate) const LANES: usize = crate::rows::SPAN;
-/// Lane blocks per tile row.
-const BLOCKS: usize = TILE_SIZE as usize / LANES;
-/// Entries evaluated ahead of the forward pass's blending (a few more than are typically
-/// blended before a block saturates would waste evaluations; far fewer would add branches).
-const STAGED: usize = 16;
-/// Channels per step of the channel loops; channel rows are padded with zeros to a multiple.
+/// Pixels evaluated together: one tile row.
+pub(crate) const LANES: usize = TILE_SIZE as usize;
+/// Channels per step of the channel loops.
 const CHUNK: usize = 8;
 
-/// A set of lanes: bit `l` for lane `l`.
+/// A set of lanes (bit `l` for lane `l`) or of tile rows (bit `r` for row `r`).
 type Mask = u32;
 
-/// The per-lane state a Gaussian leaves in the backward pass's front-to-back walk.
+/// An instruction set the lane kernels run at: the comparisons whose results become lane masks.
+pub(crate) trait LaneIsa: Copy {
+    /// The lanes where `a <= b` (never where either is NaN).
+    fn le(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask;
+    /// The lanes where `a < b` (never where either is NaN).
+    fn lt(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask;
+}
+
+/// The lanes where `f(a[l], b[l])`, one lane at a time.
+#[inline(always)]
+fn mask_by(a: &[f32; LANES], b: &[f32; LANES], f: impl Fn(f32, f32) -> bool) -> Mask {
+    let mut m = 0;
+    for l in 0..LANES {
+        m |= (f(a[l], b[l]) as Mask) << l;
+    }
+    m
+}
+
+#[cfg(target_arch = "x86_64")]
+impl LaneIsa for pulp::x86::V4 {
+    #[inline(always)]
+    fn le(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
+        self.cmp_le_f32x16(pulp::cast(*a), pulp::cast(*b)).0 as Mask
+    }
+    #[inline(always)]
+    fn lt(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
+        self.cmp_lt_f32x16(pulp::cast(*a), pulp::cast(*b)).0 as Mask
+    }
+}
+
+/// Two 8-lane comparisons and their sign masks.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn v3_mask<const OP: i32>(simd: pulp::x86::V3, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
+    let (a, b): ([[f32; 8]; 2], [[f32; 8]; 2]) = (pulp::cast(*a), pulp::cast(*b));
+    let half = |i: usize| {
+        let m = simd
+            .avx
+            ._mm256_cmp_ps::<OP>(pulp::cast(a[i]), pulp::cast(b[i]));
+        simd.avx._mm256_movemask_ps(m) as Mask
+    };
+    half(0) | half(1) << 8
+}
+
+#[cfg(target_arch = "x86_64")]
+impl LaneIsa for pulp::x86::V3 {
+    #[inline(always)]
+    fn le(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
+        v3_mask::<{ std::arch::x86_64::_CMP_LE_OQ }>(self, a, b)
+    }
+    #[inline(always)]
+    fn lt(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
+        v3_mask::<{ std::arch::x86_64::_CMP_LT_OQ }>(self, a, b)
+    }
+}
+
+#[cfg(target_arch = "aarch64")]
+impl LaneIsa for pulp::aarch64::Neon {
+    #[inline(always)]
+    fn le(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
+        mask_by(a, b, |x, y| x <= y)
+    }
+    #[inline(always)]
+    fn lt(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
+        mask_by(a, b, |x, y| x < y)
+    }
+}
+
+impl LaneIsa for pulp::Scalar {
+    #[inline(always)]
+    fn le(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
+        mask_by(a, b, |x, y| x <= y)
+    }
+    #[inline(always)]
+    fn lt(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
+        mask_by(a, b, |x, y| x < y)
+    }
+}
+
+/// A lane kernel: runs inside code compiled for the instruction set `isa` stands for.
+pub(crate) trait LaneOp {
+    type Output;
+    fn run<I: LaneIsa>(self, isa: I) -> Self::Output;
+}
+
+/// The channel count `D` of a pass: a constant for the common counts (so that the channel loops
+/// are unrolled into whole vectors), or any count.
+trait Width: Copy {
+    /// `D` reals, zero: a channel accumulator (an array, kept in registers, when `D` is fixed).
+    type Acc: AsMut<[f32]> + AsRef<[f32]>;
+
+    fn d(self) -> usize;
+
+    fn zeros(self) -> Self::Acc;
+
+    /// `acc[i] += w * x[i]` for `i < D`.
+    #[inline(always)]
+    fn axpy(self, acc: &mut [f32], w: f32, x: &[f32]) {
+        for (a, &x) in acc[..self.d()].iter_mut().zip(x) {
+            *a += w * x;
+        }
+    }
+}
+
+/// `D` known at compile time.
+#[derive(Clone, Copy)]
+struct Fixed<const D: usize>;
+
+impl<const D: usize> Width for Fixed<D> {
+    type Acc = [f32; D];
+
+    #[inline(always)]
+    fn d(self) -> usize {
+        D
+    }
+
+    #[inline(always)]
+    fn zeros(self) -> [f32; D] {
+        [0.0; D]
+    }
+
+    #[inline(always)]
+    fn axpy(self, acc: &mut [f32], w: f32, x: &[f32]) {
+        let acc: &mut [f32; D] = (&mut acc[..D]).try_into().expect("D accumulators");
+        let x: &[f32; D] = x[..D].try_into().expect("D channels");
+        let (acc_chunks, acc_tail) = acc.as_chunks_mut::<LANES>();
+        let (x_chunks, x_tail) = x.as_chunks::<LANES>();
+        for (a, x) in acc_chunks.iter_mut().zip(x_chunks) {
+            // Whole-array loads and stores: one vector operation per step.
+            let (mut sum, x) = (*a, *x);
+            for i in 0..LANES {
+                sum[i] += w * x[i];
+            }
+            *a = sum;
+        }
+        for (a, &x) in acc_tail.iter_mut().zip(x_tail) {
+            *a += w * x;
+        }
+    }
+}
+
+/// Any `D`.
+#[derive(Clone, Copy)]
+struct Any(usize);
+
+impl Width for Any {
+    type Acc = Vec<f32>;
+
+    #[inline(always)]
+    fn d(self) -> usize {
+        self.0
+    }
+
+    fn zeros(self) -> Vec<f32> {
+        vec![0.0; self.0]
+    }
+}
+
+/// Calls `$body` with `$w` bound to the [`Width`] of `$d`: a constant for 3 (colour), 32
+/// (features), 35 (both) and 64 channels, [`Any`] otherwise.
+macro_rules! with_width {
+    ($d:expr, |$w:ident| $body:expr) => {
+        match $d {
+            3 => { let $w = Fixed::<3>; $body }
+            32 => { let $w = Fixed::<32>; $body }
+            35 => { let $w = Fixed::<35>; $body }
+            64 => { let $w = Fixed::<64>; $body }
+            d => { let $w = Any(d); $body }
+        }
+    };
+}
+
+/// Gaussians ahead in a tile list whose data is prefetched: far enough to hide a memory
+/// access behind the work of the Gaussians between.
+const PREFETCH_AHEAD: usize = 8;
+
+
+/// A Gaussian as the lane kernels read it: packed, with its depth and the image rows it can
+/// reach.
 #[derive(Clone, Copy, Debug)]
-struct BlendedLanes {
+pub(crate) struct LaneSplat {
+    s: Splat<f32>,
+    depth: f32,
+    /// Image rows `rows.0..rows.1`; outside them the Gaussian is certainly skipped.
+    rows: (u32, u32),
+}
+
+/// Every Gaussian of `splats` packed for an image of `height` rows, computed once per pass.
+pub(crate) fn pack(splats: &Splats<f32>, height: u32) -> Vec<LaneSplat> {
+    (0..splats.len())
+        .into_par_iter()
+        .map(|g| {
+            let s = splats.splat(g);
+            LaneSplat {
+                s,
+                depth: splats.depths[g],
+                rows: reach_rows(&s, height),
+            }
+        })
+        .collect()
+}
+
+/// Asks the processor to bring the cache lines of `data` closer (a hint: no effect on any
+/// result). Tile lists visit Gaussians in depth order, scattered over memory; prefetching a few
+/// ahead overlaps those accesses with the blending.
+#[inline(always)]
+fn prefetch<T>(data: &[T]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let start = data.as_ptr() as *const i8;
+        let end = start.wrapping_add(std::mem::size_of_val(data));
+        let mut line = start;
+        while line < end {
+            // SAFETY: a prefetch never faults and changes no architectural state; the address
+            // lies inside `data`.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(line) };
+            line = line.wrapping_add(64);
+        }
+        // The last line, when `data` ends past a multiple of 64 bytes from its start.
+        if end > start {
+            // SAFETY: as above.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(end.wrapping_sub(1)) };
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = data;
+}
+
+/// The tile rows (bits, relative to the tile's first row `y0`) of the image rows `rows` that
+/// lie in `y0..y1`.
+#[inline(always)]
+fn row_mask(rows: (u32, u32), y0: u32, y1: u32) -> Mask {
+    let lo = rows.0.clamp(y0, y1) - y0;
+    let hi = rows.1.clamp(y0, y1) - y0;
+    // hi <= 16: shifts below 32.
+    ((1 << hi) - 1) & !((1 << lo) - 1)
+}
+
+/// The state a row of a Gaussian leaves in the backward pass's front-to-back walk.
+#[derive(Clone, Copy, Debug)]
+struct RowBlend {
     /// Position in the tile list.
     k: u32,
+    /// Tile row.
+    row: u32,
     /// Lanes that blend the Gaussian.
     blend: Mask,
-    /// Lanes where the alpha clamp is active (no gradient through alpha).
-    clamped: Mask,
-    alpha: [f32; LANES],
     /// Transmittance in front of the Gaussian.
     trans: [f32; LANES],
     falloff: [f32; LANES],
-    dx: [f32; LANES],
 }
 
 /// Per-thread working memory.
 #[derive(Default)]
 pub(crate) struct Scratch {
-    packed: Vec<Splat<f32>>,
-    rows: RowLists,
-    /// The tile's channel rows, `padded` values each (zeros after the `D` channels).
-    channels: Vec<f32>,
-    /// Forward: a block's channel accumulators, `padded` per lane. Backward: the block's
-    /// image cotangents in the same layout.
-    block: Vec<f32>,
-    /// Backward: the tile's channel-gradient records, `padded` per tile Gaussian.
-    channel_grads: Vec<f32>,
-    blended: Vec<BlendedLanes>,
-    /// Backward: the block's image cotangents, channel-major: `[c * LANES + l]`.
+    /// Forward: the tile's channel accumulators, `padded` per pixel.
+    acc: Vec<f32>,
+    /// Backward: the rows blended, in the front-to-back walk's order.
+    blended: Vec<RowBlend>,
+    /// Backward: the tile's image cotangents, channel-major per row: `[(r * D + c) * LANES + l]`.
     v_image_t: Vec<f32>,
-}
-
-impl Scratch {
-    /// The row lists the last tile built.
-    pub fn rows(&mut self) -> &mut RowLists {
-        &mut self.rows
-    }
-}
-
-/// The lanes where `m` is true.
-#[inline(always)]
-fn bits(m: &[bool; LANES]) -> Mask {
-    let mut b = 0;
-    for (l, &on) in m.iter().enumerate() {
-        b |= (on as Mask) << l;
-    }
-    b
 }
 
 /// Whether lane `l` is in `m`.
@@ -94,123 +314,94 @@ fn has(m: Mask, l: usize) -> bool {
     m >> l & 1 != 0
 }
 
-/// Calls `f` with each lane of `m`, ascending.
+/// Calls `f` with each set bit of `m`, ascending.
 #[inline(always)]
-fn for_each_lane(mut m: Mask, mut f: impl FnMut(usize)) {
+fn for_each_bit(mut m: Mask, mut f: impl FnMut(usize)) {
     while m != 0 {
         f(m.trailing_zeros() as usize);
         m &= m - 1;
     }
 }
 
-/// `acc += w * x` over padded channel rows, `CHUNK` channels at a time.
-#[inline(always)]
-fn axpy(acc: &mut [f32], w: f32, x: &[f32]) {
-    let (acc, _) = acc.as_chunks_mut::<CHUNK>();
-    let (x, _) = x.as_chunks::<CHUNK>();
-    for (a, x) in acc.iter_mut().zip(x) {
-        // Whole-array loads and stores: the compiler emits one vector operation per step.
-        let (mut sum, x) = (*a, *x);
-        for i in 0..CHUNK {
-            sum[i] += w * x[i];
-        }
-        *a = sum;
-    }
-}
-
-/// One Gaussian evaluated at a block's lanes: the scalar loops' `evaluate`, lane by lane.
+/// One Gaussian evaluated at a row's lanes: the scalar loops' `evaluate`, lane by lane.
 struct Eval {
     /// Lanes where the Gaussian is not skipped.
     hit: Mask,
-    clamped: Mask,
-    dx: [f32; LANES],
     falloff: [f32; LANES],
     alpha: [f32; LANES],
 }
 
-/// Evaluates `s` at the pixel centres `cx` of a block in row `cy`, for the lanes of `lanes`
-/// (live and in the Gaussian's reach). `None` when no lane is hit, without evaluating the
-/// exponential.
+/// Evaluates `s` at the pixel centres `cx` of the row with centre `cy`, for the lanes of
+/// `lanes`. `None` when no lane is hit, without evaluating the exponential.
+///
+/// The skip tests are the scalar loops' negated: `!(sigma.is_nan() || sigma < 0 || sigma > cut)`
+/// is `0 <= sigma && sigma <= cut` and `!(alpha.is_nan() || alpha < ALPHA_MIN)` is
+/// `ALPHA_MIN <= alpha`, as ordered comparisons are false on NaN.
 #[inline(always)]
-fn evaluate(s: &Splat<f32>, lanes: Mask, cx: &[f32; LANES], cy: f32) -> Option<Eval> {
-    let (dx, sigma, hit) = sigma_lanes(s, lanes, cx, cy);
-    (hit != 0).then(|| alpha_lanes(s, hit, dx, &sigma))
-}
-
-/// [`evaluate`] without the early exit: the same lanes and values (`hit` may be empty), with
-/// no data-dependent branch.
-#[inline(always)]
-fn evaluate_all(s: &Splat<f32>, lanes: Mask, cx: &[f32; LANES], cy: f32) -> Eval {
-    let (dx, sigma, hit) = sigma_lanes(s, lanes, cx, cy);
-    alpha_lanes(s, hit, dx, &sigma)
-}
-
-/// The offsets, `sigma` and the lanes of `lanes` where `sigma` is not skipped.
-#[inline(always)]
-fn sigma_lanes(
+fn evaluate<I: LaneIsa>(
+    isa: I,
     s: &Splat<f32>,
     lanes: Mask,
     cx: &[f32; LANES],
     cy: f32,
-) -> ([f32; LANES], [f32; LANES], Mask) {
+) -> Option<Eval> {
     let dy = s.my - cy;
     let c_dy2 = s.c * (dy * dy);
-    let mut dx = [0f32; LANES];
     let mut sigma = [0f32; LANES];
-    let mut keep = [false; LANES];
     for l in 0..LANES {
-        dx[l] = s.mx - cx[l];
-        sigma[l] = 0.5 * (s.a * (dx[l] * dx[l]) + c_dy2) + s.b * dx[l] * dy;
-        keep[l] = !(sigma[l].is_nan() || sigma[l] < 0.0 || sigma[l] > s.sigma_cut);
+        let dx = s.mx - cx[l];
+        sigma[l] = 0.5 * (s.a * (dx * dx) + c_dy2) + s.b * dx * dy;
     }
-    (dx, sigma, bits(&keep) & lanes)
-}
-
-/// The falloff, clamped alpha and the lanes of `hit` whose alpha is not skipped.
-#[inline(always)]
-fn alpha_lanes(s: &Splat<f32>, hit: Mask, dx: [f32; LANES], sigma: &[f32; LANES]) -> Eval {
-    let alpha_max = ALPHA_MAX as f32;
-    let alpha_min = ALPHA_MIN as f32;
-    let mut falloff = [0f32; LANES];
-    let mut alpha = [0f32; LANES];
-    let mut clamped = [false; LANES];
-    let mut keep = [false; LANES];
-    for l in 0..LANES {
-        falloff[l] = exp_f32(-sigma[l]);
-        let raw = s.opacity * falloff[l];
-        clamped[l] = raw > alpha_max;
-        alpha[l] = if clamped[l] { alpha_max } else { raw };
-        keep[l] = !(alpha[l].is_nan() || alpha[l] < alpha_min);
+    let hit = isa.le(&[0.0; LANES], &sigma) & isa.le(&sigma, &[s.sigma_cut; LANES]) & lanes;
+    if hit == 0 {
+        return None;
     }
-    Eval {
-        hit: hit & bits(&keep),
-        clamped: bits(&clamped),
-        dx,
+    let falloff: [f32; LANES] = std::array::from_fn(|l| exp_f32(-sigma[l]));
+    let alpha = alphas(s.opacity, &falloff);
+    Some(Eval {
+        hit: hit & isa.le(&[ALPHA_MIN as f32; LANES], &alpha),
         falloff,
         alpha,
-    }
+    })
 }
 
-/// Applies the transmittance stop to a block: live lanes of `hit` whose transmittance would fall
+/// `min(ALPHA_MAX, opacity falloff)` of every lane, as the scalar loops compute it.
+#[inline(always)]
+fn alphas(opacity: f32, falloff: &[f32; LANES]) -> [f32; LANES] {
+    let alpha_max = ALPHA_MAX as f32;
+    std::array::from_fn(|l| {
+        let raw = opacity * falloff[l];
+        if raw > alpha_max {
+            alpha_max
+        } else {
+            raw
+        }
+    })
+}
+
+/// The lanes where the alpha clamp is active (`opacity falloff > ALPHA_MAX`): no gradient flows
+/// through alpha there.
+#[inline(always)]
+fn clamped<I: LaneIsa>(isa: I, opacity: f32, falloff: &[f32; LANES]) -> Mask {
+    let raw: [f32; LANES] = std::array::from_fn(|l| opacity * falloff[l]);
+    isa.lt(&[ALPHA_MAX as f32; LANES], &raw)
+}
+
+/// Applies the transmittance stop to a row: live lanes of `hit` whose transmittance would fall
 /// to the threshold stop (they leave `live` and do not blend). Returns the blending lanes and
 /// the transmittances in front of the Gaussian, and moves `trans` behind it.
 #[inline(always)]
-fn advance(
+fn advance<I: LaneIsa>(
+    isa: I,
     hit: Mask,
     alpha: &[f32; LANES],
     trans: &mut [f32; LANES],
     live: &mut Mask,
 ) -> (Mask, [f32; LANES]) {
-    let t_min = TRANSMITTANCE_MIN as f32;
     let front = *trans;
-    let mut next = [0f32; LANES];
-    let mut low = [false; LANES];
-    for l in 0..LANES {
-        next[l] = trans[l] * (1.0 - alpha[l]);
-        low[l] = next[l] <= t_min;
-    }
+    let next: [f32; LANES] = std::array::from_fn(|l| trans[l] * (1.0 - alpha[l]));
     let hit = hit & *live;
-    let stop = hit & bits(&low);
+    let stop = hit & isa.le(&next, &[TRANSMITTANCE_MIN as f32; LANES]);
     *live &= !stop;
     let blend = hit & !stop;
     for l in 0..LANES {
@@ -219,45 +410,77 @@ fn advance(
     (blend, front)
 }
 
-/// The pixel centres of a block and the lanes that lie inside the tile (`width` columns).
-#[inline(always)]
-fn block_lanes(x0: u32, first: usize, width: usize) -> ([f32; LANES], Mask) {
-    let cx = std::array::from_fn(|l| pixel_centre::<f32>(x0 + (first + l) as u32));
-    let inside = (1 << LANES.min(width - first)) - 1;
-    (cx, inside)
+/// The pixel state of a tile during the front-to-back walk.
+struct Walk {
+    /// Per tile row, the lanes that have not stopped (and lie inside the image).
+    live: [Mask; LANES],
+    /// The rows with a live lane.
+    live_rows: Mask,
+    trans: [[f32; LANES]; LANES],
 }
 
-/// The lanes of the block starting at tile-local column `first` within a row entry's reach.
-#[inline(always)]
-fn reach_lanes(e: &RowEntry, first: usize) -> Mask {
-    let span = (2u32 << e.x_hi) - (1u32 << e.x_lo);
-    (span >> first) & ((1 << LANES) - 1)
-}
+impl Walk {
+    /// Every pixel of a `width x height` tile live at unit transmittance.
+    fn new(width: usize, height: usize) -> Walk {
+        let inside = (1 << width) - 1;
+        Walk {
+            live: std::array::from_fn(|r| if r < height { inside } else { 0 }),
+            live_rows: (1 << height) - 1,
+            trans: [[1.0; LANES]; LANES],
+        }
+    }
 
-/// Gathers tile `t`'s packed Gaussians (from `all`, one per Gaussian) and their channel rows
-/// (padded to `padded` values), and builds its row lists unless the bins kept them; returns its
-/// Gaussian ids.
-fn prepare<'b>(
-    splats: &Splats<f32>,
-    all: &[Splat<f32>],
-    bins: &'b TileBins,
-    t: usize,
-    padded: usize,
-    scratch: &mut Scratch,
-) -> &'b [u32] {
-    let d = splats.channel_count;
-    let ids = bins.tile(t);
-    scratch.packed.clear();
-    scratch.packed.extend(ids.iter().map(|&g| all[g as usize]));
-    if bins.kept_rows(t).is_none() {
-        scratch.rows.build(&scratch.packed, bins.pixel_rect(t));
+    /// Walks tile `t`'s Gaussians front to back, calling `blend(k, g, row, lanes, eval, front)`
+    /// for each Gaussian (position `k` in the tile list, id `g`) and tile row where some lane
+    /// blends it, with the transmittances in front of it. Stops when every pixel has stopped.
+    /// `channels` (`D` per Gaussian) is only prefetched.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn run<I: LaneIsa>(
+        &mut self,
+        isa: I,
+        packed: &[LaneSplat],
+        channels: &[f32],
+        d: usize,
+        bins: &TileBins,
+        t: usize,
+        mut blend: impl FnMut(usize, usize, usize, Mask, &Eval, &[f32; LANES]),
+    ) {
+        let (x0, y0, _, y1) = bins.pixel_rect(t);
+        let cx: [f32; LANES] = std::array::from_fn(|l| pixel_centre::<f32>(x0 + l as u32));
+        let ids = bins.tile(t);
+        for (k, &g) in ids.iter().enumerate() {
+            if let Some(&ahead) = ids.get(k + PREFETCH_AHEAD) {
+                let ahead = ahead as usize;
+                prefetch(std::slice::from_ref(&packed[ahead]));
+                prefetch(&channels[ahead * d..(ahead + 1) * d]);
+            }
+            let ls = &packed[g as usize];
+            let rows = row_mask(ls.rows, y0, y1) & self.live_rows;
+            for_each_bit(rows, |r| {
+                let cy = pixel_centre::<f32>(y0 + r as u32);
+                let Some(ev) = evaluate(isa, &ls.s, self.live[r], &cx, cy) else {
+                    return;
+                };
+                let (lanes, front) = advance(
+                    isa,
+                    ev.hit,
+                    &ev.alpha,
+                    &mut self.trans[r],
+                    &mut self.live[r],
+                );
+                if self.live[r] == 0 {
+                    self.live_rows &= !(1 << r);
+                }
+                if lanes != 0 {
+                    blend(k, g as usize, r, lanes, &ev, &front);
+                }
+            });
+            if self.live_rows == 0 {
+                break;
+            }
+        }
     }
-    scratch.channels.clear();
-    scratch.channels.resize(ids.len() * padded, 0.0);
-    for (row, &g) in scratch.channels.chunks_exact_mut(padded).zip(ids) {
-        row[..d].copy_from_slice(splats.channels_of(g as usize));
-    }
-    ids
 }
 
 /// `D` rounded up to a whole number of chunks (at least one).
@@ -268,8 +491,8 @@ fn padded(d: usize) -> usize {
 /// The forward pass over one tile (see [`super::scalar::forward_tile`]).
 pub(crate) struct ForwardTile<'a, 'b> {
     pub splats: &'a Splats<'a, f32>,
-    /// Every Gaussian packed ([`Splats::packed`]).
-    pub packed: &'a [Splat<f32>],
+    /// Every Gaussian packed ([`pack`]).
+    pub packed: &'a [LaneSplat],
     pub bins: &'a TileBins,
     pub background: &'a [f32],
     pub t: usize,
@@ -277,88 +500,63 @@ pub(crate) struct ForwardTile<'a, 'b> {
     pub out: TileOut<'b, f32>,
 }
 
-impl WithSimd for ForwardTile<'_, '_> {
+impl LaneOp for ForwardTile<'_, '_> {
     type Output = ();
 
     #[inline(always)]
-    fn with_simd<S: Simd>(self, _: S) {
+    fn run<I: LaneIsa>(self, isa: I) {
+        with_width!(self.splats.channel_count, |w| self.forward(isa, w))
+    }
+}
+
+impl ForwardTile<'_, '_> {
+    #[inline(always)]
+    fn forward<I: LaneIsa, W: Width>(self, isa: I, wd: W) {
         let ForwardTile {
             splats,
-            packed: all,
+            packed,
             bins,
             background,
             t,
             scratch,
             out,
         } = self;
-        let d = splats.channel_count;
+        let d = wd.d();
         let dp = padded(d);
-        let ids = prepare(splats, all, bins, t, dp, scratch);
-        let Scratch {
-            packed,
-            rows,
-            channels,
-            block,
-            ..
-        } = scratch;
-        let rows = bins.kept_rows(t).unwrap_or(rows);
         let (x0, y0, x1, y1) = bins.pixel_rect(t);
-        let width = (x1 - x0) as usize;
-        for py in y0..y1 {
-            let ly = (py - y0) as usize;
-            let cy = pixel_centre::<f32>(py);
-            for first in (0..BLOCKS).map(|b| b * LANES).take_while(|&f| f < width) {
-                let row = rows.list(py - y0, first / LANES);
-                let (cx, mut live) = block_lanes(x0, first, width);
-                block.clear();
-                block.resize(LANES * dp, 0.0);
-                let mut trans = [1f32; LANES];
-                let mut z = [0f32; LANES];
-                let mut n = [0u32; LANES];
-                let mut staged = [(0u32, 0 as Mask, [0f32; LANES]); STAGED];
-                // Evaluate the next entries until STAGED ones hit some lane (without
-                // data-dependent branches: every entry is written, a hit one is kept), then
-                // blend those in order.
-                let mut next_entry = 0;
-                'walk: while next_entry < row.len() {
-                    let mut m = 0;
-                    while next_entry < row.len() && m < STAGED {
-                        let e = &row[next_entry];
-                        next_entry += 1;
-                        let lanes = reach_lanes(e, first) & live;
-                        let ev = evaluate_all(&packed[e.k as usize], lanes, &cx, cy);
-                        staged[m] = (e.k, ev.hit, ev.alpha);
-                        m += (ev.hit != 0) as usize;
-                    }
-                    for &(k, hit, alpha) in &staged[..m] {
-                        let k = k as usize;
-                        let (blend, front) = advance(hit, &alpha, &mut trans, &mut live);
-                        let depth = splats.depths[ids[k] as usize];
-                        let mut w = [0f32; LANES];
-                        for l in 0..LANES {
-                            w[l] = alpha[l] * front[l];
-                            let b = has(blend, l);
-                            z[l] = if b { z[l] + w[l] * depth } else { z[l] };
-                            n[l] += b as u32;
-                        }
-                        let col = &channels[k * dp..(k + 1) * dp];
-                        for_each_lane(blend, |l| axpy(&mut block[l * dp..(l + 1) * dp], w[l], col));
-                        if live == 0 {
-                            break 'walk;
-                        }
-                    }
+        let (width, height) = ((x1 - x0) as usize, (y1 - y0) as usize);
+        let acc = &mut scratch.acc;
+        acc.clear();
+        acc.resize(LANES * LANES * dp, 0.0);
+        let mut z = [[0f32; LANES]; LANES];
+        let mut n = [[0u32; LANES]; LANES];
+        let mut walk = Walk::new(width, height);
+        walk.run(isa, packed, splats.channels, d, bins, t, |_, g, r, lanes, ev, front| {
+            let depth = packed[g].depth;
+            let col = splats.channels_of(g);
+            let mut w = [0f32; LANES];
+            for l in 0..LANES {
+                w[l] = ev.alpha[l] * front[l];
+                let b = has(lanes, l);
+                z[r][l] = if b { z[r][l] + w[l] * depth } else { z[r][l] };
+                n[r][l] += b as u32;
+            }
+            for_each_bit(lanes, |l| {
+                let p = r * LANES + l;
+                wd.axpy(&mut acc[p * dp..(p + 1) * dp], w[l], col);
+            });
+        });
+        for r in 0..height {
+            for l in 0..width {
+                let p = r * LANES + l;
+                let trans = walk.trans[r][l];
+                let pixel = &mut out.image[p * d..(p + 1) * d];
+                for ((o, &a), &b) in pixel.iter_mut().zip(&acc[p * dp..]).zip(background) {
+                    *o = a + trans * b;
                 }
-                let lp0 = ly * TILE_SIZE as usize + first;
-                for l in 0..LANES.min(width - first) {
-                    let acc = &block[l * dp..l * dp + d];
-                    let pixel = &mut out.image[(lp0 + l) * d..(lp0 + l + 1) * d];
-                    for ((o, &a), &b) in pixel.iter_mut().zip(acc).zip(background) {
-                        *o = a + trans[l] * b;
-                    }
-                    out.alpha[lp0 + l] = 1.0 - trans[l];
-                    out.depth[lp0 + l] = z[l];
-                    out.count[lp0 + l] = n[l];
-                }
+                out.alpha[p] = 1.0 - trans;
+                out.depth[p] = z[r][l];
+                out.count[p] = n[r][l];
             }
         }
     }
@@ -367,8 +565,8 @@ impl WithSimd for ForwardTile<'_, '_> {
 /// The backward pass over one tile (see [`super::scalar::backward_tile`]).
 pub(crate) struct BackwardTile<'a, 'b> {
     pub splats: &'a Splats<'a, f32>,
-    /// Every Gaussian packed ([`Splats::packed`]).
-    pub packed: &'a [Splat<f32>],
+    /// Every Gaussian packed ([`pack`]).
+    pub packed: &'a [LaneSplat],
     pub bins: &'a TileBins,
     pub background: &'a [f32],
     pub cot: &'a Cotangents<'a, f32>,
@@ -378,14 +576,21 @@ pub(crate) struct BackwardTile<'a, 'b> {
     pub bg_grad: &'b mut [f32],
 }
 
-impl WithSimd for BackwardTile<'_, '_> {
+impl LaneOp for BackwardTile<'_, '_> {
     type Output = ();
 
     #[inline(always)]
-    fn with_simd<S: Simd>(self, _: S) {
+    fn run<I: LaneIsa>(self, isa: I) {
+        with_width!(self.splats.channel_count, |w| self.backward(isa, w))
+    }
+}
+
+impl BackwardTile<'_, '_> {
+    #[inline(always)]
+    fn backward<I: LaneIsa, W: Width>(self, isa: I, wd: W) {
         let BackwardTile {
             splats,
-            packed: all,
+            packed,
             bins,
             background,
             cot,
@@ -394,143 +599,126 @@ impl WithSimd for BackwardTile<'_, '_> {
             rec,
             bg_grad,
         } = self;
-        let d = splats.channel_count;
-        let dp = padded(d);
+        let d = wd.d();
         let stride = GEOMETRY + d;
-        let ids = prepare(splats, all, bins, t, dp, scratch);
+        let ids = bins.tile(t);
         let Scratch {
-            packed,
-            rows,
-            channels,
-            block,
-            channel_grads,
             blended,
             v_image_t,
+            ..
         } = scratch;
-        let rows = bins.kept_rows(t).unwrap_or(rows);
         let (x0, y0, x1, y1) = bins.pixel_rect(t);
-        let width = (x1 - x0) as usize;
+        let (width, height) = ((x1 - x0) as usize, (y1 - y0) as usize);
         let image_width = bins.width() as usize;
+        let pixel = |r: usize, l: usize| (y0 as usize + r) * image_width + x0 as usize + l;
+
+        // Front to back: the forward pass's decisions and transmittances.
+        blended.clear();
+        let mut walk = Walk::new(width, height);
+        walk.run(isa, packed, splats.channels, d, bins, t, |k, _, r, lanes, ev, front| {
+            blended.push(RowBlend {
+                k: k as u32,
+                row: r as u32,
+                blend: lanes,
+                trans: *front,
+                falloff: ev.falloff,
+            })
+        });
+
+        // The tile's cotangents, and what each pixel shows behind its last Gaussian.
         v_image_t.clear();
-        v_image_t.resize(d * LANES, 0.0);
-        channel_grads.clear();
-        channel_grads.resize(ids.len() * dp, 0.0);
-        block.clear();
-        block.resize(LANES * dp, 0.0);
-        for py in y0..y1 {
-            let cy = pixel_centre::<f32>(py);
-            for first in (0..BLOCKS).map(|b| b * LANES).take_while(|&f| f < width) {
-                let row = rows.list(py - y0, first / LANES);
-                let (cx, mut live) = block_lanes(x0, first, width);
-                let count = LANES.min(width - first);
-
-                // Front to back: the forward pass's decisions, alphas and transmittances.
-                blended.clear();
-                let mut trans = [1f32; LANES];
-                for e in row {
-                    let lanes = reach_lanes(e, first) & live;
-                    if lanes == 0 {
-                        continue;
-                    }
-                    let Some(ev) = evaluate(&packed[e.k as usize], lanes, &cx, cy) else {
-                        continue;
-                    };
-                    let (blend, front) = advance(ev.hit, &ev.alpha, &mut trans, &mut live);
-                    if blend != 0 {
-                        blended.push(BlendedLanes {
-                            k: e.k,
-                            blend,
-                            clamped: ev.clamped,
-                            alpha: ev.alpha,
-                            trans: front,
-                            falloff: ev.falloff,
-                            dx: ev.dx,
-                        });
-                    }
-                    if live == 0 {
-                        break;
-                    }
+        v_image_t.resize(LANES * d * LANES, 0.0);
+        let mut v_alpha = [[0f32; LANES]; LANES];
+        let mut v_depth = [[0f32; LANES]; LANES];
+        let mut behind = [[0f32; LANES]; LANES];
+        for r in 0..height {
+            for l in 0..width {
+                let p = pixel(r, l);
+                let v = &cot.image[p * d..(p + 1) * d];
+                for (c, &vc) in v.iter().enumerate() {
+                    v_image_t[(r * d + c) * LANES + l] = vc;
                 }
-
-                // The block's cotangents, in both layouts.
-                let p0 = py as usize * image_width + x0 as usize + first;
-                let v_img = &cot.image[p0 * d..(p0 + count) * d];
-                let mut v_alpha = [0f32; LANES];
-                let mut v_depth = [0f32; LANES];
-                let mut behind = [0f32; LANES];
-                for l in 0..LANES {
-                    let v = if l < count {
-                        &v_img[l * d..(l + 1) * d]
-                    } else {
-                        &[]
-                    };
-                    block[l * dp..(l + 1) * dp].fill(0.0);
-                    block[l * dp..l * dp + v.len()].copy_from_slice(v);
-                    for c in 0..d {
-                        v_image_t[c * LANES + l] = v.get(c).copied().unwrap_or(0.0);
-                    }
-                    if l < count {
-                        v_alpha[l] = cot.alpha.map_or(0.0, |a| a[p0 + l]);
-                        v_depth[l] = cot.depth.map_or(0.0, |z| z[p0 + l]);
-                        for (b, &vc) in bg_grad.iter_mut().zip(v) {
-                            *b += trans[l] * vc;
-                        }
-                        behind[l] = dot(v, background);
-                    }
+                v_alpha[r][l] = cot.alpha.map_or(0.0, |a| a[p]);
+                v_depth[r][l] = cot.depth.map_or(0.0, |z| z[p]);
+                let trans = walk.trans[r][l];
+                for (b, &vc) in bg_grad.iter_mut().zip(v) {
+                    *b += trans * vc;
                 }
-
-                // Back to front.
-                for bl in blended.iter().rev() {
-                    let k = bl.k as usize;
-                    let g = ids[k] as usize;
-                    let s = &packed[k];
-                    let z = splats.depths[g];
-                    let mut own = [0f32; LANES];
-                    for (c, &col) in channels[k * dp..k * dp + d].iter().enumerate() {
-                        let v = &v_image_t[c * LANES..(c + 1) * LANES];
-                        for l in 0..LANES {
-                            own[l] += v[l] * col;
-                        }
-                    }
-                    let dy = s.my - cy;
-                    let mut w = [0f32; LANES];
-                    let mut geo = [[0f32; LANES]; GEOMETRY];
-                    for l in 0..LANES {
-                        let (alpha, front, dx) = (bl.alpha[l], bl.trans[l], bl.dx[l]);
-                        let own_l = own[l] + v_depth[l] * z + v_alpha[l];
-                        w[l] = alpha * front;
-                        geo[DEPTH][l] = w[l] * v_depth[l];
-                        let v_a = front * (own_l - behind[l]);
-                        let next = alpha * own_l + (1.0 - alpha) * behind[l];
-                        behind[l] = if has(bl.blend, l) { next } else { behind[l] };
-                        geo[OPACITY][l] = v_a * bl.falloff[l];
-                        let v_sigma = -(v_a * alpha);
-                        geo[CONIC_A][l] = v_sigma * 0.5 * dx * dx;
-                        geo[CONIC_B][l] = v_sigma * dx * dy;
-                        geo[CONIC_C][l] = v_sigma * 0.5 * dy * dy;
-                        geo[MEAN_X][l] = v_sigma * (s.a * dx + s.b * dy);
-                        geo[MEAN_Y][l] = v_sigma * (s.b * dx + s.c * dy);
-                    }
-                    let r = &mut rec[k * stride..k * stride + GEOMETRY];
-                    let grads = &mut channel_grads[k * dp..(k + 1) * dp];
-                    for_each_lane(bl.blend, |l| {
-                        axpy(grads, w[l], &block[l * dp..(l + 1) * dp]);
-                        r[DEPTH] += geo[DEPTH][l];
-                        if !has(bl.clamped, l) {
-                            for j in [OPACITY, CONIC_A, CONIC_B, CONIC_C, MEAN_X, MEAN_Y] {
-                                r[j] += geo[j][l];
-                            }
-                        }
-                    });
-                }
+                behind[r][l] = dot(v, background);
             }
         }
-        // The channel records start at zero, so copying the sums equals adding them.
-        for (r, grads) in rec
-            .chunks_exact_mut(stride)
-            .zip(channel_grads.chunks_exact(dp))
-        {
-            r[GEOMETRY..].copy_from_slice(&grads[..d]);
+
+        // Back to front, one Gaussian at a time; its rows in ascending order.
+        let cx: [f32; LANES] = std::array::from_fn(|l| pixel_centre::<f32>(x0 + l as u32));
+        let mut end = blended.len();
+        while end > 0 {
+            let k = blended[end - 1].k;
+            let start = blended[..end]
+                .iter()
+                .rposition(|b| b.k != k)
+                .map_or(0, |i| i + 1);
+            let rows = &blended[start..end];
+            let k = k as usize;
+            let g = ids[k] as usize;
+            let s = &packed[g].s;
+            let z = packed[g].depth;
+            let col = &splats.channels_of(g)[..d];
+            // `v_image . c` of every pixel of the Gaussian's rows, the rows' sums interleaved
+            // (each lane still sums its channels in order).
+            let mut own = [[0f32; LANES]; LANES];
+            for (c, &col_c) in col.iter().enumerate() {
+                for (own, bl) in own.iter_mut().zip(rows) {
+                    let at = (bl.row as usize * d + c) * LANES;
+                    let v = &v_image_t[at..at + LANES];
+                    for l in 0..LANES {
+                        own[l] += v[l] * col_c;
+                    }
+                }
+            }
+            let mut grads = wd.zeros();
+            let mut sums = [0f32; GEOMETRY];
+            for (bl, own) in rows.iter().zip(&own) {
+                let r = bl.row as usize;
+                let cy = pixel_centre::<f32>(y0 + bl.row);
+                let alpha = alphas(s.opacity, &bl.falloff);
+                let clamped = clamped(isa, s.opacity, &bl.falloff);
+                let dy = s.my - cy;
+                let mut w = [0f32; LANES];
+                let mut geo = [[0f32; LANES]; GEOMETRY];
+                for l in 0..LANES {
+                    let (alpha, front) = (alpha[l], bl.trans[l]);
+                    let dx = s.mx - cx[l];
+                    let own_l = own[l] + v_depth[r][l] * z + v_alpha[r][l];
+                    w[l] = alpha * front;
+                    geo[DEPTH][l] = w[l] * v_depth[r][l];
+                    let v_a = front * (own_l - behind[r][l]);
+                    let next = alpha * own_l + (1.0 - alpha) * behind[r][l];
+                    behind[r][l] = if has(bl.blend, l) { next } else { behind[r][l] };
+                    geo[OPACITY][l] = v_a * bl.falloff[l];
+                    let v_sigma = -(v_a * alpha);
+                    geo[CONIC_A][l] = v_sigma * 0.5 * dx * dx;
+                    geo[CONIC_B][l] = v_sigma * dx * dy;
+                    geo[CONIC_C][l] = v_sigma * 0.5 * dy * dy;
+                    geo[MEAN_X][l] = v_sigma * (s.a * dx + s.b * dy);
+                    geo[MEAN_Y][l] = v_sigma * (s.b * dx + s.c * dy);
+                }
+                for_each_bit(bl.blend, |l| {
+                    let p = pixel(r, l);
+                    wd.axpy(grads.as_mut(), w[l], &cot.image[p * d..(p + 1) * d]);
+                    sums[DEPTH] += geo[DEPTH][l];
+                    if !has(clamped, l) {
+                        for j in [OPACITY, CONIC_A, CONIC_B, CONIC_C, MEAN_X, MEAN_Y] {
+                            sums[j] += geo[j][l];
+                        }
+                    }
+                });
+            }
+            // The records start at zero and each Gaussian's sums are complete: storing them
+            // equals adding them.
+            let record = &mut rec[k * stride..(k + 1) * stride];
+            record[..GEOMETRY].copy_from_slice(&sums);
+            record[GEOMETRY..].copy_from_slice(grads.as_ref());
+            end = start;
         }
     }
 }

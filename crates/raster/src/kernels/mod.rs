@@ -168,16 +168,35 @@ impl Token {
 
     /// Runs `op` inside code compiled for this instruction set.
     #[inline(always)]
-    pub fn run<Op: pulp::WithSimd>(self, op: Op) -> Op::Output {
+    pub fn run<Op: lanes::LaneOp>(self, op: Op) -> Op::Output {
         match self {
             #[cfg(target_arch = "x86_64")]
-            Token::Avx512(simd) => pulp::Simd::vectorize(simd, op),
+            Token::Avx512(simd) => pulp::Simd::vectorize(simd, InIsa { isa: simd, op }),
             #[cfg(target_arch = "x86_64")]
-            Token::Avx2(simd) => pulp::Simd::vectorize(simd, op),
+            Token::Avx2(simd) => pulp::Simd::vectorize(simd, InIsa { isa: simd, op }),
             #[cfg(target_arch = "aarch64")]
-            Token::Neon(simd) => pulp::Simd::vectorize(simd, op),
-            Token::Portable => pulp::Simd::vectorize(pulp::Scalar::new(), op),
+            Token::Neon(simd) => pulp::Simd::vectorize(simd, InIsa { isa: simd, op }),
+            Token::Portable => {
+                let isa = pulp::Scalar::new();
+                pulp::Simd::vectorize(isa, InIsa { isa, op })
+            }
         }
+    }
+}
+
+/// A lane kernel with the instruction set it runs at, entered through [`pulp::WithSimd`] so
+/// that its code is compiled with that instruction set's target features.
+struct InIsa<I, Op> {
+    isa: I,
+    op: Op,
+}
+
+impl<I: lanes::LaneIsa, Op: lanes::LaneOp> pulp::WithSimd for InIsa<I, Op> {
+    type Output = Op::Output;
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _: S) -> Op::Output {
+        self.op.run(self.isa)
     }
 }
 

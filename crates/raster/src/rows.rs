@@ -342,6 +342,34 @@ mod tests {
         }
     }
 
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(1000))]
+
+        // The rows of the image outside a Gaussian's row reach hold no pixel it is blended at,
+        // for every size, elongation, position (in or outside the image) and opacity.
+        #[test]
+        fn the_row_reach_never_leaves_out_a_blended_row(
+            mx in -10.0f64..74.0, my in -10.0f64..74.0,
+            log_sx in -2.0f64..2.5, log_aspect in 0.0f64..3.0, angle in 0.0f64..3.2,
+            opacity in 0.0f64..1.0,
+        ) {
+            let sx = 10f64.powf(log_sx);
+            let k = conic(sx, sx * 10f64.powf(log_aspect), angle);
+            let (width, height) = (64u32, 64u32);
+            let s = Splat::new([mx as f32, my as f32], k.map(|v| v as f32), opacity as f32);
+            let (lo, hi) = reach_rows(&s, height);
+            prop_assert!(lo <= hi && hi <= height);
+            for py in (0..lo).chain(hi..height) {
+                for px in 0..width {
+                    prop_assert!(
+                        evaluate(&s, pixel_centre::<f32>(px), pixel_centre::<f32>(py)).is_none(),
+                        "pixel ({}, {}) is blended outside rows {}..{} of {:?}", px, py, lo, hi, s
+                    );
+                }
+            }
+        }
+    }
+
     #[test]
     fn degenerate_and_non_finite_gaussians_reach_the_whole_tile_or_nothing() {
         let rect = (0, 0, 16, 16);

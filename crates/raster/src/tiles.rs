@@ -14,6 +14,7 @@
 use gaussian::Real;
 use rayon::prelude::*;
 
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Arc;
 
 use crate::blend::TILE_SIZE;
@@ -41,6 +42,9 @@ pub struct TileBins {
     /// The forward pass's row lists, one per tile.
     row_lists: Option<Arc<Vec<RowLists>>>,
 }
+
+/// Parts of the depth order binned in parallel (any number gives the same bins).
+const BIN_PARTS: usize = 16;
 
 /// At most this many bytes of row lists are kept in the bins from the forward pass for the
 /// backward pass; beyond it the backward pass builds them again (same values either way).
@@ -162,35 +166,59 @@ impl TileBins {
             .collect();
         let order = depth_order(order, depths);
 
-        let mut counts = vec![0usize; tile_count];
-        for r in rects.iter().flatten() {
-            for ty in r.y0..r.y1 {
-                let row = ty as usize * tiles_x as usize;
-                for tx in r.x0..r.x1 {
-                    counts[row + tx as usize] += 1;
+        // The rectangles in depth order, then the intersections in parts of that order: each
+        // part counts its intersections per tile, the counts give every part its own slots in
+        // each tile (parts in order), and the parts fill their slots in parallel. The result
+        // is the same for any number of parts.
+        let sorted: Vec<TileRect> = order
+            .par_iter()
+            .map(|&g| rects[g as usize].expect("only binned Gaussians are in the depth order"))
+            .collect();
+        drop(rects);
+        let part_len = sorted.len().div_ceil(BIN_PARTS).max(1);
+        let tiles_of = |r: &TileRect| {
+            let r = *r;
+            (r.y0..r.y1).flat_map(move |ty| {
+                (r.x0..r.x1).map(move |tx| ty as usize * tiles_x as usize + tx as usize)
+            })
+        };
+        let mut cursors: Vec<Vec<usize>> = sorted
+            .par_chunks(part_len)
+            .map(|part| {
+                let mut counts = vec![0usize; tile_count];
+                for r in part {
+                    tiles_of(r).for_each(|t| counts[t] += 1);
                 }
-            }
-        }
+                counts
+            })
+            .collect();
+        // Tile offsets, and each part's first slot per tile.
         let mut offsets = Vec::with_capacity(tile_count + 1);
         let mut total = 0usize;
-        offsets.push(0);
-        for c in &counts {
-            total += c;
+        for t in 0..tile_count {
             offsets.push(total);
-        }
-        let mut cursor: Vec<usize> = offsets[..tile_count].to_vec();
-        let mut gaussian_ids = vec![0u32; total];
-        for &g in &order {
-            let r = rects[g as usize].expect("only binned Gaussians are in the depth order");
-            for ty in r.y0..r.y1 {
-                let row = ty as usize * tiles_x as usize;
-                for tx in r.x0..r.x1 {
-                    let slot = &mut cursor[row + tx as usize];
-                    gaussian_ids[*slot] = g;
-                    *slot += 1;
-                }
+            for part in cursors.iter_mut() {
+                let count = part[t];
+                part[t] = total;
+                total += count;
             }
         }
+        offsets.push(total);
+        let slots: Vec<AtomicU32> = (0..total).map(|_| AtomicU32::new(0)).collect();
+        sorted
+            .par_chunks(part_len)
+            .zip(order.par_chunks(part_len))
+            .zip(cursors.par_iter_mut())
+            .for_each(|((part, ids), cursor)| {
+                for (r, &g) in part.iter().zip(ids) {
+                    tiles_of(r).for_each(|t| {
+                        // Every slot is written by exactly one part, once.
+                        slots[cursor[t]].store(g, Ordering::Relaxed);
+                        cursor[t] += 1;
+                    });
+                }
+            });
+        let gaussian_ids: Vec<u32> = slots.into_par_iter().map(AtomicU32::into_inner).collect();
         Ok(TileBins {
             width,
             height,
@@ -351,6 +379,39 @@ mod tests {
         match a.partial_cmp(&b) {
             Some(o) => o,
             None => a.is_nan().cmp(&b.is_nan()),
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(100))]
+
+        // Every tile lists exactly the Gaussians whose tile rectangle covers it, in the stable
+        // depth order, for any image size and enough Gaussians that several parts bin them.
+        #[test]
+        fn each_tile_lists_the_gaussians_covering_it_front_to_back(
+            width in 1u32..90, height in 1u32..90,
+            gaussians in prop::collection::vec(
+                (-20.0f32..110.0, -20.0f32..110.0, 0u32..40, 0u32..40, 0u32..6),
+                0..600,
+            ),
+        ) {
+            let means: Vec<[f32; 2]> = gaussians.iter().map(|g| [g.0, g.1]).collect();
+            let radii: Vec<[u32; 2]> = gaussians.iter().map(|g| [g.2, g.3]).collect();
+            // Few distinct depths: many ties.
+            let depths: Vec<f32> = gaussians.iter().map(|g| g.4 as f32).collect();
+            let bins = TileBins::new(width, height, &means, &depths, &radii).unwrap();
+            let (tx, ty) = tile_grid(width, height);
+            for t in 0..bins.tile_count() {
+                let (x, y) = (t as u32 % tx, t as u32 / tx);
+                let mut expected: Vec<u32> = (0..means.len() as u32)
+                    .filter(|&g| {
+                        tile_rect(means[g as usize], radii[g as usize], tx, ty)
+                            .is_some_and(|r| r.x0 <= x && x < r.x1 && r.y0 <= y && y < r.y1)
+                    })
+                    .collect();
+                expected.sort_by(|&a, &b| depths[a as usize].total_cmp(&depths[b as usize]));
+                prop_assert_eq!(bins.tile(t), &expected[..], "tile {}", t);
+            }
         }
     }
 

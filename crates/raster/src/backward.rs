@@ -39,7 +39,7 @@ use rayon::prelude::*;
 use crate::error::{check_len, RasterError};
 use crate::forward::Splats;
 use crate::kernels::record::{CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY};
-use crate::kernels::{lanes, scalar, Kernel, Token};
+use crate::kernels::{lanes, prefetch, scalar, Kernel, Token};
 use crate::tiles::TileBins;
 
 /// Default budget for the per-intersection gradient records: 2^24 reals (128 MiB in `f64`).
@@ -263,6 +263,15 @@ pub fn rasterize_backward_with<T: Real>(
                     .zip(next_chunk.iter_mut())
                     .enumerate()
                 {
+                    // The first record of a Gaussian a few ahead.
+                    if let Some(&j) = lists.start.get(g0 + i + GATHER_AHEAD).and_then(|&c| {
+                        lists.intersections.get(c)
+                    }) {
+                        let j = j as usize;
+                        if (begin..end).contains(&j) {
+                            prefetch(&records[(j - begin) * stride..(j - begin + 1) * stride]);
+                        }
+                    }
                     let stop = lists.start[g0 + i + 1];
                     while *cursor < stop {
                         let j = lists.intersections[*cursor] as usize;
@@ -306,6 +315,9 @@ pub fn rasterize_backward_with<T: Real>(
 
 /// Gaussians per task of the gradient gather (any value gives the same result).
 const GATHER_CHUNK: usize = 2048;
+
+/// Gaussians ahead whose first record the gather prefetches.
+const GATHER_AHEAD: usize = 4;
 
 /// The intersections of each Gaussian, ascending: Gaussian `g`'s are
 /// `intersections[start[g]..start[g + 1]]` (a counting sort of the tile lists by Gaussian).

@@ -29,7 +29,7 @@ use rayon::prelude::*;
 
 use super::record::{CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY};
 use super::scalar::dot;
-use super::TileOut;
+use super::{prefetch, TileOut};
 use crate::backward::Cotangents;
 use crate::blend::{pixel_centre, Splat, ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN};
 use crate::forward::Splats;
@@ -244,33 +244,6 @@ pub(crate) fn pack(splats: &Splats<f32>, height: u32) -> Vec<LaneSplat> {
             }
         })
         .collect()
-}
-
-/// Asks the processor to bring the cache lines of `data` closer (a hint: no effect on any
-/// result). Tile lists visit Gaussians in depth order, scattered over memory; prefetching a few
-/// ahead overlaps those accesses with the blending.
-#[inline(always)]
-fn prefetch<T>(data: &[T]) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let start = data.as_ptr() as *const i8;
-        let end = start.wrapping_add(std::mem::size_of_val(data));
-        let mut line = start;
-        while line < end {
-            // SAFETY: a prefetch never faults and changes no architectural state; the address
-            // lies inside `data`.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(line) };
-            line = line.wrapping_add(64);
-        }
-        // The last line, when `data` ends past a multiple of 64 bytes from its start.
-        if end > start {
-            // SAFETY: as above.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(end.wrapping_sub(1)) };
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = data;
 }
 
 /// The tile rows (bits, relative to the tile's first row `y0`) of the image rows `rows` that

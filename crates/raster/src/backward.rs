@@ -217,6 +217,7 @@ pub fn rasterize_backward_with<T: Real>(
             rest = tail;
             bg_rest = bg_tail;
         }
+        slices.sort_unstable_by_key(|&(t, _, _)| bins.locality_key(t));
         slices.into_par_iter().for_each_init(
             <(scalar::Scratch<T>, lanes::Scratch)>::default,
             |(scalar_scratch, lane_scratch), (t, rec, bg)| {
@@ -264,9 +265,11 @@ pub fn rasterize_backward_with<T: Real>(
                     .enumerate()
                 {
                     // The first record of a Gaussian a few ahead.
-                    if let Some(&j) = lists.start.get(g0 + i + GATHER_AHEAD).and_then(|&c| {
-                        lists.intersections.get(c)
-                    }) {
+                    if let Some(&j) = lists
+                        .start
+                        .get(g0 + i + GATHER_AHEAD)
+                        .and_then(|&c| lists.intersections.get(c))
+                    {
                         let j = j as usize;
                         if (begin..end).contains(&j) {
                             prefetch(&records[(j - begin) * stride..(j - begin + 1) * stride]);

@@ -210,56 +210,59 @@ pub fn rasterize_binned_with<T: Real>(
     // The row lists each tile builds, kept for the backward pass while they fit the budget.
     let mut kept: Vec<RowLists> = (0..tiles).map(|_| RowLists::default()).collect();
     let kept_bytes = AtomicUsize::new(0);
-    t_image
+    // Tiles in an order that keeps neighbours together (each tile's results do not depend on it).
+    let mut work: Vec<_> = t_image
         .par_chunks_mut(TILE_PIXELS * d_stage)
         .zip(t_alpha.par_chunks_mut(TILE_PIXELS))
         .zip(t_depth.par_chunks_mut(TILE_PIXELS))
         .zip(t_count.par_chunks_mut(TILE_PIXELS))
         .zip(kept.par_iter_mut())
         .enumerate()
-        .for_each_init(
-            <(scalar::Scratch<T>, lanes::Scratch)>::default,
-            |(scalar_scratch, lane_scratch), (t, ((((image, alpha), depth), count), keep))| {
-                let mut out = TileOut {
-                    image,
-                    alpha,
-                    depth,
-                    count,
-                };
-                match (token, &lanes_in, out.as_f32()) {
-                    (Some(token), Some((splats, background)), Some(out)) => {
-                        // The lane kernels build no row lists.
-                        token.run(lanes::ForwardTile {
-                            splats,
-                            packed: &packed32,
-                            bins: &bins,
-                            background,
-                            t,
-                            scratch: lane_scratch,
-                            out,
-                        });
-                    }
-                    _ => {
-                        scalar::forward_tile(
-                            splats,
-                            &packed,
-                            &bins,
-                            background,
-                            t,
-                            scalar_scratch,
-                            out,
-                        );
-                        let rows = scalar_scratch.rows();
-                        let bytes = rows.kept_bytes();
-                        if kept_bytes.fetch_add(bytes, Ordering::Relaxed) + bytes
-                            <= ROW_LIST_BUDGET_BYTES
-                        {
-                            *keep = rows.take_kept();
-                        }
+        .collect();
+    work.sort_unstable_by_key(|&(t, _)| bins.locality_key(t));
+    work.into_par_iter().for_each_init(
+        <(scalar::Scratch<T>, lanes::Scratch)>::default,
+        |(scalar_scratch, lane_scratch), (t, ((((image, alpha), depth), count), keep))| {
+            let mut out = TileOut {
+                image,
+                alpha,
+                depth,
+                count,
+            };
+            match (token, &lanes_in, out.as_f32()) {
+                (Some(token), Some((splats, background)), Some(out)) => {
+                    // The lane kernels build no row lists.
+                    token.run(lanes::ForwardTile {
+                        splats,
+                        packed: &packed32,
+                        bins: &bins,
+                        background,
+                        t,
+                        scratch: lane_scratch,
+                        out,
+                    });
+                }
+                _ => {
+                    scalar::forward_tile(
+                        splats,
+                        &packed,
+                        &bins,
+                        background,
+                        t,
+                        scalar_scratch,
+                        out,
+                    );
+                    let rows = scalar_scratch.rows();
+                    let bytes = rows.kept_bytes();
+                    if kept_bytes.fetch_add(bytes, Ordering::Relaxed) + bytes
+                        <= ROW_LIST_BUDGET_BYTES
+                    {
+                        *keep = rows.take_kept();
                     }
                 }
-            },
-        );
+            }
+        },
+    );
 
     // Keep the scalar loops' row lists only if all of them fit.
     let all_fit = lanes_in.is_none() && kept_bytes.into_inner() <= ROW_LIST_BUDGET_BYTES;

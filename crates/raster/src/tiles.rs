@@ -251,6 +251,25 @@ impl TileBins {
         (self.tiles_x, self.tiles_y)
     }
 
+    /// A processing order of the tiles that keeps neighbours close: the Morton (Z-order) code
+    /// of tile `t`'s grid position. Tiles processed in this order share more of their
+    /// Gaussians with the tiles processed just before.
+    pub fn locality_key(&self, t: usize) -> u64 {
+        let (x, y) = (
+            t as u64 % self.tiles_x as u64,
+            t as u64 / self.tiles_x as u64,
+        );
+        let spread = |mut v: u64| {
+            v &= 0xffff_ffff;
+            v = (v | v << 16) & 0x0000_ffff_0000_ffff;
+            v = (v | v << 8) & 0x00ff_00ff_00ff_00ff;
+            v = (v | v << 4) & 0x0f0f_0f0f_0f0f_0f0f;
+            v = (v | v << 2) & 0x3333_3333_3333_3333;
+            (v | v << 1) & 0x5555_5555_5555_5555
+        };
+        spread(x) | spread(y) << 1
+    }
+
     /// Number of tiles.
     pub fn tile_count(&self) -> usize {
         self.offsets.len() - 1

@@ -207,11 +207,26 @@ impl Width for Any {
 macro_rules! with_width {
     ($d:expr, |$w:ident| $body:expr) => {
         match $d {
-            3 => { let $w = Fixed::<3>; $body }
-            32 => { let $w = Fixed::<32>; $body }
-            35 => { let $w = Fixed::<35>; $body }
-            64 => { let $w = Fixed::<64>; $body }
-            d => { let $w = Any(d); $body }
+            3 => {
+                let $w = Fixed::<3>;
+                $body
+            }
+            32 => {
+                let $w = Fixed::<32>;
+                $body
+            }
+            35 => {
+                let $w = Fixed::<35>;
+                $body
+            }
+            64 => {
+                let $w = Fixed::<64>;
+                $body
+            }
+            d => {
+                let $w = Any(d);
+                $body
+            }
         }
     };
 }
@@ -219,7 +234,6 @@ macro_rules! with_width {
 /// Gaussians ahead in a tile list whose data is prefetched: far enough to hide a memory
 /// access behind the work of the Gaussians between.
 const PREFETCH_AHEAD: usize = 8;
-
 
 /// A Gaussian as the lane kernels read it: packed, with its depth and the image rows it can
 /// reach.
@@ -504,21 +518,29 @@ impl ForwardTile<'_, '_> {
         let mut z = [[0f32; LANES]; LANES];
         let mut n = [[0u32; LANES]; LANES];
         let mut walk = Walk::new(width, height);
-        walk.run(isa, packed, splats.channels, d, bins, t, |_, g, r, lanes, ev, front| {
-            let depth = packed[g].depth;
-            let col = splats.channels_of(g);
-            let mut w = [0f32; LANES];
-            for l in 0..LANES {
-                w[l] = ev.alpha[l] * front[l];
-                let b = has(lanes, l);
-                z[r][l] = if b { z[r][l] + w[l] * depth } else { z[r][l] };
-                n[r][l] += b as u32;
-            }
-            for_each_bit(lanes, |l| {
-                let p = r * LANES + l;
-                wd.axpy(&mut acc[p * dp..(p + 1) * dp], w[l], col);
-            });
-        });
+        walk.run(
+            isa,
+            packed,
+            splats.channels,
+            d,
+            bins,
+            t,
+            |_, g, r, lanes, ev, front| {
+                let depth = packed[g].depth;
+                let col = splats.channels_of(g);
+                let mut w = [0f32; LANES];
+                for l in 0..LANES {
+                    w[l] = ev.alpha[l] * front[l];
+                    let b = has(lanes, l);
+                    z[r][l] = if b { z[r][l] + w[l] * depth } else { z[r][l] };
+                    n[r][l] += b as u32;
+                }
+                for_each_bit(lanes, |l| {
+                    let p = r * LANES + l;
+                    wd.axpy(&mut acc[p * dp..(p + 1) * dp], w[l], col);
+                });
+            },
+        );
         for r in 0..height {
             for l in 0..width {
                 let p = r * LANES + l;
@@ -576,9 +598,7 @@ impl BackwardTile<'_, '_> {
         let stride = GEOMETRY + d;
         let ids = bins.tile(t);
         let Scratch {
-            blended,
-            v_image_t,
-            ..
+            blended, v_image_t, ..
         } = scratch;
         let (x0, y0, x1, y1) = bins.pixel_rect(t);
         let (width, height) = ((x1 - x0) as usize, (y1 - y0) as usize);
@@ -588,15 +608,23 @@ impl BackwardTile<'_, '_> {
         // Front to back: the forward pass's decisions and transmittances.
         blended.clear();
         let mut walk = Walk::new(width, height);
-        walk.run(isa, packed, splats.channels, d, bins, t, |k, _, r, lanes, ev, front| {
-            blended.push(RowBlend {
-                k: k as u32,
-                row: r as u32,
-                blend: lanes,
-                trans: *front,
-                falloff: ev.falloff,
-            })
-        });
+        walk.run(
+            isa,
+            packed,
+            splats.channels,
+            d,
+            bins,
+            t,
+            |k, _, r, lanes, ev, front| {
+                blended.push(RowBlend {
+                    k: k as u32,
+                    row: r as u32,
+                    blend: lanes,
+                    trans: *front,
+                    falloff: ev.falloff,
+                })
+            },
+        );
 
         // The tile's cotangents, and what each pixel shows behind its last Gaussian.
         v_image_t.clear();

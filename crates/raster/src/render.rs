@@ -14,6 +14,8 @@
 
 use std::borrow::Cow;
 
+use rayon::prelude::*;
+
 use gaussian::{project, project_backward, sh_colors, sh_colors_backward};
 use gaussian::{Camera, FeatureGaussians, ProjectSettings, Projected, Real};
 
@@ -21,6 +23,9 @@ use crate::backward::{rasterize_backward, Cotangents};
 use crate::error::{check_len, RasterError};
 use crate::forward::{rasterize, Rasterized, Splats};
 use crate::stats::ndc_grad_norms;
+
+/// Below this many Gaussians per task, rayon's splitting overhead dominates.
+const MIN_CHUNK: usize = 4096;
 
 /// Which per-Gaussian values are blended into the image's channels.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -184,12 +189,12 @@ fn sigmoid<T: Real>(x: T) -> T {
 fn channel_rows<'a, T: Real>(
     channels: Channels,
     scene: &'a FeatureGaussians<T>,
-    colors: &[[T; 3]],
+    colors: &'a [[T; 3]],
 ) -> Cow<'a, [T]> {
     let c = colors;
     match channels {
         Channels::Features => Cow::Borrowed(&scene.features),
-        Channels::Color { .. } => Cow::Owned(c.iter().flatten().copied().collect()),
+        Channels::Color { .. } => Cow::Borrowed(c.as_flattened()),
         Channels::ColorAndFeatures { .. } => {
             let f = scene.feature_dim;
             let mut rows = Vec::with_capacity(c.len() * (3 + f));
@@ -216,7 +221,12 @@ pub fn render<T: Real>(
         &scene.log_scales,
         &opts.projection,
     );
-    let opacities: Vec<T> = scene.opacity_logits.iter().map(|&x| sigmoid(x)).collect();
+    let opacities: Vec<T> = scene
+        .opacity_logits
+        .par_iter()
+        .with_min_len(MIN_CHUNK)
+        .map(|&x| sigmoid(x))
+        .collect();
     let colors = opts.channels.sh_degree().map(|degree| {
         sh_colors(
             degree,
@@ -333,9 +343,16 @@ pub fn render_backward<T: Real>(
     let mut means = proj.means;
     let sh = match (color_offset, opts.channels.sh_degree()) {
         (Some(off), Some(degree)) => {
-            let v_colors: Vec<[T; 3]> = (0..n)
-                .map(|i| std::array::from_fn(|c| g.channels[i * d + off + c]))
-                .collect();
+            let v_colors: Cow<'_, [[T; 3]]> = if d == 3 {
+                // colour only: the channel gradients are the colour gradients
+                Cow::Borrowed(g.channels.as_chunks::<3>().0)
+            } else {
+                Cow::Owned(
+                    (0..n)
+                        .map(|i| std::array::from_fn(|c| g.channels[i * d + off + c]))
+                        .collect(),
+                )
+            };
             let (d_sh, d_means) = sh_colors_backward(
                 degree,
                 scene.sh_coeffs_per_gaussian(),

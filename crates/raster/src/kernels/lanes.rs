@@ -139,6 +139,21 @@ trait Width: Copy {
 
     fn zeros(self) -> Self::Acc;
 
+    /// `own[i][l] = sum_c v_i[c][l] * col[c]` (channels in order) for two row blocks `v_0`
+    /// and `v_1` of `D` channel vectors each: two independent sums at once.
+    #[inline(always)]
+    fn dots(self, v_0: &[f32], v_1: &[f32], col: &[f32]) -> [[f32; LANES]; 2] {
+        let mut own = [[0f32; LANES]; 2];
+        let (v_0, v_1) = (v_0.as_chunks::<LANES>().0, v_1.as_chunks::<LANES>().0);
+        for ((a, b), &col_c) in v_0.iter().zip(v_1).zip(&col[..self.d()]) {
+            for l in 0..LANES {
+                own[0][l] += a[l] * col_c;
+                own[1][l] += b[l] * col_c;
+            }
+        }
+        own
+    }
+
     /// `acc[i] += w * x[i]` for `i < D`.
     #[inline(always)]
     fn axpy(self, acc: &mut [f32], w: f32, x: &[f32]) {
@@ -163,6 +178,21 @@ impl<const D: usize> Width for Fixed<D> {
     #[inline(always)]
     fn zeros(self) -> [f32; D] {
         [0.0; D]
+    }
+
+    #[inline(always)]
+    fn dots(self, v_0: &[f32], v_1: &[f32], col: &[f32]) -> [[f32; LANES]; 2] {
+        let v_0: &[[f32; LANES]; D] = v_0.as_chunks().0.try_into().expect("D channels");
+        let v_1: &[[f32; LANES]; D] = v_1.as_chunks().0.try_into().expect("D channels");
+        let col: &[f32; D] = col.try_into().expect("D channels");
+        let mut own = [[0f32; LANES]; 2];
+        for c in 0..D {
+            for l in 0..LANES {
+                own[0][l] += v_0[c][l] * col[c];
+                own[1][l] += v_1[c][l] * col[c];
+            }
+        }
+        own
     }
 
     #[inline(always)]
@@ -664,17 +694,17 @@ impl BackwardTile<'_, '_> {
             let s = &packed[g].s;
             let z = packed[g].depth;
             let col = &splats.channels_of(g)[..d];
-            // `v_image . c` of every pixel of the Gaussian's rows, the rows' sums interleaved
-            // (each lane still sums its channels in order).
+            // `v_image . c` of every pixel of the Gaussian's rows, two rows at a time (each lane
+            // sums its channels in order).
             let mut own = [[0f32; LANES]; LANES];
-            for (c, &col_c) in col.iter().enumerate() {
-                for (own, bl) in own.iter_mut().zip(rows) {
-                    let at = (bl.row as usize * d + c) * LANES;
-                    let v = &v_image_t[at..at + LANES];
-                    for l in 0..LANES {
-                        own[l] += v[l] * col_c;
-                    }
-                }
+            let block = |bl: &RowBlend| {
+                let at = bl.row as usize * d * LANES;
+                &v_image_t[at..at + d * LANES]
+            };
+            for (own, pair) in own.chunks_mut(2).zip(rows.chunks(2)) {
+                // A single last row is paired with itself.
+                let sums = wd.dots(block(&pair[0]), block(&pair[pair.len() - 1]), col);
+                own[..pair.len()].copy_from_slice(&sums[..pair.len()]);
             }
             let mut grads = wd.zeros();
             let mut sums = [0f32; GEOMETRY];

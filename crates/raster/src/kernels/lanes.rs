@@ -50,6 +50,12 @@ pub(crate) trait LaneIsa: Copy {
     fn le(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask;
     /// The lanes where `a < b` (never where either is NaN).
     fn lt(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask;
+
+    /// `a` in the lanes of `m`, `b` in the others.
+    #[inline(always)]
+    fn select(self, m: Mask, a: &[f32; LANES], b: &[f32; LANES]) -> [f32; LANES] {
+        std::array::from_fn(|l| if has(m, l) { a[l] } else { b[l] })
+    }
 }
 
 /// The lanes where `f(a[l], b[l])`, one lane at a time.
@@ -71,6 +77,11 @@ impl LaneIsa for pulp::x86::V4 {
     #[inline(always)]
     fn lt(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
         self.cmp_lt_f32x16(pulp::cast(*a), pulp::cast(*b)).0 as Mask
+    }
+    #[inline(always)]
+    fn select(self, m: Mask, a: &[f32; LANES], b: &[f32; LANES]) -> [f32; LANES] {
+        let mask = pulp::b16(m as u16);
+        pulp::cast(self.select_f32x16(mask, pulp::cast(*a), pulp::cast(*b)))
     }
 }
 
@@ -374,7 +385,7 @@ fn evaluate<I: LaneIsa>(
         return None;
     }
     let falloff: [f32; LANES] = std::array::from_fn(|l| exp_f32(-sigma[l]));
-    let alpha = alphas(s.opacity, &falloff);
+    let (alpha, _) = alphas(isa, s.opacity, &falloff);
     Some(Eval {
         hit: hit & isa.le(&[ALPHA_MIN as f32; LANES], &alpha),
         falloff,
@@ -382,26 +393,15 @@ fn evaluate<I: LaneIsa>(
     })
 }
 
-/// `min(ALPHA_MAX, opacity falloff)` of every lane, as the scalar loops compute it.
+/// `min(ALPHA_MAX, opacity falloff)` of every lane as the scalar loops compute it
+/// (`if raw > ALPHA_MAX { ALPHA_MAX } else { raw }`), and the lanes where the clamp is active:
+/// no gradient flows through alpha there.
 #[inline(always)]
-fn alphas(opacity: f32, falloff: &[f32; LANES]) -> [f32; LANES] {
-    let alpha_max = ALPHA_MAX as f32;
-    std::array::from_fn(|l| {
-        let raw = opacity * falloff[l];
-        if raw > alpha_max {
-            alpha_max
-        } else {
-            raw
-        }
-    })
-}
-
-/// The lanes where the alpha clamp is active (`opacity falloff > ALPHA_MAX`): no gradient flows
-/// through alpha there.
-#[inline(always)]
-fn clamped<I: LaneIsa>(isa: I, opacity: f32, falloff: &[f32; LANES]) -> Mask {
+fn alphas<I: LaneIsa>(isa: I, opacity: f32, falloff: &[f32; LANES]) -> ([f32; LANES], Mask) {
+    let alpha_max = [ALPHA_MAX as f32; LANES];
     let raw: [f32; LANES] = std::array::from_fn(|l| opacity * falloff[l]);
-    isa.lt(&[ALPHA_MAX as f32; LANES], &raw)
+    let clamped = isa.lt(&alpha_max, &raw);
+    (isa.select(clamped, &alpha_max, &raw), clamped)
 }
 
 /// Applies the transmittance stop to a row: live lanes of `hit` whose transmittance would fall
@@ -421,9 +421,7 @@ fn advance<I: LaneIsa>(
     let stop = hit & isa.le(&next, &[TRANSMITTANCE_MIN as f32; LANES]);
     *live &= !stop;
     let blend = hit & !stop;
-    for l in 0..LANES {
-        trans[l] = if has(blend, l) { next[l] } else { trans[l] };
-    }
+    *trans = isa.select(blend, &next, trans);
     (blend, front)
 }
 
@@ -558,12 +556,11 @@ impl ForwardTile<'_, '_> {
             |_, g, r, lanes, ev, front| {
                 let depth = packed[g].depth;
                 let col = splats.channels_of(g);
-                let mut w = [0f32; LANES];
-                for l in 0..LANES {
-                    w[l] = ev.alpha[l] * front[l];
-                    let b = has(lanes, l);
-                    z[r][l] = if b { z[r][l] + w[l] * depth } else { z[r][l] };
-                    n[r][l] += b as u32;
+                let w: [f32; LANES] = std::array::from_fn(|l| ev.alpha[l] * front[l]);
+                let z_next: [f32; LANES] = std::array::from_fn(|l| z[r][l] + w[l] * depth);
+                z[r] = isa.select(lanes, &z_next, &z[r]);
+                for (l, n) in n[r].iter_mut().enumerate() {
+                    *n += (lanes >> l) & 1;
                 }
                 for_each_bit(lanes, |l| {
                     let p = r * LANES + l;
@@ -711,10 +708,10 @@ impl BackwardTile<'_, '_> {
             for (bl, own) in rows.iter().zip(&own) {
                 let r = bl.row as usize;
                 let cy = pixel_centre::<f32>(y0 + bl.row);
-                let alpha = alphas(s.opacity, &bl.falloff);
-                let clamped = clamped(isa, s.opacity, &bl.falloff);
+                let (alpha, clamped) = alphas(isa, s.opacity, &bl.falloff);
                 let dy = s.my - cy;
                 let mut w = [0f32; LANES];
+                let mut next = [0f32; LANES];
                 let mut geo = [[0f32; LANES]; GEOMETRY];
                 for l in 0..LANES {
                     let (alpha, front) = (alpha[l], bl.trans[l]);
@@ -723,8 +720,7 @@ impl BackwardTile<'_, '_> {
                     w[l] = alpha * front;
                     geo[DEPTH][l] = w[l] * v_depth[r][l];
                     let v_a = front * (own_l - behind[r][l]);
-                    let next = alpha * own_l + (1.0 - alpha) * behind[r][l];
-                    behind[r][l] = if has(bl.blend, l) { next } else { behind[r][l] };
+                    next[l] = alpha * own_l + (1.0 - alpha) * behind[r][l];
                     geo[OPACITY][l] = v_a * bl.falloff[l];
                     let v_sigma = -(v_a * alpha);
                     geo[CONIC_A][l] = v_sigma * 0.5 * dx * dx;
@@ -733,6 +729,7 @@ impl BackwardTile<'_, '_> {
                     geo[MEAN_X][l] = v_sigma * (s.a * dx + s.b * dy);
                     geo[MEAN_Y][l] = v_sigma * (s.b * dx + s.c * dy);
                 }
+                behind[r] = isa.select(bl.blend, &next, &behind[r]);
                 for_each_bit(bl.blend, |l| {
                     let p = pixel(r, l);
                     wd.axpy(grads.as_mut(), w[l], &cot.image[p * d..(p + 1) * d]);

@@ -163,7 +163,9 @@ pub fn rasterize_backward_with<T: Real>(
     }
 
     let stride = GEOMETRY + d;
-    let mut acc = vec![T::zero(); n * stride];
+    // The gradients, accumulated in place: per Gaussian, geometry and channels.
+    let mut geometry = vec![[T::zero(); GEOMETRY]; n];
+    let mut channels = vec![T::zero(); n * d];
     let tiles = bins.tile_count();
     let mut tile_bg = vec![T::zero(); tiles * d];
     let mut records: Vec<T> = Vec::new();
@@ -254,16 +256,30 @@ pub fn rasterize_backward_with<T: Real>(
         // Sum the records per Gaussian, in intersection order: each Gaussian takes its
         // intersections of this batch, which follow its cursor in its ascending list.
         let records = &records;
-        acc.par_chunks_mut(GATHER_CHUNK * stride)
+        // One channel chunk per geometry chunk (empty ones when `d == 0`).
+        let channel_chunks: Vec<&mut [T]> = if d > 0 {
+            channels.chunks_mut(GATHER_CHUNK * d).collect()
+        } else {
+            (0..n.div_ceil(GATHER_CHUNK)).map(|_| &mut [][..]).collect()
+        };
+        geometry
+            .par_chunks_mut(GATHER_CHUNK)
+            .zip(channel_chunks)
             .zip(next.par_chunks_mut(GATHER_CHUNK))
             .enumerate()
-            .for_each(|(chunk, (acc_chunk, next_chunk))| {
+            .for_each(|(chunk, ((geo_chunk, channel_chunk), next_chunk))| {
                 let g0 = chunk * GATHER_CHUNK;
-                for (i, (dst, cursor)) in acc_chunk
-                    .chunks_exact_mut(stride)
-                    .zip(next_chunk.iter_mut())
-                    .enumerate()
+                // With `d == 0` the channel chunks are empty.
+                let mut channel_rows = channel_chunk.chunks_exact_mut(d.max(1));
+                for (i, (geo, cursor)) in
+                    geo_chunk.iter_mut().zip(next_chunk.iter_mut()).enumerate()
                 {
+                    let mut no_channels: [T; 0] = [];
+                    let dst_channels = if d > 0 {
+                        channel_rows.next().expect("one channel row per Gaussian")
+                    } else {
+                        &mut no_channels[..]
+                    };
                     // The first record of a Gaussian a few ahead.
                     if let Some(&j) = lists
                         .start
@@ -282,7 +298,10 @@ pub fn rasterize_backward_with<T: Real>(
                             break;
                         }
                         let r = &records[(j - begin) * stride..(j - begin + 1) * stride];
-                        for (a, &v) in dst.iter_mut().zip(r) {
+                        for (a, &v) in geo.iter_mut().zip(&r[..GEOMETRY]) {
+                            *a += v;
+                        }
+                        for (a, &v) in dst_channels.iter_mut().zip(&r[GEOMETRY..]) {
                             *a += v;
                         }
                         *cursor += 1;
@@ -298,21 +317,17 @@ pub fn rasterize_backward_with<T: Real>(
             *b += v;
         }
     }
-    let mut grads = SplatGrads {
-        means2d: Vec::with_capacity(n),
-        conics: Vec::with_capacity(n),
-        opacities: Vec::with_capacity(n),
-        depths: Vec::with_capacity(n),
-        channels: Vec::with_capacity(n * d),
+    let grads = SplatGrads {
+        means2d: geometry.iter().map(|r| [r[MEAN_X], r[MEAN_Y]]).collect(),
+        conics: geometry
+            .iter()
+            .map(|r| [r[CONIC_A], r[CONIC_B], r[CONIC_C]])
+            .collect(),
+        opacities: geometry.iter().map(|r| r[OPACITY]).collect(),
+        depths: geometry.iter().map(|r| r[DEPTH]).collect(),
+        channels,
         background: background_grad,
     };
-    for r in acc.chunks_exact(stride) {
-        grads.means2d.push([r[MEAN_X], r[MEAN_Y]]);
-        grads.conics.push([r[CONIC_A], r[CONIC_B], r[CONIC_C]]);
-        grads.opacities.push(r[OPACITY]);
-        grads.depths.push(r[DEPTH]);
-        grads.channels.extend_from_slice(&r[GEOMETRY..]);
-    }
     Ok(grads)
 }
 

@@ -129,13 +129,11 @@ pub fn exp_f32(x: f32) -> f32 {
     let shifted = xc * LOG2_E + SHIFTER;
     let n = shifted - SHIFTER;
     let r = (xc - n * LN2_HEAD) - n * LN2_TAIL;
-    // Estrin's scheme: three short independent products instead of one chain of five.
-    let r2 = r * r;
-    let p01 = 1.666_666_5e-1 * r + 0.5; // Cephes: 5.0000001201e-1, which rounds to 0.5 in f32
-    let p23 = 8.333_452e-3 * r + 4.166_579_6e-2;
-    let p45 = 1.987_569_2e-4 * r + 1.398_199_9e-3;
-    let p = p01 + r2 * (p23 + r2 * p45);
-    let er = (p * r2 + r) + 1.0;
+    let p = ((((1.987_569_2e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r
+        + 1.666_666_5e-1)
+        * r
+        + 0.5; // Cephes: 5.0000001201e-1, which rounds to 0.5 in f32
+    let er = (p * (r * r) + r) + 1.0;
     // shifted = 1.5 * 2^23 + n exactly, so its low bits are n (-125 <= n <= 128). 2^n is
     // applied as 2^(n - 1) * 2, both normal, so the largest n does not overflow the exponent.
     let n_bits = shifted.to_bits().wrapping_sub(SHIFTER.to_bits());

@@ -144,12 +144,21 @@ fn bench(c: &mut Criterion) {
                                     alpha: Some(&v_alpha),
                                     depth: Some(&v_depth),
                                 };
+                                // The bins of this kernel's own forward pass, with what it
+                                // keeps for the backward pass, as in training.
+                                let forward = rasterize_binned_with(
+                                    &s.splats(),
+                                    s.tile_bins(),
+                                    &s.background,
+                                    kernel,
+                                )
+                                .unwrap();
                                 g.bench_function(id, |b| {
                                     pool.install(|| {
                                         b.iter(|| {
                                             rasterize_backward_with(
                                                 &s.splats(),
-                                                &out.bins,
+                                                &forward.bins,
                                                 &s.background,
                                                 &cot,
                                                 DEFAULT_GRADIENT_BUFFER_VALUES,

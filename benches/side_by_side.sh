@@ -15,6 +15,10 @@
 #
 # Pairs/s are blended Gaussian-pixel pairs per second at criterion's point estimate. PyTorch is
 # optional; without it only the dsgs network figures are printed.
+#
+# The raster cases run with the allocator setting the dsgs binary makes at start-up (freed
+# memory stays in glibc's heap; see keep_freed_memory in src/main.rs), for both kernels, so that
+# page faults of freshly mapped buffers do not hide the tile loops' speed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 what="${1:-nets}"
@@ -38,6 +42,7 @@ raster)
   fi
   log="$(mktemp)"
   trap 'rm -f "$log"' EXIT
+  export MALLOC_MMAP_THRESHOLD_=1073741824 MALLOC_TRIM_THRESHOLD_=2147483647
   for c in $cases; do
     cargo bench -q -p dsgs-raster --bench raster -- "/$c/t2" 2>/dev/null | tee -a "$log" >/dev/null
   done

@@ -16,6 +16,13 @@
 //! moments can be filtered, extended and reset row-wise, so the state stays consistent when the
 //! Gaussians are pruned, cloned or split. Like the 3DGS trainer, new rows start with zero moments
 //! and the per-tensor step count is kept.
+//!
+//! Every layout (a contiguous tensor, a column block of a wider array, several tensors side by
+//! side in the rows of one array) applies the element update above with the same operations in
+//! the same order. In `f32` the contiguous runs and the side-by-side rows of SH arrays run as
+//! vector code (lane arrays, compiled for the instruction set `pulp` picks at run time) that
+//! performs exactly those operations per lane, so every path and every thread count gives the
+//! same bits.
 
 use gaussian::Real;
 use rayon::prelude::*;
@@ -236,7 +243,7 @@ impl<T: Real> Adam<T> {
         stride: usize,
         offset: usize,
     ) -> Result<(), TrainError> {
-        let cfg = self.config;
+        let shared = Shared::new(&self.config);
         let state = &mut self.params[index];
         let width = state.width;
         let rows = state.rows();
@@ -250,32 +257,8 @@ impl<T: Real> Adam<T> {
                 grads.len()
             )));
         }
-        state.step += 1;
-        let t = state.step as i32;
-        let bias_correction1 = 1.0 - cfg.beta1.powi(t);
-        let bias_correction2_sqrt = (1.0 - cfg.beta2.powi(t)).sqrt();
-        let neg_step_size = T::lit(-(state.lr / bias_correction1));
-        let bc2_sqrt = T::lit(bias_correction2_sqrt);
-        let one_minus_beta1 = T::lit(1.0 - cfg.beta1);
-        let beta2 = T::lit(cfg.beta2);
-        let one_minus_beta2 = T::lit(1.0 - cfg.beta2);
-        let eps = T::lit(cfg.eps);
-
+        let size = state.begin_step(&self.config);
         let rows_per_chunk = (PAR_CHUNK / stride).max(1);
-        // One element's update; the same operations in the same order for every layout, so a
-        // contiguous tensor updated as one flat run (which vectorises) gives the same bits as
-        // row by row.
-        let update = |p: &mut [T], g: &[T], m: &mut [T], v: &mut [T]| {
-            for (((pi, &gi), mi), vi) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
-                let m_new = *mi + one_minus_beta1 * (gi - *mi);
-                let v_new = beta2 * *vi + one_minus_beta2 * gi * gi;
-                *mi = m_new;
-                *vi = v_new;
-                let denom = v_new.sqrt() / bc2_sqrt + eps;
-                // torch addcdiv_: p + (value * m) / denom, value = -step_size
-                *pi += (neg_step_size * m_new) / denom;
-            }
-        };
         params
             .par_chunks_mut(rows_per_chunk * stride)
             .zip(grads.par_chunks(rows_per_chunk * stride))
@@ -283,7 +266,7 @@ impl<T: Real> Adam<T> {
             .zip(state.exp_avg_sq.par_chunks_mut(rows_per_chunk * width))
             .for_each(|(((p, g), m), v)| {
                 if stride == width {
-                    update(p, g, m, v);
+                    update_run(&shared, size, p, g, m, v);
                     return;
                 }
                 for ((p_row, g_row), (m_row, v_row)) in p
@@ -291,7 +274,9 @@ impl<T: Real> Adam<T> {
                     .zip(g.chunks_exact(stride))
                     .zip(m.chunks_exact_mut(width).zip(v.chunks_exact_mut(width)))
                 {
-                    update(
+                    update_run_scalar(
+                        &shared,
+                        size,
                         &mut p_row[offset..offset + width],
                         &g_row[offset..offset + width],
                         m_row,
@@ -300,5 +285,540 @@ impl<T: Real> Adam<T> {
                 }
             });
         Ok(())
+    }
+
+    /// One Adam step of several tensors that lie side by side in the rows of one row-major array:
+    /// row `r` of `params` (and of `grads`) is row `r` of tensor `indices[0]`, then row `r` of
+    /// tensor `indices[1]`, and so on, with nothing in between (e.g. the SH DC and higher-order
+    /// groups of an interleaved SH array). Every tensor gets exactly the update (the same bits)
+    /// that [`Adam::step_strided`] would give it; one pass reads each row once.
+    pub fn step_side_by_side(
+        &mut self,
+        indices: &[usize],
+        params: &mut [T],
+        grads: &[T],
+    ) -> Result<(), TrainError> {
+        let shared = Shared::new(&self.config);
+        let cfg = self.config;
+        let mut slots: Vec<Option<&mut ParamState<T>>> = self.params.iter_mut().map(Some).collect();
+        // `None` when an index repeats or is out of range.
+        let states: Option<Vec<&mut ParamState<T>>> = indices
+            .iter()
+            .map(|&i| slots.get_mut(i).and_then(Option::take))
+            .collect();
+        let Some(mut states) = states.filter(|s| !s.is_empty()) else {
+            return Err(TrainError::Shape(format!(
+                "Adam step side by side of groups {indices:?}: not distinct existing groups"
+            )));
+        };
+        let stride: usize = states.iter().map(|s| s.width).sum();
+        let rows = states[0].rows();
+        if states.iter().any(|s| s.rows() != rows)
+            || params.len() != rows * stride
+            || grads.len() != rows * stride
+        {
+            let shapes: Vec<String> = states
+                .iter()
+                .map(|s| format!("`{}` {} x {}", s.name, s.rows(), s.width))
+                .collect();
+            return Err(TrainError::Shape(format!(
+                "Adam step side by side of {}: params have {} and grads {} elements",
+                shapes.join(", "),
+                params.len(),
+                grads.len()
+            )));
+        }
+        let widths: Vec<usize> = states.iter().map(|s| s.width).collect();
+        let sizes: Vec<StepSize<T>> = states.iter_mut().map(|s| s.begin_step(&cfg)).collect();
+        let rows_per_chunk = (PAR_CHUNK / stride).max(1);
+        // One work item per chunk of rows: every tensor's moments of those rows.
+        let mut items: Vec<Vec<(&mut [T], &mut [T])>> = (0..rows.div_ceil(rows_per_chunk))
+            .map(|_| Vec::with_capacity(states.len()))
+            .collect();
+        for s in states {
+            let w = s.width;
+            let chunks = s
+                .exp_avg
+                .chunks_mut(rows_per_chunk * w)
+                .zip(s.exp_avg_sq.chunks_mut(rows_per_chunk * w));
+            for (item, mv) in items.iter_mut().zip(chunks) {
+                item.push(mv);
+            }
+        }
+        params
+            .par_chunks_mut(rows_per_chunk * stride)
+            .zip(grads.par_chunks(rows_per_chunk * stride))
+            .zip(items.into_par_iter())
+            .for_each(|((p, g), mut mv)| {
+                if let (Some(p32), Some(g32)) = (T::as_f32_slice_mut(p), T::as_f32_slice(g)) {
+                    let sizes32 = StepSize::as_f32(&sizes);
+                    let shared32 = shared.as_f32();
+                    let mv32 = mv
+                        .iter_mut()
+                        .map(|(m, v)| T::as_f32_slice_mut(m).zip(T::as_f32_slice_mut(v)))
+                        .collect::<Option<Vec<_>>>();
+                    if let (Some(sizes32), Some(shared32), Some(mut mv32)) =
+                        (sizes32, shared32, mv32)
+                    {
+                        if fast::side_by_side(&shared32, &sizes32, &widths, p32, g32, &mut mv32) {
+                            return;
+                        }
+                    }
+                }
+                side_by_side_rows(&shared, &sizes, &widths, p, g, &mut mv);
+            });
+        Ok(())
+    }
+}
+
+/// The constants of a step shared by every tensor, in `T`.
+#[derive(Clone, Copy, Debug)]
+struct Shared<T> {
+    one_minus_beta1: T,
+    beta2: T,
+    one_minus_beta2: T,
+    eps: T,
+}
+
+impl<T: Real> Shared<T> {
+    fn new(cfg: &AdamConfig) -> Self {
+        Shared {
+            one_minus_beta1: T::lit(1.0 - cfg.beta1),
+            beta2: T::lit(cfg.beta2),
+            one_minus_beta2: T::lit(1.0 - cfg.beta2),
+            eps: T::lit(cfg.eps),
+        }
+    }
+
+    fn as_f32(&self) -> Option<Shared<f32>> {
+        let v = [
+            self.one_minus_beta1,
+            self.beta2,
+            self.one_minus_beta2,
+            self.eps,
+        ];
+        let [one_minus_beta1, beta2, one_minus_beta2, eps] = *T::as_f32_slice(&v)? else {
+            return None;
+        };
+        Some(Shared {
+            one_minus_beta1,
+            beta2,
+            one_minus_beta2,
+            eps,
+        })
+    }
+}
+
+/// The constants of one tensor's step: `sqrt(1 - beta2^t)` and `-lr / (1 - beta1^t)`, in `T`.
+#[derive(Clone, Copy, Debug)]
+struct StepSize<T> {
+    bc2_sqrt: T,
+    neg_step_size: T,
+}
+
+impl<T: Real> StepSize<T> {
+    fn as_f32(sizes: &[StepSize<T>]) -> Option<Vec<StepSize<f32>>> {
+        sizes
+            .iter()
+            .map(|s| {
+                let v = [s.bc2_sqrt, s.neg_step_size];
+                let [bc2_sqrt, neg_step_size] = *T::as_f32_slice(&v)? else {
+                    return None;
+                };
+                Some(StepSize {
+                    bc2_sqrt,
+                    neg_step_size,
+                })
+            })
+            .collect()
+    }
+}
+
+impl<T: Real> ParamState<T> {
+    /// Counts a step and returns its constants. The bias corrections and the step size are
+    /// computed in `f64`, as PyTorch computes them in Python floats.
+    fn begin_step(&mut self, cfg: &AdamConfig) -> StepSize<T> {
+        self.step += 1;
+        let t = self.step as i32;
+        let bias_correction1 = 1.0 - cfg.beta1.powi(t);
+        let bias_correction2_sqrt = (1.0 - cfg.beta2.powi(t)).sqrt();
+        StepSize {
+            bc2_sqrt: T::lit(bias_correction2_sqrt),
+            neg_step_size: T::lit(-(self.lr / bias_correction1)),
+        }
+    }
+}
+
+/// One element's update. Every path (flat runs, strided rows, side-by-side rows, the `f32`
+/// vector code) applies exactly these operations in this order, so all give the same bits.
+#[inline(always)]
+fn update_one<T: Real>(
+    c: &Shared<T>,
+    bc2_sqrt: T,
+    neg_step_size: T,
+    p: &mut T,
+    g: T,
+    m: &mut T,
+    v: &mut T,
+) {
+    let m_new = *m + c.one_minus_beta1 * (g - *m);
+    let v_new = c.beta2 * *v + c.one_minus_beta2 * g * g;
+    *m = m_new;
+    *v = v_new;
+    let denom = v_new.sqrt() / bc2_sqrt + c.eps;
+    // torch addcdiv_: p + (value * m) / denom, value = -step_size
+    *p += (neg_step_size * m_new) / denom;
+}
+
+/// The update of a run of elements of one tensor: the `f32` vector code when `T` is `f32`.
+fn update_run<T: Real>(
+    c: &Shared<T>,
+    s: StepSize<T>,
+    p: &mut [T],
+    g: &[T],
+    m: &mut [T],
+    v: &mut [T],
+) {
+    if let (Some(p32), Some(g32), Some(m32), Some(v32)) = (
+        T::as_f32_slice_mut(p),
+        T::as_f32_slice(g),
+        T::as_f32_slice_mut(m),
+        T::as_f32_slice_mut(v),
+    ) {
+        if let (Some(c32), Some(s32)) = (c.as_f32(), StepSize::as_f32(&[s])) {
+            fast::run(&c32, s32[0], p32, g32, m32, v32);
+            return;
+        }
+    }
+    update_run_scalar(c, s, p, g, m, v);
+}
+
+/// [`update_run`] one element after the other (the reference, and the only path in `f64`).
+#[inline(always)]
+fn update_run_scalar<T: Real>(
+    c: &Shared<T>,
+    s: StepSize<T>,
+    p: &mut [T],
+    g: &[T],
+    m: &mut [T],
+    v: &mut [T],
+) {
+    for (((pi, &gi), mi), vi) in p.iter_mut().zip(g).zip(m.iter_mut()).zip(v.iter_mut()) {
+        update_one(c, s.bc2_sqrt, s.neg_step_size, pi, gi, mi, vi);
+    }
+}
+
+/// The rows of one work item of [`Adam::step_side_by_side`], tensor by tensor within each row
+/// (the reference path): `mv[k]` holds tensor `k`'s moments of these rows.
+fn side_by_side_rows<T: Real>(
+    c: &Shared<T>,
+    sizes: &[StepSize<T>],
+    widths: &[usize],
+    p: &mut [T],
+    g: &[T],
+    mv: &mut [(&mut [T], &mut [T])],
+) {
+    let stride: usize = widths.iter().sum();
+    for (r, (p_row, g_row)) in p
+        .chunks_exact_mut(stride)
+        .zip(g.chunks_exact(stride))
+        .enumerate()
+    {
+        let mut col = 0;
+        for ((&w, s), (m, v)) in widths.iter().zip(sizes).zip(mv.iter_mut()) {
+            update_run_scalar(
+                c,
+                *s,
+                &mut p_row[col..col + w],
+                &g_row[col..col + w],
+                &mut m[r * w..(r + 1) * w],
+                &mut v[r * w..(r + 1) * w],
+            );
+            col += w;
+        }
+    }
+}
+
+/// The `f32` vector code, compiled for the instruction set `pulp` picks at run time (AVX-512,
+/// AVX2 or the baseline): fixed-size lane arrays that the compiler vectorises, each lane
+/// running [`update_one`] unchanged.
+mod fast {
+    use super::{update_one, update_run_scalar, Shared, StepSize};
+
+    /// Elements per vector step.
+    const LANES: usize = 16;
+
+    /// A flat run of one tensor.
+    pub(super) fn run(
+        c: &Shared<f32>,
+        s: StepSize<f32>,
+        p: &mut [f32],
+        g: &[f32],
+        m: &mut [f32],
+        v: &mut [f32],
+    ) {
+        pulp::Arch::new().dispatch(Run { c, s, p, g, m, v });
+    }
+
+    struct Run<'a> {
+        c: &'a Shared<f32>,
+        s: StepSize<f32>,
+        p: &'a mut [f32],
+        g: &'a [f32],
+        m: &'a mut [f32],
+        v: &'a mut [f32],
+    }
+
+    impl pulp::WithSimd for Run<'_> {
+        type Output = ();
+
+        #[inline(always)]
+        fn with_simd<S: pulp::Simd>(self, _: S) {
+            let Run { c, s, p, g, m, v } = self;
+            let n = p.len().min(g.len()).min(m.len()).min(v.len());
+            let body = n - n % LANES;
+            let (p, p_tail) = p[..n].split_at_mut(body);
+            let (g, g_tail) = g[..n].split_at(body);
+            let (m, m_tail) = m[..n].split_at_mut(body);
+            let (v, v_tail) = v[..n].split_at_mut(body);
+            for (((p, g), m), v) in p
+                .chunks_exact_mut(LANES)
+                .zip(g.chunks_exact(LANES))
+                .zip(m.chunks_exact_mut(LANES))
+                .zip(v.chunks_exact_mut(LANES))
+            {
+                for l in 0..LANES {
+                    update_one(
+                        c,
+                        s.bc2_sqrt,
+                        s.neg_step_size,
+                        &mut p[l],
+                        g[l],
+                        &mut m[l],
+                        &mut v[l],
+                    );
+                }
+            }
+            update_run_scalar(c, s, p_tail, g_tail, m_tail, v_tail);
+        }
+    }
+
+    /// The rows of one work item of `step_side_by_side` in the layouts worth a vector path:
+    /// rows of `W` = 12, 27 or 48 columns (SH degree 1, 2 or 3: DC then the rest). Returns
+    /// `false`, having done nothing, for any other row width.
+    pub(super) fn side_by_side<'b>(
+        c: &Shared<f32>,
+        sizes: &[StepSize<f32>],
+        widths: &[usize],
+        p: &mut [f32],
+        g: &[f32],
+        mv: &mut [(&'b mut [f32], &'b mut [f32])],
+    ) -> bool {
+        let stride: usize = widths.iter().sum();
+        let arch = pulp::Arch::new();
+        match stride {
+            48 => arch.dispatch(Rows::<48> {
+                c,
+                sizes,
+                widths,
+                p,
+                g,
+                mv,
+            }),
+            27 => arch.dispatch(Rows::<27> {
+                c,
+                sizes,
+                widths,
+                p,
+                g,
+                mv,
+            }),
+            12 => arch.dispatch(Rows::<12> {
+                c,
+                sizes,
+                widths,
+                p,
+                g,
+                mv,
+            }),
+            _ => return false,
+        }
+        true
+    }
+
+    /// Rows of `W` columns: each row's moments are gathered from the tensors into `W`-lane
+    /// arrays, updated with per-column constants, and scattered back.
+    struct Rows<'a, 'b, const W: usize> {
+        c: &'a Shared<f32>,
+        sizes: &'a [StepSize<f32>],
+        widths: &'a [usize],
+        p: &'a mut [f32],
+        g: &'a [f32],
+        mv: &'a mut [(&'b mut [f32], &'b mut [f32])],
+    }
+
+    impl<const W: usize> pulp::WithSimd for Rows<'_, '_, W> {
+        type Output = ();
+
+        #[inline(always)]
+        fn with_simd<S: pulp::Simd>(self, _: S) {
+            let Rows {
+                c,
+                sizes,
+                widths,
+                p,
+                g,
+                mv,
+            } = self;
+            let mut bc2 = [0.0f32; W];
+            let mut nss = [0.0f32; W];
+            let mut col = 0;
+            for (&w, s) in widths.iter().zip(sizes) {
+                bc2[col..col + w].fill(s.bc2_sqrt);
+                nss[col..col + w].fill(s.neg_step_size);
+                col += w;
+            }
+            for (r, (p, g)) in p.chunks_exact_mut(W).zip(g.chunks_exact(W)).enumerate() {
+                let p: &mut [f32; W] = p.try_into().expect("row of W");
+                let g: &[f32; W] = g.try_into().expect("row of W");
+                let mut m = [0.0f32; W];
+                let mut v = [0.0f32; W];
+                let mut col = 0;
+                for (&w, (ms, vs)) in widths.iter().zip(mv.iter()) {
+                    m[col..col + w].copy_from_slice(&ms[r * w..(r + 1) * w]);
+                    v[col..col + w].copy_from_slice(&vs[r * w..(r + 1) * w]);
+                    col += w;
+                }
+                for l in 0..W {
+                    update_one(c, bc2[l], nss[l], &mut p[l], g[l], &mut m[l], &mut v[l]);
+                }
+                let mut col = 0;
+                for (&w, (ms, vs)) in widths.iter().zip(mv.iter_mut()) {
+                    ms[r * w..(r + 1) * w].copy_from_slice(&m[col..col + w]);
+                    vs[r * w..(r + 1) * w].copy_from_slice(&v[col..col + w]);
+                    col += w;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::rngs::StdRng;
+    use rand::{Rng, SeedableRng};
+
+    fn random(rng: &mut StdRng, n: usize, scale: f32) -> Vec<f32> {
+        (0..n).map(|_| rng.random_range(-scale..scale)).collect()
+    }
+
+    /// An optimiser with the given group widths over `rows` rows, moments filled by a few
+    /// steps on random gradients so that they are not zero.
+    fn warmed_up(widths: &[usize], rows: usize, seed: u64) -> (Adam<f32>, Vec<f32>) {
+        let mut rng = StdRng::seed_from_u64(seed);
+        let mut adam = Adam::new(AdamConfig::default());
+        for (k, &w) in widths.iter().enumerate() {
+            adam.add_param(&format!("g{k}"), 0.01 * (k + 1) as f64, rows, w);
+        }
+        let stride: usize = widths.iter().sum();
+        let mut params = random(&mut rng, rows * stride, 1.0);
+        for _ in 0..3 {
+            let grads = random(&mut rng, rows * stride, 0.1);
+            let mut offset = 0;
+            for (k, &w) in widths.iter().enumerate() {
+                adam.step_strided(k, &mut params, &grads, stride, offset)
+                    .unwrap();
+                offset += w;
+            }
+        }
+        (adam, params)
+    }
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    #[test]
+    fn vector_runs_give_the_bits_of_the_scalar_reference() {
+        let mut rng = StdRng::seed_from_u64(7);
+        // lengths below, at and above the lane count, with tails
+        for n in [0, 1, 15, 16, 17, 100, 1000] {
+            let c = Shared::<f32>::new(&AdamConfig {
+                eps: 1e-15,
+                ..AdamConfig::default()
+            });
+            let s = StepSize {
+                bc2_sqrt: 0.05f32,
+                neg_step_size: -0.02f32,
+            };
+            let g = random(&mut rng, n, 0.1);
+            let (p0, m0) = (random(&mut rng, n, 1.0), random(&mut rng, n, 0.01));
+            let v0: Vec<f32> = random(&mut rng, n, 1e-4).iter().map(|x| x.abs()).collect();
+            let (mut p1, mut m1, mut v1) = (p0.clone(), m0.clone(), v0.clone());
+            let (mut p2, mut m2, mut v2) = (p0, m0, v0);
+            update_run(&c, s, &mut p1, &g, &mut m1, &mut v1);
+            update_run_scalar(&c, s, &mut p2, &g, &mut m2, &mut v2);
+            assert_eq!(bits(&p1), bits(&p2), "params, n = {n}");
+            assert_eq!(bits(&m1), bits(&m2), "exp_avg, n = {n}");
+            assert_eq!(bits(&v1), bits(&v2), "exp_avg_sq, n = {n}");
+        }
+    }
+
+    #[test]
+    fn side_by_side_gives_the_bits_of_one_strided_step_per_tensor() {
+        // SH layouts of degree 1..3 (the vector path) and an odd one (the row-by-row path);
+        // row counts that leave a partial parallel chunk
+        for widths in [vec![3, 9], vec![3, 24], vec![3, 45], vec![2, 5, 1]] {
+            let rows = 700;
+            let stride: usize = widths.iter().sum();
+            let (mut a, mut pa) = warmed_up(&widths, rows, 3);
+            let (mut b, mut pb) = (a.clone(), pa.clone());
+            let grads = random(&mut StdRng::seed_from_u64(11), rows * stride, 0.1);
+            let all: Vec<usize> = (0..widths.len()).collect();
+            a.step_side_by_side(&all, &mut pa, &grads).unwrap();
+            let mut offset = 0;
+            for (k, &w) in widths.iter().enumerate() {
+                b.step_strided(k, &mut pb, &grads, stride, offset).unwrap();
+                offset += w;
+            }
+            assert_eq!(bits(&pa), bits(&pb), "params, widths {widths:?}");
+            for (x, y) in a.params().iter().zip(b.params()) {
+                assert_eq!(x.step_count(), y.step_count());
+                assert_eq!(bits(x.exp_avg()), bits(y.exp_avg()), "{}", x.name);
+                assert_eq!(bits(x.exp_avg_sq()), bits(y.exp_avg_sq()), "{}", x.name);
+            }
+        }
+    }
+
+    #[test]
+    fn side_by_side_in_f64_matches_strided_steps() {
+        let widths = [3, 45];
+        let rows = 10;
+        let mut a = Adam::<f64>::new(AdamConfig::default());
+        for (k, &w) in widths.iter().enumerate() {
+            a.add_param(&format!("g{k}"), 0.1, rows, w);
+        }
+        let mut b = a.clone();
+        let mut pa: Vec<f64> = (0..rows * 48).map(|i| (i as f64 * 0.37).sin()).collect();
+        let mut pb = pa.clone();
+        let g: Vec<f64> = (0..rows * 48).map(|i| (i as f64 * 0.11).cos()).collect();
+        a.step_side_by_side(&[0, 1], &mut pa, &g).unwrap();
+        b.step_strided(0, &mut pb, &g, 48, 0).unwrap();
+        b.step_strided(1, &mut pb, &g, 48, 3).unwrap();
+        assert_eq!(pa, pb);
+        assert_eq!(a, b);
+    }
+
+    #[test]
+    fn side_by_side_refuses_repeated_groups_and_wrong_lengths() {
+        let (mut a, mut p) = warmed_up(&[3, 45], 4, 1);
+        let g = vec![0.0; p.len()];
+        assert!(a.step_side_by_side(&[0, 0], &mut p, &g).is_err());
+        assert!(a.step_side_by_side(&[0, 5], &mut p, &g).is_err());
+        assert!(a.step_side_by_side(&[], &mut p, &g).is_err());
+        assert!(a.step_side_by_side(&[0], &mut p, &g).is_err());
+        let steps: Vec<u64> = a.params().iter().map(|s| s.step_count()).collect();
+        assert_eq!(steps, [3, 3], "a refused step counts nothing");
     }
 }

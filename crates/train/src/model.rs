@@ -249,25 +249,36 @@ impl GaussianModel {
             &padded
         };
         let stride = 3 * k_all;
-        if run(F_DC) {
-            let g = self.group(F_DC)?;
-            self.adam.step_strided(
-                g,
+        if k_all > 1 && run(F_DC) && run(F_REST) {
+            // Both SH groups in one pass over the interleaved array (the same bits as one
+            // strided step per group).
+            let groups = [self.group(F_DC)?, self.group(F_REST)?];
+            self.adam.step_side_by_side(
+                &groups,
                 self.scene.sh.as_flattened_mut(),
                 sh_grad.as_flattened(),
-                stride,
-                0,
             )?;
-        }
-        if k_all > 1 && run(F_REST) {
-            let g = self.group(F_REST)?;
-            self.adam.step_strided(
-                g,
-                self.scene.sh.as_flattened_mut(),
-                sh_grad.as_flattened(),
-                stride,
-                3,
-            )?;
+        } else {
+            if run(F_DC) {
+                let g = self.group(F_DC)?;
+                self.adam.step_strided(
+                    g,
+                    self.scene.sh.as_flattened_mut(),
+                    sh_grad.as_flattened(),
+                    stride,
+                    0,
+                )?;
+            }
+            if k_all > 1 && run(F_REST) {
+                let g = self.group(F_REST)?;
+                self.adam.step_strided(
+                    g,
+                    self.scene.sh.as_flattened_mut(),
+                    sh_grad.as_flattened(),
+                    stride,
+                    3,
+                )?;
+            }
         }
         let g = self.group(OPACITY)?;
         self.adam

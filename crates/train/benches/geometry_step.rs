@@ -1,0 +1,78 @@
+//! The per-Gaussian work of one geometry iteration outside the rasterizer, on 100,000 f32
+//! Gaussians of SH degree 3: the Adam step of every group, and the loss (L1 + D-SSIM with its
+//! gradient) of a 200x200 render.
+//!
+//! Inputs are generated deterministically (a 64-bit LCG).
+
+use criterion::{criterion_group, criterion_main, Criterion};
+use gaussian::FeatureGaussians;
+use std::hint::black_box;
+use train::loss::photometric_loss_with_grad;
+use train::{AdamConfig, GaussianGrads, GaussianModel, ImageShape, LearningRates};
+
+const N: usize = 100_000;
+
+/// Knuth's MMIX LCG; the top 24 bits as a uniform number in [lo, hi).
+struct Lcg(u64);
+
+impl Lcg {
+    fn range(&mut self, lo: f32, hi: f32) -> f32 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        lo + (hi - lo) * ((self.0 >> 40) as f32 / (1u64 << 24) as f32)
+    }
+    fn vec<const K: usize>(&mut self, n: usize, lo: f32, hi: f32) -> Vec<[f32; K]> {
+        (0..n)
+            .map(|_| std::array::from_fn(|_| self.range(lo, hi)))
+            .collect()
+    }
+}
+
+fn bench(c: &mut Criterion) {
+    let mut r = Lcg(0x5eed);
+    let scene = FeatureGaussians::<f32> {
+        means: r.vec(N, -1.0, 1.0),
+        log_scales: r.vec(N, -6.0, -3.0),
+        quats: r.vec(N, -1.0, 1.0),
+        opacity_logits: (0..N).map(|_| r.range(-2.0, 2.0)).collect(),
+        sh: r.vec(N * 16, -0.3, 0.3),
+        sh_degree: 3,
+        ..FeatureGaussians::default()
+    };
+    let cfg = AdamConfig {
+        eps: 1e-15,
+        ..AdamConfig::default()
+    };
+    let mut model = GaussianModel::new(scene, &LearningRates::default(), cfg, 1.0).unwrap();
+    let means = r.vec(N, -1e-3, 1e-3);
+    let quats = r.vec(N, -1e-3, 1e-3);
+    let log_scales = r.vec(N, -1e-3, 1e-3);
+    let opacity_logits: Vec<f32> = (0..N).map(|_| r.range(-1e-3, 1e-3)).collect();
+    let sh = r.vec(N * 16, -1e-4, 1e-4);
+    let grads = GaussianGrads {
+        means: &means,
+        quats: &quats,
+        log_scales: &log_scales,
+        opacity_logits: &opacity_logits,
+        sh: &sh,
+        coeffs_per_gaussian: 16,
+    };
+    let mut g = c.benchmark_group("geometry_step_100k_f32");
+    g.sample_size(30);
+    g.bench_function("adam_step", |b| {
+        b.iter(|| model.step(black_box(&grads)).unwrap())
+    });
+
+    let shape = ImageShape::new(200, 200, 3);
+    let render: Vec<f32> = (0..shape.len()).map(|_| r.range(0.0, 1.0)).collect();
+    let target: Vec<f32> = (0..shape.len()).map(|_| r.range(0.0, 1.0)).collect();
+    g.bench_function("loss_with_grad_200x200", |b| {
+        b.iter(|| photometric_loss_with_grad(black_box(&render), &target, shape, 0.2).unwrap())
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

@@ -29,9 +29,11 @@
 //! (`gradient_buffer_values`, default [`DEFAULT_GRADIENT_BUFFER_VALUES`]), so the peak memory is:
 //! the outputs, `N (7 + D)` reals of per-Gaussian accumulators, `min(budget, I (7 + D))` reals of
 //! records (`I` intersections; a single tile larger than the budget gets a batch of its own),
-//! `D` reals per tile for the background gradient, and per thread one tile's packed Gaussians
-//! (7 reals each), its row lists (8 bytes per Gaussian and row it reaches, see [`crate::rows`])
-//! and one pixel's blend list (4 reals and 2 words per blended Gaussian).
+//! `D` reals per tile for the background gradient, and per thread one tile's working memory:
+//! for the scalar loops its packed Gaussians (7 reals each), its row lists (8 bytes per Gaussian
+//! and row it reaches, see [`crate::rows`]) and one pixel's blend list (4 reals and 2 words per
+//! blended Gaussian); for the lane kernels every (Gaussian, tile row) it blends in (140 bytes
+//! each) and the tile's image cotangents (`256 D` reals).
 
 use gaussian::Real;
 use rayon::prelude::*;

@@ -7,15 +7,19 @@
 //! Determinism: every pixel is computed by one thread in a fixed order, so the result does not
 //! depend on the number of threads.
 //!
-//! Each pixel walks only its row's list of [`crate::rows`] (the Gaussians that can reach the
-//! row, with the columns they can reach); the others are ones the blending rule skips there.
+//! The scalar loops walk each pixel over its row's list of [`crate::rows`] (the Gaussians that
+//! can reach the row, with the columns they can reach); the lane kernels evaluate each Gaussian
+//! on the tile rows its ellipse reaches. Either way the Gaussians left out are ones the blending
+//! rule skips there. Tiles run in Morton order ([`TileBins::locality_key`]), which changes no
+//! result.
 //!
 //! Memory: the outputs (`D + 3` reals and one `u32` per pixel), a tile-major staging copy of
-//! them of the same size, the [`TileBins`], every Gaussian packed (7 reals each), and per thread
-//! one tile's packed Gaussians (7 reals per Gaussian in the tile) and row lists (8 bytes per
-//! Gaussian and row segment it reaches). The row lists of all tiles are kept in the returned
-//! bins for the backward pass when they fit [`crate::tiles::ROW_LIST_BUDGET_BYTES`] (64 MiB);
-//! otherwise none are kept and the backward pass builds them again.
+//! them of the same size, the [`TileBins`], every Gaussian packed (7 to 10 reals each), and per
+//! thread one tile's working memory: for the scalar loops its packed Gaussians (7 reals each)
+//! and row lists (8 bytes per Gaussian and row segment it reaches), for the lane kernels `D`
+//! reals per pixel. The scalar loops' row lists of all tiles are kept in the returned bins for
+//! the backward pass when they fit [`crate::tiles::ROW_LIST_BUDGET_BYTES`] (64 MiB); otherwise
+//! none are kept and the backward pass builds them again.
 
 use gaussian::Real;
 use rayon::prelude::*;

@@ -2,8 +2,9 @@
 //! tile's Gaussians (in front-to-back order) that can be blended somewhere in that segment of
 //! the row, each with the columns of the row it can reach.
 //!
-//! The forward and backward tile loops walk a pixel's list instead of the whole tile list.
-//! This changes no result: a Gaussian is left out of a pixel's walk only where the blending
+//! The scalar tile loops walk a pixel's list instead of the whole tile list; the lane kernels
+//! evaluate each Gaussian only on the image rows of its reach (`reach_rows`, the same widened
+//! ellipse with the whole image as the tile). This changes no result: a Gaussian is left out of a pixel's walk only where the blending
 //! rule of [`crate::blend`] certainly skips it, and skipped Gaussians touch neither the
 //! transmittance nor the stop decision, so every pixel makes the same decisions with the same
 //! arithmetic in the same order.

@@ -4,10 +4,11 @@
 //! * `scalar`, the generic reference: one pixel and one Gaussian at a time, for any
 //!   [`gaussian::Real`]. It is the only path in `f64` (the oracle and gradient checks) and the
 //!   baseline of every benchmark.
-//! * `lanes`, the `f32` vector kernels: a run of 8 pixels of a tile row (one segment of the row
-//!   lists of [`crate::rows`]) against one Gaussian at a time, with lane masks for the skip, the
-//!   alpha clamp and the transmittance stop; the channel accumulation and its backward are
-//!   vectorised across channels.
+//! * `lanes`, the `f32` vector kernels: a tile row of 16 pixels is one vector; the tile's
+//!   Gaussians are taken one at a time, each evaluated on the tile rows its ellipse reaches
+//!   (`rows::reach_rows`), with lane masks for the skip, the alpha clamp and the
+//!   transmittance stop; the channel accumulation and its backward are vectorised across
+//!   channels (unrolled for the common channel counts).
 //!
 //! Both evaluate every value with the same IEEE-754 operations in the same order (no fused
 //! multiply-add; the exponential is [`gaussian::exp_f32`] in both), so in `f32` they make the

@@ -47,9 +47,16 @@ type Mask = u32;
 /// An instruction set the lane kernels run at: the comparisons whose results become lane masks.
 pub(crate) trait LaneIsa: Copy {
     /// The lanes where `a <= b` (never where either is NaN).
-    fn le(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask;
+    #[inline(always)]
+    fn le(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
+        mask_by(a, b, |x, y| x <= y)
+    }
+
     /// The lanes where `a < b` (never where either is NaN).
-    fn lt(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask;
+    #[inline(always)]
+    fn lt(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
+        mask_by(a, b, |x, y| x < y)
+    }
 
     /// `a` in the lanes of `m`, `b` in the others.
     #[inline(always)]
@@ -111,28 +118,11 @@ impl LaneIsa for pulp::x86::V3 {
     }
 }
 
+/// NEON and the baseline target: the lane-by-lane comparisons, which the compiler vectorises.
 #[cfg(target_arch = "aarch64")]
-impl LaneIsa for pulp::aarch64::Neon {
-    #[inline(always)]
-    fn le(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
-        mask_by(a, b, |x, y| x <= y)
-    }
-    #[inline(always)]
-    fn lt(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
-        mask_by(a, b, |x, y| x < y)
-    }
-}
+impl LaneIsa for pulp::aarch64::Neon {}
 
-impl LaneIsa for pulp::Scalar {
-    #[inline(always)]
-    fn le(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
-        mask_by(a, b, |x, y| x <= y)
-    }
-    #[inline(always)]
-    fn lt(self, a: &[f32; LANES], b: &[f32; LANES]) -> Mask {
-        mask_by(a, b, |x, y| x < y)
-    }
-}
+impl LaneIsa for pulp::Scalar {}
 
 /// A lane kernel: runs inside code compiled for the instruction set `isa` stands for.
 pub(crate) trait LaneOp {

@@ -5,8 +5,10 @@
 //! Per Gaussian and row, the falloff, alpha, skip, clamp and stop decisions of the row's 16
 //! pixels are computed at once, as fixed-size arrays that the compiler turns into vector
 //! instructions of the instruction set [`super::Token::run`] compiles them for (one 512-bit
-//! vector with AVX-512, two 256-bit ones with AVX2, four 128-bit ones with NEON or SSE2); a lane
-//! mask says which pixels blend it. The rows a Gaussian can reach come from its ellipse, once
+//! vector with AVX-512, two 256-bit ones with AVX2, four 128-bit ones with NEON or SSE2), with
+//! comparisons and selects through that instruction set's mask operations ([`LaneIsa`]); a lane
+//! mask says which pixels blend it. The channel loops are unrolled for the common channel
+//! counts ([`Fixed`]). The rows a Gaussian can reach come from its ellipse, once
 //! per Gaussian ([`crate::rows::reach_rows`]); no per-row list is built. The tile keeps every
 //! pixel's transmittance and stop state, so walking the Gaussians in the outer loop gives each
 //! pixel the same Gaussians in the same order as the scalar loops' per-pixel walk. A tile stops

@@ -14,6 +14,7 @@ use crate::layer::{ConvGrad, ConvLayer};
 use crate::layout::{decoder_spec, read_conv, DecoderSpec};
 use crate::sequential::{self, Step, Tape};
 use crate::state_dict::StateDict;
+use crate::tiled::{self, Region};
 use crate::Resolution;
 
 /// The decoder from `relu{depth}_1` features to an image.
@@ -167,6 +168,64 @@ impl<T: Real> Decoder<T> {
             outs.pop().expect("one output"),
             DecoderTape(tape.expect("tape requested")),
         ))
+    }
+
+    /// The size `(height, width)` of the decoded image for an input of `input_hw` (before any
+    /// crop): the input size, doubled per upsampling.
+    pub fn output_size(&self, input_hw: (usize, usize)) -> (usize, usize) {
+        let ups = self
+            .steps()
+            .iter()
+            .filter(|s| matches!(s, Step::Up))
+            .count();
+        (input_hw.0 << ups, input_hw.1 << ups)
+    }
+
+    /// The region of an input of `input_hw` that the decoded image's region `out` depends on
+    /// (see [`crate::tiled`]).
+    pub fn input_region(&self, input_hw: (usize, usize), out: Region) -> Result<Region, NetError> {
+        let steps = self.steps();
+        sequential::check_shapes(
+            &steps,
+            (1, self.in_channels(), input_hw.0, input_hw.1),
+            "decoder",
+        )?;
+        Ok(tiled::input_regions(&steps, input_hw, out, "decoder")?[0])
+    }
+
+    /// The region `out` of the image decoded from an input of `input_hw`, from `x`, which holds
+    /// the input's region [`Decoder::input_region`]: equal to that region of
+    /// [`Decoder::forward`] of the whole input, holding only the tile's activations.
+    pub fn forward_region(
+        &self,
+        x: ArrayView4<T>,
+        input_hw: (usize, usize),
+        out: Region,
+    ) -> Result<Array4<T>, NetError> {
+        let steps = self.steps();
+        sequential::check_shapes(
+            &steps,
+            (1, self.in_channels(), input_hw.0, input_hw.1),
+            "decoder",
+        )?;
+        let regions = tiled::input_regions(&steps, input_hw, out, "decoder")?;
+        tiled::run_regions(&steps, &regions, x, "decoder")
+    }
+
+    /// [`Decoder::forward`] computed one output tile of at most `tile x tile` pixels at a
+    /// time (the same result, see [`crate::tiled`]).
+    pub fn forward_tiled(&self, x: ArrayView4<T>, tile: usize) -> Result<Array4<T>, NetError> {
+        tiled::run_tiled(&self.steps(), x, tile, "decoder")
+    }
+
+    /// The working memory of a decoder tile per pixel of its region and halo, in bytes, for
+    /// an input of `input_hw`, and the halo in output pixels (see [`tiled::tile_side`]).
+    pub fn tile_cost(&self, input_hw: (usize, usize)) -> (f64, usize) {
+        let steps = self.steps();
+        (
+            tiled::bytes_per_output_pixel(&steps, input_hw),
+            tiled::halo(&steps, input_hw),
+        )
     }
 
     /// Gradients of `<dy, decoder(x)>` with respect to the input and to every parameter.

@@ -17,6 +17,7 @@ use crate::layout::{encoder_spec, read_conv, EncoderSpec};
 use crate::pool::PoolRounding;
 use crate::sequential::{self, Step, Tape};
 use crate::state_dict::StateDict;
+use crate::tiled::{self, Region};
 use crate::Resolution;
 
 /// The VGG encoder to `relu{depth}_1`.
@@ -170,6 +171,102 @@ impl<T: Real> Encoder<T> {
             }
         }
         steps
+    }
+
+    /// The steps up to the output of `relu{level}_1`.
+    fn steps_to(&self, level: usize) -> Result<Vec<Step<'_, T>>, NetError> {
+        if level == 0 || level > self.depth() {
+            return Err(NetError::Input(format!(
+                "encoder: level {level} asked of an encoder to relu{}_1",
+                self.depth()
+            )));
+        }
+        let mut steps = self.steps();
+        let mut outputs = 0;
+        let end = steps
+            .iter()
+            .position(|s| {
+                outputs += matches!(s, Step::Output) as usize;
+                outputs == level
+            })
+            .expect("one output per level");
+        steps.truncate(end + 1);
+        Ok(steps)
+    }
+
+    /// The size `(height, width)` of `relu{level}_1` for an image of `input_hw`.
+    pub fn output_size(
+        &self,
+        input_hw: (usize, usize),
+        level: usize,
+    ) -> Result<(usize, usize), NetError> {
+        let steps = self.steps_to(level)?;
+        let dims = sequential::check_shapes(&steps, (1, 3, input_hw.0, input_hw.1), "encoder")?;
+        let (_, _, h, w) = *dims.last().expect("one output per level");
+        Ok((h, w))
+    }
+
+    /// The region of an image of `input_hw` that the region `out` of `relu{level}_1` depends on
+    /// (see [`crate::tiled`]).
+    pub fn input_region(
+        &self,
+        input_hw: (usize, usize),
+        level: usize,
+        out: Region,
+    ) -> Result<Region, NetError> {
+        let steps = self.steps_to(level)?;
+        sequential::check_shapes(
+            &steps,
+            (1, self.in_channels(), input_hw.0, input_hw.1),
+            "encoder",
+        )?;
+        Ok(tiled::input_regions(&steps, input_hw, out, "encoder")?[0])
+    }
+
+    /// The region `out` of `relu{level}_1` of an image of `input_hw`, from `x`, which holds the
+    /// image's region [`Encoder::input_region`]: equal to that region of the feature from
+    /// [`Encoder::forward`] of the whole image, holding only the tile's activations.
+    pub fn forward_region(
+        &self,
+        x: ArrayView4<T>,
+        input_hw: (usize, usize),
+        level: usize,
+        out: Region,
+    ) -> Result<Array4<T>, NetError> {
+        let steps = self.steps_to(level)?;
+        sequential::check_shapes(
+            &steps,
+            (1, self.in_channels(), input_hw.0, input_hw.1),
+            "encoder",
+        )?;
+        let regions = tiled::input_regions(&steps, input_hw, out, "encoder")?;
+        tiled::run_regions(&steps, &regions, x, "encoder")
+    }
+
+    /// `relu{level}_1` of [`Encoder::forward`], computed one output tile of at most
+    /// `tile x tile` pixels at a time (the same result, see [`crate::tiled`]).
+    pub fn forward_tiled(
+        &self,
+        x: ArrayView4<T>,
+        level: usize,
+        tile: usize,
+    ) -> Result<Array4<T>, NetError> {
+        tiled::run_tiled(&self.steps_to(level)?, x, tile, "encoder")
+    }
+
+    /// The working memory of a tile of `relu{level}_1` per pixel of its region and halo, in
+    /// bytes, for an image of `input_hw`, and the halo in output pixels (see
+    /// [`tiled::tile_side`]).
+    pub fn tile_cost(
+        &self,
+        input_hw: (usize, usize),
+        level: usize,
+    ) -> Result<(f64, usize), NetError> {
+        let steps = self.steps_to(level)?;
+        Ok((
+            tiled::bytes_per_output_pixel(&steps, input_hw),
+            tiled::halo(&steps, input_hw),
+        ))
     }
 
     /// The features `relu1_1 ..= relu{depth}_1` of a batch `x [N, 3, H, W]`.

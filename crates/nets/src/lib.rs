@@ -110,6 +110,7 @@ pub mod matmul;
 pub mod pool;
 mod sequential;
 pub mod state_dict;
+pub mod tiled;
 pub mod upsample;
 pub mod weights_file;
 pub mod winograd;
@@ -122,6 +123,7 @@ pub use layout::Layout;
 pub use lifter::{Lifter, LifterGrads, LifterTape};
 pub use pool::PoolRounding;
 pub use state_dict::{StateDict, TensorF32};
+pub use tiled::Region;
 pub use weights_file::NetWeights;
 
 /// Whether the encoder pools and the decoder upsamples between levels (`Standard`) or both keep

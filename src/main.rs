@@ -596,6 +596,12 @@ struct BakeArgs {
     resolution_scale: Option<f64>,
     #[arg(long, help = with_default("Seed of the view order", BakeConfig::default().seed))]
     seed: Option<u64>,
+    #[arg(long, value_parser = tile_budget(), help = with_default(
+        "Working memory of the networks per decoded target view, in MiB: views are decoded in \
+         tiles that fit it (any budget gives the same targets; 1 to 1048576)",
+        BakeConfig::default().tile_budget_mib,
+    ))]
+    tile_budget: Option<u64>,
     #[command(flatten)]
     run: RunArgs,
     /// Output .ply (a JSON report is written beside it).
@@ -709,6 +715,15 @@ struct StyleArgs {
     /// bundle's]
     #[arg(long)]
     decoder: Option<PathBuf>,
+    /// Working memory of the networks per frame, in MiB: frames are decoded in tiles that fit
+    /// it (any budget gives the same images; 1 to 1048576).
+    #[arg(long, default_value_t = train::bundle::DEFAULT_TILE_BUDGET_BYTES >> 20, value_parser = tile_budget())]
+    tile_budget: u64,
+}
+
+/// MiB of a `--tile-budget`.
+fn tile_budget() -> impl TypedValueParser<Value = u64> {
+    clap::value_parser!(u64).range(1..=1 << 20)
 }
 
 #[derive(Args)]
@@ -1136,6 +1151,7 @@ fn bake(a: BakeArgs) -> Result<()> {
             seed: a.seed,
             log_every: a.run.log_every,
             checkpoint_every: a.run.checkpoint_every,
+            tile_budget_mib: a.tile_budget,
         },
         output: a.output,
         resume: a.run.resume,
@@ -1245,6 +1261,7 @@ fn stylize(a: StylizeArgs) -> Result<()> {
         mp4: a.mp4,
         fps: a.fps,
         sheet_views: a.sheet_views,
+        tile_budget: a.style.tile_budget << 20,
     };
     let terminal = Terminal::new("stylize", !a.no_progress);
     let out = pipeline::stylize::run(&bundle, &cams, &settings, &terminal)?;
@@ -1302,6 +1319,7 @@ fn eval(a: EvalArgs) -> Result<()> {
             preserve_colour: a.style.preserve_colour,
             style_side: a.style.style_size,
             warp,
+            tile_budget: a.style.tile_budget << 20,
         };
         let name = dir.display().to_string();
         pipeline::eval::evaluate_bundle(&bundle, &name, &cams, &settings, &terminal)?

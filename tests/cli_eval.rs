@@ -162,6 +162,8 @@ fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
         preserve_colour: true,
         style_side: 48,
         warp: WarpOptions::default(),
+        // Small enough for several tiles per frame.
+        tile_budget: 1 << 20,
     };
     let report = evaluate_bundle(&bundle, "tiny", &cams, &settings, &pipeline::Quiet).unwrap();
 
@@ -194,7 +196,9 @@ fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
         let (mut frames, mut style_sum, mut content_sum) = (Vec::new(), 0.0f64, 0.0f64);
         for (c, colour_image) in cams.iter().zip(&colour) {
             let view = stylize::render_feature_view(&bundle, c).unwrap();
-            let (img, _) = stylize::stylize_view(&bundle, &view, t, settings.alpha).unwrap();
+            let (img, _) =
+                stylize::stylize_view(&bundle, &view, t, settings.alpha, settings.tile_budget)
+                    .unwrap();
             let f = deepest(&img);
             style_sum += style::style_loss(&f, &t.stats.levels).unwrap() as f64;
             let colour_deepest = deepest(colour_image).pop().unwrap();

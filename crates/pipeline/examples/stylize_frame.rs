@@ -94,7 +94,13 @@ fn main() -> Result<()> {
         shape[1], shape[3], shape[2]
     ));
 
-    let (image, seconds) = stylize_view(&bundle, &view, target, 1.0)?;
+    let (image, seconds) = stylize_view(
+        &bundle,
+        &view,
+        target,
+        1.0,
+        train::bundle::DEFAULT_TILE_BUDGET_BYTES,
+    )?;
     step(format!(
         "lifted and transformed in {:.2} s, decoded in {:.2} s",
         seconds.lift_transform, seconds.decode

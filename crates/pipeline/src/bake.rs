@@ -62,6 +62,9 @@ pub struct BakeOverrides {
     /// Iterations between periodic checkpoints, 0 for only when stopped (`--checkpoint-every`;
     /// key `checkpoint_interval`).
     pub checkpoint_every: Option<u64>,
+    /// Working memory of the networks per decoded target view, in MiB (`--tile-budget`; key
+    /// `tile_budget_mib`).
+    pub tile_budget_mib: Option<u64>,
 }
 
 impl BakeOverrides {
@@ -96,6 +99,9 @@ impl BakeOverrides {
         }
         if let Some(k) = self.checkpoint_every {
             c.checkpoint_interval = k;
+        }
+        if let Some(v) = self.tile_budget_mib {
+            c.tile_budget_mib = v;
         }
     }
 }

@@ -404,6 +404,7 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
         mp4: false,
         fps: 12.0,
         sheet_views: 6,
+        tile_budget: train::bundle::DEFAULT_TILE_BUDGET_BYTES,
     };
     let inputs = record::Inputs::new(s, &bundle_dir, &settings)?;
     let stylize_record = record::path(&s.out_dir, "stylize");
@@ -440,6 +441,7 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
                 preserve_colour: settings.preserve_colour,
                 style_side: settings.style_side,
                 warp: WarpOptions::default(),
+                tile_budget: settings.tile_budget,
             };
             let (eval, t) = timed(|| {
                 crate::eval::evaluate_bundle(

@@ -102,6 +102,9 @@ pub struct EvalSettings {
     pub style_side: u32,
     /// Masking thresholds of the warps (`--alpha-threshold`, `--depth-tolerance`).
     pub warp: WarpOptions,
+    /// Working memory of the networks while decoding a frame, in bytes (`--tile-budget`, in
+    /// MiB; see [`stylize::stylize_view`]).
+    pub tile_budget: u64,
 }
 
 /// The offsets every output is compared at, short range first.
@@ -193,7 +196,13 @@ pub fn evaluate_bundle(
         let mut images = Vec::with_capacity(1 + targets.len());
         images.push(colour_image);
         for (target, (style_sum, content_sum)) in targets.iter().zip(&mut sums) {
-            let (img, s) = stylize::stylize_view(bundle, &features, target, settings.alpha)?;
+            let (img, s) = stylize::stylize_view(
+                bundle,
+                &features,
+                target,
+                settings.alpha,
+                settings.tile_budget,
+            )?;
             seconds.raster += s.raster;
             seconds.lift_transform += s.lift_transform;
             seconds.decode += s.decode;

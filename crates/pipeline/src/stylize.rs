@@ -304,18 +304,22 @@ pub struct StageSeconds {
     pub decode: f64,
 }
 
-/// Decodes a cached view for a target at strength `alpha` (checked: [`check_alpha`]): the
-/// clamped RGB image and the stage times (raster time from the cache).
+/// Decodes a cached view for a target at strength `alpha` (checked: [`check_alpha`]), in tiles
+/// whose network working memory stays within about `tile_budget` bytes
+/// ([`SceneBundle::decode_in_tiles`]; the image does not depend on it): the clamped RGB image
+/// and the stage times (raster time from the cache).
 pub fn stylize_view(
     bundle: &SceneBundle,
     view: &FeatureView,
     target: &StyleTarget,
     alpha: f64,
+    tile_budget: u64,
 ) -> Result<(RgbImage, StageSeconds)> {
     check_alpha(alpha)?;
     let stats = bundle.target_stats(target.stats.deepest(), alpha)?;
     let k = view.camera.intrinsics;
-    let (img, [lt, dec]) = bundle.decode_timed(&view.features, &stats, k.width, k.height)?;
+    let (img, [lt, dec]) =
+        bundle.decode_in_tiles(&view.features, &stats, k.width, k.height, tile_budget)?;
     Ok((
         image_io::clamped(&rgb_from_nchw(&img)?),
         StageSeconds {
@@ -351,6 +355,9 @@ pub struct StylizeSettings {
     pub fps: f64,
     /// Columns of the contact sheet (views, evenly spaced; `--sheet-views`).
     pub sheet_views: usize,
+    /// Working memory of the networks per frame, in bytes (`--tile-budget`, in MiB): frames
+    /// are decoded in tiles that fit it ([`SceneBundle::decode_in_tiles`]).
+    pub tile_budget: u64,
 }
 
 /// What `dsgs stylize` wrote.
@@ -464,7 +471,7 @@ pub fn run(
             },
         ];
         for (i, v) in views.iter().enumerate() {
-            let (img, s) = stylize_view(bundle, v, target, settings.alpha)?;
+            let (img, s) = stylize_view(bundle, v, target, settings.alpha, settings.tile_budget)?;
             total.raster += s.raster;
             total.lift_transform += s.lift_transform;
             total.decode += s.decode;

@@ -133,6 +133,7 @@ fn stylize_settings(out: &Path, styles: Vec<PathBuf>) -> StylizeSettings {
         mp4: false,
         fps: 10.0,
         sheet_views: 2,
+        tile_budget: train::bundle::DEFAULT_TILE_BUDGET_BYTES,
     }
 }
 
@@ -163,6 +164,7 @@ fn eval_settings(styles: Vec<PathBuf>) -> EvalSettings {
         preserve_colour: false,
         style_side: 64,
         warp: WarpOptions::default(),
+        tile_budget: train::bundle::DEFAULT_TILE_BUDGET_BYTES,
     }
 }
 

@@ -115,6 +115,9 @@ pub struct BakeConfig {
     pub resolution_scale: f64,
     /// Views decoded at the same time while rendering targets (bounds the memory).
     pub render_batch: usize,
+    /// Working memory of the networks per view decoded, in MiB: each view is decoded in tiles
+    /// that fit it ([`SceneBundle::decode_in_tiles`]; the targets do not depend on it).
+    pub tile_budget_mib: u64,
     /// Seed of the view order.
     pub seed: u64,
     /// Iterations between the periodic checkpoints of the optimisation (0: only when stopped).
@@ -147,6 +150,7 @@ impl Default for BakeConfig {
             held_out: 4,
             resolution_scale: 1.0,
             render_batch: 4,
+            tile_budget_mib: crate::bundle::DEFAULT_TILE_BUDGET_BYTES >> 20,
             seed: 0,
             checkpoint_interval: crate::driver::DEFAULT_CHECKPOINT_INTERVAL,
             log_interval: 0,
@@ -175,6 +179,9 @@ impl BakeConfig {
         }
         if self.render_batch == 0 {
             return bad("render_batch is 0".into());
+        }
+        if self.tile_budget_mib == 0 {
+            return bad("tile_budget_mib is 0".into());
         }
         let rates = [
             ("feature_lr", self.feature_lr),
@@ -359,7 +366,8 @@ fn to_hwc_clamped(image: &ndarray::Array4<f32>) -> Vec<f32> {
     out
 }
 
-/// The stylized view of `camera`: features rendered and decoded under `stats`, clamped to
+/// The stylized view of `camera`: features rendered and decoded under `stats` (in tiles within
+/// `tile_budget` bytes, [`SceneBundle::decode_in_tiles`]), clamped to
 /// `[0, 1]`, row-major RGB; with `composite`, blended over the bundle's background with the
 /// geometry's accumulated opacity (see the module documentation).
 pub fn stylized_view(
@@ -367,10 +375,11 @@ pub fn stylized_view(
     stats: &ChannelStats<f32>,
     camera: &Camera,
     composite: bool,
+    tile_budget: u64,
 ) -> Result<Vec<f32>, TrainError> {
     let k = camera.intrinsics;
     let features = bundle.render_features(camera)?;
-    let image = bundle.decode(&features, stats, k.width, k.height)?;
+    let (image, _) = bundle.decode_in_tiles(&features, stats, k.width, k.height, tile_budget)?;
     if image.shape()[1] != 3 {
         return Err(TrainError::Shape(format!(
             "the decoder makes {} channels, a colour image needs 3",
@@ -399,6 +408,7 @@ pub fn render_targets(
     cameras: &[NamedCamera],
     composite: bool,
     batch: usize,
+    tile_budget: u64,
     run: &Run,
     tally: &mut Tally,
 ) -> Result<Option<Vec<View>>, TrainError> {
@@ -409,7 +419,7 @@ pub fn render_targets(
         }
         let images: Vec<Vec<f32>> = chunk
             .par_iter()
-            .map(|c| stylized_view(bundle, stats, &c.camera, composite))
+            .map(|c| stylized_view(bundle, stats, &c.camera, composite, tile_budget))
             .collect::<Result<_, _>>()?;
         for (c, image) in chunk.iter().zip(images) {
             views.push(View {
@@ -468,6 +478,7 @@ pub fn evaluate_baked(
         &named,
         config.composite_background,
         config.render_batch,
+        config.tile_budget_mib.saturating_mul(1 << 20),
         &Run::in_memory(),
         &mut Tally::start(Stage::BakeTargets, named.len(), &Quiet),
     )?
@@ -581,7 +592,10 @@ pub fn bake(
     let mut render = |cams: &[NamedCamera]| {
         let composite = config.composite_background;
         let batch = config.render_batch;
-        render_targets(bundle, stats, cams, composite, batch, run, &mut tally)
+        let budget = config.tile_budget_mib.saturating_mul(1 << 20);
+        render_targets(
+            bundle, stats, cams, composite, batch, budget, run, &mut tally,
+        )
     };
     let held_out = render(&cameras.held_out)?.ok_or_else(interrupted)?;
     let train = render(&cameras.train)?.ok_or_else(interrupted)?;
@@ -733,8 +747,15 @@ impl<'a> Baker<'a> {
         let bytes = std::fs::read(checkpoint).map_err(|e| TrainError::io(checkpoint, e))?;
         let r = StateReader::new(&bytes, checkpoint, BAKE_CHECKPOINT_FORMAT)?;
         let mut b = Baker::new(initial, targets, background, config)?;
-        let want = serde_json::to_string(config).map_err(|e| TrainError::Config(e.to_string()))?;
-        if r.meta_str("config")? != want {
+        // The same configuration, but for the tile budget, which changes no result (and is
+        // absent from the checkpoints of earlier versions).
+        let stored: BakeConfig = serde_json::from_str(r.meta_str("config")?)
+            .map_err(|e| r.err(format!("its configuration cannot be read: {e}")))?;
+        let same = BakeConfig {
+            tile_budget_mib: config.tile_budget_mib,
+            ..stored
+        };
+        if &same != config {
             return Err(r.err(
                 "it was written with another bake configuration; resume with the same settings"
                     .into(),

@@ -58,6 +58,10 @@ pub const INFO_FILE: &str = "bundle.json";
 /// The value of [`BundleInfo::format`].
 pub const BUNDLE_FORMAT: &str = "dsgs-bundle-1";
 
+/// Default working memory of the networks while decoding a frame ([`SceneBundle::decode`]):
+/// 1 GiB, in which the fullres relu3_1 decoder takes tiles of about 300x300 pixels.
+pub const DEFAULT_TILE_BUDGET_BYTES: u64 = 1 << 30;
+
 /// The largest image width or height a bundle camera may have (the project's one image-size
 /// limit, defined with the cameras).
 pub use gaussian::camera::MAX_IMAGE_SIDE;
@@ -555,7 +559,8 @@ impl SceneBundle {
     }
 
     /// Lifts, transforms and decodes a feature map from [`SceneBundle::render_features`] into
-    /// an RGB image `[1, 3, height, width]` (cropped; values as the decoder makes them).
+    /// an RGB image `[1, 3, height, width]` (cropped; values as the decoder makes them), in
+    /// tiles within [`DEFAULT_TILE_BUDGET_BYTES`] ([`SceneBundle::decode_in_tiles`]).
     pub fn decode(
         &self,
         features: &Array4<f32>,
@@ -563,16 +568,13 @@ impl SceneBundle {
         width: u32,
         height: u32,
     ) -> Result<Array4<f32>, TrainError> {
-        Ok(self.decode_timed(features, stats, width, height)?.0)
+        Ok(self
+            .decode_in_tiles(features, stats, width, height, DEFAULT_TILE_BUDGET_BYTES)?
+            .0)
     }
 
     /// [`SceneBundle::decode`], also returning the wall time of lift + transform and of the
-    /// decoder (with the crop), in seconds.
-    ///
-    /// A stylized frame, top down: [`SceneBundle::render_features`] (rasterize the per-Gaussian
-    /// features at the feature resolution), then here: lift to the encoder width, transform
-    /// with the target statistics (`T(x) = std(s) x + mean(s)`, from
-    /// [`SceneBundle::target_stats`]), decode to RGB.
+    /// decoder, in seconds.
     pub fn decode_timed(
         &self,
         features: &Array4<f32>,
@@ -580,16 +582,88 @@ impl SceneBundle {
         width: u32,
         height: u32,
     ) -> Result<(Array4<f32>, [f64; 2]), TrainError> {
+        self.decode_in_tiles(features, stats, width, height, DEFAULT_TILE_BUDGET_BYTES)
+    }
+
+    /// The side of the square output tiles [`SceneBundle::decode_in_tiles`] uses for a
+    /// feature map of `feature_hw` decoded to `width x height` within `budget_bytes`.
+    pub fn decode_tile_side(
+        &self,
+        feature_hw: (usize, usize),
+        width: u32,
+        height: u32,
+        budget_bytes: u64,
+    ) -> usize {
+        let (oh, ow) = self.decoder.output_size(feature_hw);
+        let (decoder_bytes, halo) = self.decoder.tile_cost(feature_hw);
+        // The lifted map and its transform live beside the features' crop, at the features'
+        // resolution.
+        let scale = (feature_hw.0 * feature_hw.1) as f64 / (oh * ow).max(1) as f64;
+        let lift_bytes =
+            scale * 4.0 * (self.lifter.in_channels() + 2 * self.lifter.out_channels()) as f64;
+        nets::tiled::tile_side(
+            budget_bytes,
+            decoder_bytes + lift_bytes,
+            halo,
+            height as usize,
+            width as usize,
+        )
+    }
+
+    /// [`SceneBundle::decode_timed`] one output tile at a time, the tile side chosen so that
+    /// the networks' working memory stays within about `budget_bytes`
+    /// ([`SceneBundle::decode_tile_side`]).
+    ///
+    /// A stylized frame, top down: [`SceneBundle::render_features`] (rasterize the per-Gaussian
+    /// features at the feature resolution), then here, per tile of the image: crop the
+    /// features to the region the decoder needs for the tile ([`Decoder::input_region`]), lift
+    /// to the encoder width, transform with the target statistics
+    /// (`T(x) = std(s) x + mean(s)`, from [`SceneBundle::target_stats`]), decode the tile
+    /// ([`Decoder::forward_region`]). Lifting and the transform act on each pixel alone and the
+    /// decoder's tiles equal the whole image's ([`nets::tiled`]), so the image is the same,
+    /// bit for bit, for any budget; no map wider than the features covers the whole frame.
+    pub fn decode_in_tiles(
+        &self,
+        features: &Array4<f32>,
+        stats: &ChannelStats<f32>,
+        width: u32,
+        height: u32,
+        budget_bytes: u64,
+    ) -> Result<(Array4<f32>, [f64; 2]), TrainError> {
         let net = |e: nets::NetError| TrainError::Shape(e.to_string());
-        let t0 = Instant::now();
-        let lifted = self.lifter.forward(features.view()).map_err(net)?;
-        let t =
-            style::style_transform(&lifted, stats).map_err(|e| TrainError::Shape(e.to_string()))?;
-        let t1 = Instant::now();
-        let image = self.decoder.forward(t.view()).map_err(net)?;
-        let image = crop(image, width, height)?;
-        let t2 = Instant::now();
-        Ok((image, [(t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64()]))
+        let (_, _, fh, fw) = features.dim();
+        let (oh, ow) = self.decoder.output_size((fh, fw));
+        let (th, tw) = (height as usize, width as usize);
+        if oh < th || ow < tw {
+            return Err(TrainError::Shape(format!(
+                "decoded image is {ow}x{oh}, smaller than the requested {tw}x{th}"
+            )));
+        }
+        let side = self.decode_tile_side((fh, fw), width, height, budget_bytes);
+        let mut image = Array4::<f32>::zeros((1, self.decoder.out_channels(), th, tw));
+        let mut seconds = [0.0; 2];
+        for r in nets::tiled::grid(th, tw, side) {
+            let t0 = Instant::now();
+            let need = self.decoder.input_region((fh, fw), r).map_err(net)?;
+            let part = nets::tiled::crop(features.view(), &need);
+            let lifted = self.lifter.forward(part.view()).map_err(net)?;
+            drop(part);
+            let t = style::style_transform(&lifted, stats)
+                .map_err(|e| TrainError::Shape(e.to_string()))?;
+            drop(lifted);
+            let t1 = Instant::now();
+            let y = self
+                .decoder
+                .forward_region(t.view(), (fh, fw), r)
+                .map_err(net)?;
+            image
+                .slice_mut(s![.., .., r.y0..r.y1, r.x0..r.x1])
+                .assign(&y);
+            let t2 = Instant::now();
+            seconds[0] += (t1 - t0).as_secs_f64();
+            seconds[1] += (t2 - t1).as_secs_f64();
+        }
+        Ok((image, seconds))
     }
 }
 

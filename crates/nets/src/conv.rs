@@ -28,8 +28,8 @@
 //! (tile x C)` for each tap, tile by tile.
 //!
 //! For `f32` layers wide enough ([`ConvAlgorithm::default_for`]), the valid 3x3
-//! correlation of the forward pass and of the input gradient runs as Winograd F(4x4, 3x3) instead
-//! ([`crate::winograd`]: a quarter of the multiply-adds, bounded extra rounding); `f64`, the
+//! correlation of the forward pass and of the input gradient runs as Winograd F(2x2, 3x3) instead
+//! ([`crate::winograd`]: 16 multiply-adds for 36, bounded extra rounding); `f64`, the
 //! precision of the oracle and gradient tests, always runs the implicit GEMM above, the reference.
 //! A forward pass that records a tape for a backward pass runs the reference too: its ReLU
 //! decisions become the masks of the gradient, which is discontinuous where they change, and the

@@ -12,6 +12,9 @@
 //!   cotangents on any subset of the features.
 //! * [`Decoder`]: forward with tape, backward to the input and every parameter.
 //! * [`Lifter`]: `relu(conv1x1(x))`, forward and backward.
+//! * [`tiled`]: an encoder level or the decoded image over any [`Region`], from the input region
+//!   it depends on, bit-identical to the whole image (`Encoder::forward_region`,
+//!   `Decoder::forward_region`, `forward_tiled`): images of any size in bounded memory.
 //! * Built from a [`StateDict`] in the AdaIN/WCT Sequential layout or the compressed named layout
 //!   ([`layout`]), imported from PyTorch checkpoints ([`checkpoint`], [`Encoder::from_checkpoint`]),
 //!   or loaded from canonical safetensors files ([`weights_file`]).

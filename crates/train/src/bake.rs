@@ -399,19 +399,19 @@ pub fn stylized_view(
     Ok(rgb)
 }
 
-/// The stylized views of `cameras` ([`stylized_view`]), `batch` at a time in parallel, each
-/// batch counted on `tally`. Returns `Ok(None)` when the run's stop flag is raised (checked
+/// The stylized views of `cameras` ([`stylized_view`], with the configuration's compositing
+/// and tile budget), `render_batch` at a time in parallel, each batch counted on `tally`. Returns `Ok(None)` when the run's stop flag is raised (checked
 /// between batches).
 pub fn render_targets(
     bundle: &SceneBundle,
     stats: &ChannelStats<f32>,
     cameras: &[NamedCamera],
-    composite: bool,
-    batch: usize,
-    tile_budget: u64,
+    config: &BakeConfig,
     run: &Run,
     tally: &mut Tally,
 ) -> Result<Option<Vec<View>>, TrainError> {
+    let (composite, batch) = (config.composite_background, config.render_batch);
+    let tile_budget = config.tile_budget_mib.saturating_mul(1 << 20);
     let mut views = Vec::with_capacity(cameras.len());
     for chunk in cameras.chunks(batch.max(1)) {
         if run.stop_requested() {
@@ -476,9 +476,7 @@ pub fn evaluate_baked(
         bundle,
         stats,
         &named,
-        config.composite_background,
-        config.render_batch,
-        config.tile_budget_mib.saturating_mul(1 << 20),
+        config,
         &Run::in_memory(),
         &mut Tally::start(Stage::BakeTargets, named.len(), &Quiet),
     )?
@@ -589,14 +587,8 @@ pub fn bake(
     let total = cameras.train.len() + cameras.held_out.len();
     let mut tally = Tally::start(Stage::BakeTargets, total, run.sink);
     let interrupted = || TrainError::Interrupted("rendering the stylized targets".into());
-    let mut render = |cams: &[NamedCamera]| {
-        let composite = config.composite_background;
-        let batch = config.render_batch;
-        let budget = config.tile_budget_mib.saturating_mul(1 << 20);
-        render_targets(
-            bundle, stats, cams, composite, batch, budget, run, &mut tally,
-        )
-    };
+    let mut render =
+        |cams: &[NamedCamera]| render_targets(bundle, stats, cams, config, run, &mut tally);
     let held_out = render(&cameras.held_out)?.ok_or_else(interrupted)?;
     let train = render(&cameras.train)?.ok_or_else(interrupted)?;
     let target_seconds = tally.finish();

@@ -563,5 +563,18 @@ fn a_bake_resumed_from_its_checkpoint_ends_bit_identical() {
         .unwrap()
         .to_string();
     assert!(e.contains("another bake configuration"), "{e}");
+    // The tile budget changes no target: a bake resumes under another one.
+    let budget = BakeConfig {
+        tile_budget_mib: cfg.tile_budget_mib + 1,
+        ..cfg.clone()
+    };
+    let resumed = Baker::resume(
+        &ck,
+        initial_baked_scene(&bundle.scene).unwrap(),
+        &targets,
+        BACKGROUND,
+        &budget,
+    );
+    assert_eq!(resumed.map(|b| b.step()).ok(), Some(3));
     std::fs::remove_dir_all(&dir).unwrap();
 }

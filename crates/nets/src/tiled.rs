@@ -7,7 +7,7 @@
 //!
 //! # How a region is computed exactly
 //! Going back from the wanted output region through the program's steps gives the region each
-//! step needs of its input ([`input_regions`]):
+//! step needs of its input (`input_regions`):
 //! * a 3x3 convolution needs one more pixel on each side, clamped to the image: inside the image
 //!   the real neighbours, at its true border the same reflection padding as the whole image
 //!   (the reflected pixel lies inside the region). The region's first row and column are then
@@ -18,7 +18,7 @@
 //!   the same partial window with ceil rounding);
 //! * a nearest 2x upsampling needs rows `y0 / 2 .. ceil(y1 / 2)`.
 //!
-//! Going forward ([`run_regions`]), each step runs on its region as on a small image, and its
+//! Going forward (`run_regions`), each step runs on its region as on a small image, and its
 //! output is cropped to the region the next step needs. A 3x3 convolution of the tile pads every
 //! side by reflection; on a side inside the image that padding is wrong, and so is the ring of
 //! outputs next to it, but the crop drops exactly that ring (one pixel, or two after the
@@ -31,9 +31,9 @@
 //! the whole-image pass in `f64` and `f32`.
 //!
 //! # Memory
-//! A tile holds the activations of its own region only: about
-//! [`Program::bytes_per_pixel`] per pixel of the output region plus its halo. [`tile_side`] picks
-//! the largest square tile whose working set fits a budget.
+//! A tile holds the activations of its own region only: about the `tile_cost` of
+//! [`crate::Encoder`] and [`crate::Decoder`] per pixel of the output region plus its halo;
+//! [`tile_side`] picks the largest square tile whose working set fits a budget.
 
 use base::Real;
 use ndarray::{s, Array4, ArrayView4};

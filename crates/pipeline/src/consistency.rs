@@ -54,6 +54,7 @@ use ndarray::Array4;
 use nets::{Encoder, Resolution};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use train::bundle::DEFAULT_TILE_BUDGET_BYTES;
 
 use crate::image_io::{clamped, nchw_from_rgb, RgbImage};
 
@@ -265,13 +266,31 @@ fn level_mask(mask: &[bool], w: usize, h: usize, wl: usize, hl: usize) -> Vec<bo
     out
 }
 
+/// Whether `encoder` can encode a `height x width` image whole within `tile_budget` bytes of
+/// working memory: one tile of that budget covers every level.
+pub fn encodes_whole(encoder: &Encoder<f32>, hw: (usize, usize), tile_budget: u64) -> Result<bool> {
+    for level in 1..=encoder.depth() {
+        let (oh, ow) = encoder.output_size(hw, level)?;
+        let (bytes, halo) = encoder.tile_cost(hw, level)?;
+        if nets::tiled::tile_side(tile_budget, bytes, halo, oh, ow) < oh.max(ow) {
+            return Ok(false);
+        }
+    }
+    Ok(true)
+}
+
 /// The perceptual distance between image `a` and the warped image `b` on `mask` (see the
 /// module documentation); `None` when no level has a valid position.
+///
+/// The images are encoded whole when the encoder's working memory fits `tile_budget`
+/// ([`encodes_whole`]), else each level tile by tile (`Encoder::forward_region`, the same
+/// features bit for bit), summing the same per-position terms in another order.
 pub fn perceptual_distance(
     encoder: &Encoder<f32>,
     a: &RgbImage,
     warped: &RgbImage,
     mask: &[bool],
+    tile_budget: u64,
 ) -> Result<Option<f64>> {
     let (w, h) = (a.width as usize, a.height as usize);
     if (warped.width, warped.height) != (a.width, a.height) || mask.len() != w * h {
@@ -291,50 +310,85 @@ pub fn perceptual_distance(
     } else {
         encoder.clone().with_resolution(Resolution::Standard)
     };
-    let fa = enc.forward(nchw_from_rgb(&a).view())?;
-    let fb = enc.forward(nchw_from_rgb(&b).view())?;
+    let (xa, xb) = (nchw_from_rgb(&a), nchw_from_rgb(&b));
     let mut levels = Vec::new();
-    for (la, lb) in fa.iter().zip(&fb) {
-        if let Some(d) = level_distance(la, lb, mask, w, h) {
-            levels.push(d);
+    if encodes_whole(&enc, (h, w), tile_budget)? {
+        let fa = enc.forward(xa.view())?;
+        let fb = enc.forward(xb.view())?;
+        for (la, lb) in fa.iter().zip(&fb) {
+            let (_, _, hl, wl) = la.dim();
+            let valid = level_mask(mask, w, h, wl, hl);
+            let mut sum = LevelSum::default();
+            sum.add(la, lb, &valid, wl, (0, 0));
+            levels.extend(sum.mean());
+        }
+    } else {
+        for level in 1..=enc.depth() {
+            let (hl, wl) = enc.output_size((h, w), level)?;
+            let valid = level_mask(mask, w, h, wl, hl);
+            let (bytes, halo) = enc.tile_cost((h, w), level)?;
+            let side = nets::tiled::tile_side(tile_budget, bytes, halo, hl, wl);
+            let mut sum = LevelSum::default();
+            for r in nets::tiled::grid(hl, wl, side) {
+                let need = enc.input_region((h, w), level, r)?;
+                let encode = |x: &Array4<f32>| {
+                    let part = nets::tiled::crop(x.view(), &need);
+                    enc.forward_region(part.view(), (h, w), level, r)
+                };
+                sum.add(&encode(&xa)?, &encode(&xb)?, &valid, wl, (r.y0, r.x0));
+            }
+            levels.extend(sum.mean());
         }
     }
     Ok((!levels.is_empty()).then(|| levels.iter().sum::<f64>() / levels.len() as f64))
 }
 
-fn level_distance(
-    a: &Array4<f32>,
-    b: &Array4<f32>,
-    mask: &[bool],
-    w: usize,
-    h: usize,
-) -> Option<f64> {
-    let (_, c, hl, wl) = a.dim();
-    let valid = level_mask(mask, w, h, wl, hl);
-    let mut sum = 0.0f64;
-    let mut n = 0usize;
-    for y in 0..hl {
-        for x in 0..wl {
-            if !valid[y * wl + x] {
-                continue;
+/// The perceptual distance's sum over the valid positions of one level.
+#[derive(Default)]
+struct LevelSum {
+    sum: f64,
+    n: usize,
+}
+
+impl LevelSum {
+    /// Adds the valid positions of tiles `a` and `b` (`[1, C, h, w]`) whose first position is
+    /// `at` in a level `wl` wide, `valid` holding the whole level's positions.
+    fn add(
+        &mut self,
+        a: &Array4<f32>,
+        b: &Array4<f32>,
+        valid: &[bool],
+        wl: usize,
+        at: (usize, usize),
+    ) {
+        let (_, c, th, tw) = a.dim();
+        for y in 0..th {
+            for x in 0..tw {
+                if !valid[(at.0 + y) * wl + at.1 + x] {
+                    continue;
+                }
+                let na = (0..c)
+                    .map(|k| (a[[0, k, y, x]] as f64).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+                    + 1e-10;
+                let nb = (0..c)
+                    .map(|k| (b[[0, k, y, x]] as f64).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+                    + 1e-10;
+                self.sum += (0..c)
+                    .map(|k| (a[[0, k, y, x]] as f64 / na - b[[0, k, y, x]] as f64 / nb).powi(2))
+                    .sum::<f64>();
+                self.n += 1;
             }
-            let na = (0..c)
-                .map(|k| (a[[0, k, y, x]] as f64).powi(2))
-                .sum::<f64>()
-                .sqrt()
-                + 1e-10;
-            let nb = (0..c)
-                .map(|k| (b[[0, k, y, x]] as f64).powi(2))
-                .sum::<f64>()
-                .sqrt()
-                + 1e-10;
-            sum += (0..c)
-                .map(|k| (a[[0, k, y, x]] as f64 / na - b[[0, k, y, x]] as f64 / nb).powi(2))
-                .sum::<f64>();
-            n += 1;
         }
     }
-    (n > 0).then(|| sum / n as f64)
+
+    /// The mean over the positions added, `None` when there were none.
+    fn mean(&self) -> Option<f64> {
+        (self.n > 0).then(|| self.sum / self.n as f64)
+    }
 }
 
 /// Consistency of one pair.
@@ -378,7 +432,7 @@ pub fn compare_pair(
     check_image_size(image_i, view_i.camera)?;
     check_image_size(image_j, view_j.camera)?;
     let corr = correspond(view_i, view_j, opts)?;
-    compare_warped(image_i, image_j, &corr, encoder)
+    compare_warped(image_i, image_j, &corr, encoder, DEFAULT_TILE_BUDGET_BYTES)
 }
 
 /// Compares image `i` with image `j` warped into view `i` through their correspondence `corr`
@@ -388,6 +442,7 @@ fn compare_warped(
     image_j: &RgbImage,
     corr: &Correspondence,
     encoder: Option<&Encoder<f32>>,
+    tile_budget: u64,
 ) -> Result<PairMetrics> {
     let a = clamped(image_i);
     let bj = clamped(image_j);
@@ -400,7 +455,7 @@ fn compare_warped(
     let (squared_error, valid_pixels) = masked_squared_error(&a.data, &warped.data, &mask);
     let rmse = (valid_pixels > 0).then(|| (squared_error / (3 * valid_pixels) as f64).sqrt());
     let perceptual = match encoder {
-        Some(e) if valid_pixels > 0 => perceptual_distance(e, &a, &warped, &mask)?,
+        Some(e) if valid_pixels > 0 => perceptual_distance(e, &a, &warped, &mask, tile_budget)?,
         _ => None,
     };
     Ok(PairMetrics {
@@ -532,6 +587,8 @@ pub struct StreamedConsistency<'e> {
     offsets: Vec<usize>,
     opts: WarpOptions,
     encoder: Option<&'e Encoder<f32>>,
+    /// Working memory of the encoder in the perceptual distance ([`perceptual_distance`]).
+    tile_budget: u64,
     outputs: usize,
     window: VecDeque<StreamFrame>,
     /// Per output, per offset.
@@ -554,6 +611,7 @@ impl<'e> StreamedConsistency<'e> {
             offsets: offsets.to_vec(),
             opts,
             encoder,
+            tile_budget: DEFAULT_TILE_BUDGET_BYTES,
             outputs,
             window: VecDeque::new(),
             sums: (0..outputs)
@@ -561,6 +619,14 @@ impl<'e> StreamedConsistency<'e> {
                 .collect(),
             peak: 0,
         })
+    }
+
+    /// The same stream with the encoder's working memory in the perceptual distance bounded by
+    /// `tile_budget` bytes ([`perceptual_distance`]; default
+    /// [`train::bundle::DEFAULT_TILE_BUDGET_BYTES`]).
+    pub fn with_tile_budget(mut self, tile_budget: u64) -> Self {
+        self.tile_budget = tile_budget;
+        self
     }
 
     /// The most views the window keeps: the largest offset plus one.
@@ -596,7 +662,13 @@ impl<'e> StreamedConsistency<'e> {
             let corr = correspond(&earlier.view(), &view_j, &self.opts)?;
             for (o, sums) in self.sums.iter_mut().enumerate() {
                 let image_i = &earlier.images[o];
-                let m = compare_warped(image_i, &frame.images[o], &corr, self.encoder)?;
+                let m = compare_warped(
+                    image_i,
+                    &frame.images[o],
+                    &corr,
+                    self.encoder,
+                    self.tile_budget,
+                )?;
                 sums[k].add(&m, image_i.data.len() / 3);
             }
         }

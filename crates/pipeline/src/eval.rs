@@ -12,6 +12,10 @@
 //! * content loss: the mean squared difference of the deepest features of the output and of the
 //!   plain colour render of the same view, averaged over views.
 //!
+//! Frames are decoded in tiles within the tile budget, and encoded for the two losses and the
+//! perceptual distance whole when the budget allows, else tile by tile ([`FrameLosses`],
+//! [`crate::consistency::perceptual_distance`]).
+//!
 //! Existing frames (e.g. baked renders) are evaluated the same way against the geometry of a
 //! `.ply` or a bundle ([`evaluate_frames`]); the perceptual distance then needs a bundle's
 //! encoder.
@@ -28,8 +32,10 @@ use std::path::{Path, PathBuf};
 use crate::error::{bail, Context, Result};
 use gaussian::dataset::images::image_size;
 use gaussian::Camera;
+use ndarray::Array4;
 use nets::Encoder;
 use serde::{Deserialize, Serialize};
+use style::{ChannelMoments, ChannelStats};
 use train::SceneBundle;
 
 use crate::cameras::evenly_spaced;
@@ -138,6 +144,110 @@ fn check_same_size(cameras: &[Camera]) -> Result<(u32, u32)> {
     Ok((k.width, k.height))
 }
 
+/// The style and content losses of the decoded frames of one view: the style loss against a
+/// style's per-level statistics, the content loss against the deepest encoding of the view's
+/// colour render.
+///
+/// When one tile of the budget covers every level of the frame's encoding, the frames are
+/// encoded whole (`style::style_loss`, `style::content_loss`). Otherwise each level is encoded
+/// tile by tile (`Encoder::forward_region`, the same features bit for bit): its statistics are
+/// accumulated over the tiles ([`style::ChannelMoments`]) and the content loss's squared
+/// differences summed in `f64`, so no full-frame feature map is held; the losses then differ from
+/// the whole-frame ones only by the `f64` rounding of the other summation order.
+pub struct FrameLosses<'e> {
+    encoder: &'e Encoder<f32>,
+    colour: Array4<f32>,
+    /// The colour render's deepest level, when frames are encoded whole.
+    colour_deepest: Option<Array4<f32>>,
+    tile_budget: u64,
+}
+
+impl<'e> FrameLosses<'e> {
+    /// The losses of frames of the same size as `colour`, the view's colour render.
+    pub fn new(encoder: &'e Encoder<f32>, colour: &RgbImage, tile_budget: u64) -> Result<Self> {
+        let colour = nchw_from_rgb(colour);
+        let hw = (colour.dim().2, colour.dim().3);
+        let colour_deepest = if crate::consistency::encodes_whole(encoder, hw, tile_budget)? {
+            Some(
+                encoder
+                    .forward(colour.view())?
+                    .pop()
+                    .expect("encoder depth >= 1"),
+            )
+        } else {
+            None
+        };
+        Ok(FrameLosses {
+            encoder,
+            colour,
+            colour_deepest,
+            tile_budget,
+        })
+    }
+
+    /// Whether frames are encoded tile by tile.
+    pub fn tiled(&self) -> bool {
+        self.colour_deepest.is_none()
+    }
+
+    /// `(style loss, content loss)` of the decoded frame `image`.
+    pub fn of(&self, image: &RgbImage, style: &[ChannelStats<f32>]) -> Result<(f64, f64)> {
+        let x = nchw_from_rgb(image);
+        if x.dim() != self.colour.dim() {
+            bail!(
+                "a frame of {}x{} evaluated against a colour render of {}x{}",
+                x.dim().3,
+                x.dim().2,
+                self.colour.dim().3,
+                self.colour.dim().2
+            );
+        }
+        if let Some(colour_deepest) = &self.colour_deepest {
+            let f = self.encoder.forward(x.view())?;
+            let style_loss = style::style_loss(&f, style)? as f64;
+            let content =
+                style::content_loss(f.last().expect("encoder depth >= 1"), colour_deepest)?;
+            return Ok((style_loss, content as f64));
+        }
+        let enc = self.encoder;
+        let hw = (x.dim().2, x.dim().3);
+        let depth = enc.depth();
+        let mut stats = Vec::with_capacity(depth);
+        let (mut squares, mut count) = (0.0f64, 0usize);
+        for level in 1..=depth {
+            let (oh, ow) = enc.output_size(hw, level)?;
+            let (bytes, halo) = enc.tile_cost(hw, level)?;
+            let side = nets::tiled::tile_side(self.tile_budget, bytes, halo, oh, ow);
+            let mut moments = None;
+            for r in nets::tiled::grid(oh, ow, side) {
+                let need = enc.input_region(hw, level, r)?;
+                let encode = |img: &Array4<f32>| {
+                    let part = nets::tiled::crop(img.view(), &need);
+                    enc.forward_region(part.view(), hw, level, r)
+                };
+                let f = encode(&x)?;
+                moments
+                    .get_or_insert_with(|| ChannelMoments::new(f.dim().0, f.dim().1))
+                    .add(&f)?;
+                if level == depth {
+                    let fc = encode(&self.colour)?;
+                    squares += f
+                        .iter()
+                        .zip(fc.iter())
+                        .map(|(&a, &b)| (a as f64 - b as f64).powi(2))
+                        .sum::<f64>();
+                    count += f.len();
+                }
+            }
+            stats.push(moments.expect("a level has at least one tile").stats()?);
+        }
+        let style_loss = style::style_loss_of_stats(&stats, style)? as f64;
+        // Rounded to `f32` as the whole-frame content loss is.
+        let content = (squares / count as f64) as f32;
+        Ok((style_loss, content as f64))
+    }
+}
+
 /// Renders and evaluates the stylized sequences of a bundle, reporting one
 /// [`Stage::Evaluate`] unit per rendered or decoded view to `sink`.
 pub fn evaluate_bundle(
@@ -178,7 +288,8 @@ pub fn evaluate_bundle(
     )?;
     let encoder = &bundle.encoder;
     let mut tally = Tally::start(Stage::Evaluate, cameras.len() * (1 + outputs), sink);
-    let mut stream = stream(1 + targets.len(), &settings.warp, Some(encoder))?;
+    let mut stream = stream(1 + targets.len(), &settings.warp, Some(encoder))?
+        .with_tile_budget(settings.tile_budget);
     let mut seconds = StageSeconds::default();
     let mut decoded = 0usize;
     // Per target: the sums over the views of the style and content losses, in view order.
@@ -188,11 +299,7 @@ pub fn evaluate_bundle(
         let features = stylize::render_feature_view(bundle, c)?;
         tally.advance(1, "render");
         let colour_image = image_io::clamped(&colour.image);
-        let colour_deepest = encoder
-            .forward(nchw_from_rgb(&colour_image).view())?
-            .into_iter()
-            .last()
-            .expect("encoder depth >= 1");
+        let losses = FrameLosses::new(encoder, &colour_image, settings.tile_budget)?;
         let mut images = Vec::with_capacity(1 + targets.len());
         images.push(colour_image);
         for (target, (style_sum, content_sum)) in targets.iter().zip(&mut sums) {
@@ -207,10 +314,9 @@ pub fn evaluate_bundle(
             seconds.lift_transform += s.lift_transform;
             seconds.decode += s.decode;
             decoded += 1;
-            let f = encoder.forward(nchw_from_rgb(&img).view())?;
-            *style_sum += style::style_loss(&f, &target.stats.levels)? as f64;
-            *content_sum +=
-                style::content_loss(f.last().expect("encoder depth >= 1"), &colour_deepest)? as f64;
+            let (style_loss, content_loss) = losses.of(&img, &target.stats.levels)?;
+            *style_sum += style_loss;
+            *content_sum += content_loss;
             images.push(img);
             tally.advance(1, "decode");
         }

@@ -96,7 +96,7 @@ pub use error::{Result, StyleError};
 pub use fold::fold_style_transform;
 pub use loss::{
     align_loss, align_loss_backward, content_loss, content_loss_backward, l1, l1_backward, mse,
-    mse_backward, style_loss, style_loss_backward, AlignLoss,
+    mse_backward, style_loss, style_loss_backward, style_loss_of_stats, AlignLoss,
 };
 pub use objective::{
     align_target, decoder_training_loss, stage3_loss, DecoderLoss, Stage3Loss, Stage3Weights,
@@ -104,6 +104,6 @@ pub use objective::{
 pub use spatial::{adain_spatial, adain_spatial_backward, Region};
 pub use stats::{
     channel_stats, channel_stats_backward, masked_channel_stats, masked_channel_stats_backward,
-    resize_mask_nearest, ChannelStats, STATS_EPS,
+    resize_mask_nearest, ChannelMoments, ChannelStats, STATS_EPS,
 };
 pub use stylize::{encode_style, stylize, stylize_image};

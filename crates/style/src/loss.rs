@@ -159,9 +159,33 @@ fn check_levels<T: Real>(generated: &[Array4<T>], style: &[ChannelStats<T>]) -> 
 /// style's statistics given per level (computed once per style image).
 pub fn style_loss<T: Real>(generated: &[Array4<T>], style: &[ChannelStats<T>]) -> Result<T> {
     check_levels(generated, style)?;
+    let stats = generated
+        .iter()
+        .map(channel_stats)
+        .collect::<Result<Vec<_>>>()?;
+    style_loss_of_stats(&stats, style)
+}
+
+/// [`style_loss`] from the statistics of the generated levels (e.g. accumulated tile by tile,
+/// [`crate::ChannelMoments`]) instead of the levels themselves.
+pub fn style_loss_of_stats<T: Real>(
+    generated: &[ChannelStats<T>],
+    style: &[ChannelStats<T>],
+) -> Result<T> {
+    if generated.is_empty() || generated.len() != style.len() {
+        return Err(StyleError::Invalid {
+            what: "style loss",
+            problem: format!(
+                "statistics of {} generated feature levels for {} style levels (need the same, \
+                 at least one)",
+                generated.len(),
+                style.len()
+            ),
+        });
+    }
     let mut total = 0.0f64;
-    for (g, s) in generated.iter().zip(style) {
-        let gs = channel_stats(g)?;
+    for (gs, s) in generated.iter().zip(style) {
+        s.check_applies("style loss level statistics", gs.batch(), gs.channels())?;
         let k = gs.mean.len() as f64;
         total += stats_sq(&gs.mean, s, |x| &x.mean) / k + stats_sq(&gs.std, s, |x| &x.std) / k;
     }

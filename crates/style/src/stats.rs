@@ -161,6 +161,78 @@ fn stats_impl<T: Real>(x: &Array4<T>, mask: Option<&[bool]>) -> Result<ChannelSt
     Ok(ChannelStats { mean, std })
 }
 
+/// Per-channel statistics of a feature map seen one tile at a time: each tile's mean and sum
+/// of squared deviations in `f64` (two passes, as [`channel_stats`]), merged by the pairwise
+/// rule of Chan, Golub and LeVeque (`M2 = M2_a + M2_b + d^2 n_a n_b / n`, `d` the difference of
+/// the means). [`ChannelMoments::stats`] then gives what [`channel_stats`] gives for the whole
+/// map, up to the `f64` rounding of the different summation order.
+#[derive(Clone, Debug)]
+pub struct ChannelMoments {
+    batch: usize,
+    channels: usize,
+    /// Pixels seen per channel.
+    count: usize,
+    mean: Vec<f64>,
+    m2: Vec<f64>,
+}
+
+impl ChannelMoments {
+    /// Nothing seen yet, for feature maps `[batch, channels, _, _]`.
+    pub fn new(batch: usize, channels: usize) -> ChannelMoments {
+        ChannelMoments {
+            batch,
+            channels,
+            count: 0,
+            mean: vec![0.0; batch * channels],
+            m2: vec![0.0; batch * channels],
+        }
+    }
+
+    /// Adds the pixels of a tile `[batch, channels, h, w]`.
+    pub fn add<T: Real>(&mut self, tile: &Array4<T>) -> Result<()> {
+        let (n, c, h, w) = dims(tile);
+        check_shape("tile", &[n, c], &[self.batch, self.channels])?;
+        let k = h * w;
+        if k == 0 {
+            return Ok(());
+        }
+        let data = planes(tile);
+        let (na, nb) = (self.count as f64, k as f64);
+        let total = na + nb;
+        for (i, plane) in data.chunks(k).enumerate() {
+            let mean_b = plane.iter().map(|v| v.to_f64_exact()).sum::<f64>() / nb;
+            let m2_b: f64 = plane
+                .iter()
+                .map(|v| (v.to_f64_exact() - mean_b).powi(2))
+                .sum();
+            let d = mean_b - self.mean[i];
+            self.mean[i] += d * nb / total;
+            self.m2[i] += m2_b + d * d * na * nb / total;
+        }
+        self.count += k;
+        Ok(())
+    }
+
+    /// Mean and std (`sqrt(unbiased variance + STATS_EPS)`) of everything added, as
+    /// [`channel_stats`] of the whole map.
+    pub fn stats<T: Real>(&self) -> Result<ChannelStats<T>> {
+        if self.count < 2 {
+            return Err(StyleError::TooFewPixels {
+                what: "channel statistics",
+                count: self.count,
+            });
+        }
+        let var = |i: usize| self.m2[i] / (self.count as f64 - 1.0);
+        let c = self.channels;
+        Ok(ChannelStats {
+            mean: Array2::from_shape_fn((self.batch, c), |(n, j)| T::lit(self.mean[n * c + j])),
+            std: Array2::from_shape_fn((self.batch, c), |(n, j)| {
+                T::lit((var(n * c + j) + STATS_EPS).sqrt())
+            }),
+        })
+    }
+}
+
 /// Per-channel mean and std over all `H*W` pixels of `x` (`[N, C, H, W]`).
 pub fn channel_stats<T: Real>(x: &Array4<T>) -> Result<ChannelStats<T>> {
     stats_impl(x, None)

@@ -184,13 +184,7 @@ impl<T: Real> Decoder<T> {
     /// The region of an input of `input_hw` that the decoded image's region `out` depends on
     /// (see [`crate::tiled`]).
     pub fn input_region(&self, input_hw: (usize, usize), out: Region) -> Result<Region, NetError> {
-        let steps = self.steps();
-        sequential::check_shapes(
-            &steps,
-            (1, self.in_channels(), input_hw.0, input_hw.1),
-            "decoder",
-        )?;
-        Ok(tiled::input_regions(&steps, input_hw, out, "decoder")?[0])
+        Ok(tiled::plan(&self.steps(), self.in_channels(), input_hw, out, "decoder")?[0])
     }
 
     /// The region `out` of the image decoded from an input of `input_hw`, from `x`, which holds
@@ -203,12 +197,7 @@ impl<T: Real> Decoder<T> {
         out: Region,
     ) -> Result<Array4<T>, NetError> {
         let steps = self.steps();
-        sequential::check_shapes(
-            &steps,
-            (1, self.in_channels(), input_hw.0, input_hw.1),
-            "decoder",
-        )?;
-        let regions = tiled::input_regions(&steps, input_hw, out, "decoder")?;
+        let regions = tiled::plan(&steps, self.in_channels(), input_hw, out, "decoder")?;
         tiled::run_regions(&steps, &regions, x, "decoder")
     }
 

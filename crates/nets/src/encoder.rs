@@ -201,7 +201,11 @@ impl<T: Real> Encoder<T> {
         level: usize,
     ) -> Result<(usize, usize), NetError> {
         let steps = self.steps_to(level)?;
-        let dims = sequential::check_shapes(&steps, (1, 3, input_hw.0, input_hw.1), "encoder")?;
+        let dims = sequential::check_shapes(
+            &steps,
+            (1, self.in_channels(), input_hw.0, input_hw.1),
+            "encoder",
+        )?;
         let (_, _, h, w) = *dims.last().expect("one output per level");
         Ok((h, w))
     }
@@ -215,12 +219,7 @@ impl<T: Real> Encoder<T> {
         out: Region,
     ) -> Result<Region, NetError> {
         let steps = self.steps_to(level)?;
-        sequential::check_shapes(
-            &steps,
-            (1, self.in_channels(), input_hw.0, input_hw.1),
-            "encoder",
-        )?;
-        Ok(tiled::input_regions(&steps, input_hw, out, "encoder")?[0])
+        Ok(tiled::plan(&steps, self.in_channels(), input_hw, out, "encoder")?[0])
     }
 
     /// The region `out` of `relu{level}_1` of an image of `input_hw`, from `x`, which holds the
@@ -234,12 +233,7 @@ impl<T: Real> Encoder<T> {
         out: Region,
     ) -> Result<Array4<T>, NetError> {
         let steps = self.steps_to(level)?;
-        sequential::check_shapes(
-            &steps,
-            (1, self.in_channels(), input_hw.0, input_hw.1),
-            "encoder",
-        )?;
-        let regions = tiled::input_regions(&steps, input_hw, out, "encoder")?;
+        let regions = tiled::plan(&steps, self.in_channels(), input_hw, out, "encoder")?;
         tiled::run_regions(&steps, &regions, x, "encoder")
     }
 

@@ -200,6 +200,20 @@ pub(crate) fn input_regions<T: Real>(
     Ok(regions)
 }
 
+/// [`input_regions`] after checking that an input of `in_channels` channels and `input_hw`
+/// pixels can run through `steps` at all.
+pub(crate) fn plan<T: Real>(
+    steps: &[Step<'_, T>],
+    in_channels: usize,
+    input_hw: (usize, usize),
+    out: Region,
+    what: &str,
+) -> Result<Vec<Region>, NetError> {
+    let dim = (1, in_channels, input_hw.0, input_hw.1);
+    crate::sequential::check_shapes(steps, dim, what)?;
+    input_regions(steps, input_hw, out, what)
+}
+
 /// Runs `steps` on `x`, which holds `regions[0]` of the input, and returns `regions.last()` of
 /// the output ([`input_regions`] gives `regions`). Output steps are passed over: the result
 /// is the activation at the end of `steps`.

@@ -16,21 +16,6 @@ use nets::{conv, Decoder, Encoder, Lifter, Resolution};
 const TOL_F32: f64 = 1e-4;
 const TOL_F64: f64 = 1e-10;
 
-fn networks_f64(res: Resolution) -> (Encoder<f64>, Decoder<f64>) {
-    let fx = nets_fixture();
-    let mut enc: Encoder<f64> = Encoder::from_state_dict(&state_dict(&fx, "vgg."))
-        .unwrap()
-        .with_depth(4)
-        .unwrap()
-        .with_resolution(res);
-    exact_weights(enc.layers_mut(), &fx, "vgg.");
-    let mut dec: Decoder<f64> = Decoder::from_state_dict(&state_dict(&fx, "decoder."))
-        .unwrap()
-        .with_resolution(res);
-    exact_weights(dec.layers_mut(), &fx, "decoder.");
-    (enc, dec)
-}
-
 fn networks_f32(res: Resolution) -> (Encoder, Decoder) {
     let fx = nets_fixture();
     let enc = Encoder::from_state_dict(&state_dict(&fx, "vgg."))

@@ -21,21 +21,6 @@ use proptest::prelude::*;
 /// Bit-identical (see the module docs).
 const EXACT: f64 = 0.0;
 
-fn fixture_networks_f64(res: Resolution) -> (Encoder<f64>, Decoder<f64>) {
-    let fx = nets_fixture();
-    let mut enc: Encoder<f64> = Encoder::from_state_dict(&state_dict(&fx, "vgg."))
-        .unwrap()
-        .with_depth(4)
-        .unwrap()
-        .with_resolution(res);
-    exact_weights(enc.layers_mut(), &fx, "vgg.");
-    let mut dec: Decoder<f64> = Decoder::from_state_dict(&state_dict(&fx, "decoder."))
-        .unwrap()
-        .with_resolution(res);
-    exact_weights(dec.layers_mut(), &fx, "decoder.");
-    (enc, dec)
-}
-
 fn image<T: base::Real>(seed: u64, h: usize, w: usize) -> Array4<T> {
     TestRng::new(seed)
         .array4((1, 3, h, w))
@@ -78,7 +63,7 @@ proptest! {
         h in 16usize..44, w in 16usize..44, tile in 1usize..24, seed in any::<u64>(), fullres in any::<bool>(),
     ) {
         let res = if fullres { Resolution::Fullres } else { Resolution::Standard };
-        let (enc, dec) = fixture_networks_f64(res);
+        let (enc, dec) = networks_f64(res);
         check_networks(&enc, &dec, &image::<f64>(seed, h, w), tile, EXACT)?;
     }
 
@@ -87,7 +72,7 @@ proptest! {
         h in 16usize..44, w in 16usize..44, tile in 1usize..24, seed in any::<u64>(), fullres in any::<bool>(),
     ) {
         let res = if fullres { Resolution::Fullres } else { Resolution::Standard };
-        let (enc, dec) = fixture_networks_f64(res);
+        let (enc, dec) = networks_f64(res);
         check_networks(&enc.cast::<f32>(), &dec.cast::<f32>(), &image::<f32>(seed, h, w), tile, EXACT)?;
     }
 }
@@ -133,7 +118,7 @@ proptest! {
         corner in (0.0f64..1.0, 0.0f64..1.0, 0.0f64..1.0, 0.0f64..1.0),
     ) {
         let res = if fullres { Resolution::Fullres } else { Resolution::Standard };
-        let (enc, dec) = fixture_networks_f64(res);
+        let (enc, dec) = networks_f64(res);
         let x = image::<f64>(seed, h, w);
         let feats = enc.forward(x.view()).unwrap();
         let t = &feats[feats.len() - 1];
@@ -162,7 +147,7 @@ proptest! {
 
 #[test]
 fn a_bad_region_or_tile_input_is_an_error() {
-    let (enc, dec) = fixture_networks_f64(Resolution::Fullres);
+    let (enc, dec) = networks_f64(Resolution::Fullres);
     let x = image::<f64>(1, 32, 30);
     let t = enc.forward(x.view()).unwrap().pop().unwrap();
     let e = dec

@@ -31,6 +31,22 @@ pub fn exact_weights<'a>(
     }
 }
 
+/// The oracle's encoder (to relu4_1) and decoder in `f64` with the exact float64 weights.
+pub fn networks_f64(res: nets::Resolution) -> (nets::Encoder<f64>, nets::Decoder<f64>) {
+    let fx = nets_fixture();
+    let mut enc: nets::Encoder<f64> = nets::Encoder::from_state_dict(&state_dict(&fx, "vgg."))
+        .unwrap()
+        .with_depth(4)
+        .unwrap()
+        .with_resolution(res);
+    exact_weights(enc.layers_mut(), &fx, "vgg.");
+    let mut dec: nets::Decoder<f64> = nets::Decoder::from_state_dict(&state_dict(&fx, "decoder."))
+        .unwrap()
+        .with_resolution(res);
+    exact_weights(dec.layers_mut(), &fx, "decoder.");
+    (enc, dec)
+}
+
 /// Per-channel mean and standard deviation over H*W with the unbiased variance plus 1e-5 (the
 /// AdaIN statistics of the oracle), and the gradient of `sum(gm*mean) + sum(gs*std)` w.r.t. x.
 pub fn mean_std(x: ArrayView4<f64>) -> (Vec<f64>, Vec<f64>) {

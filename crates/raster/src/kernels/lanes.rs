@@ -331,28 +331,25 @@ fn for_each_bit(mut m: Mask, mut f: impl FnMut(usize)) {
     }
 }
 
-/// One Gaussian evaluated at a row's lanes: the scalar loops' `evaluate`, lane by lane.
-struct Eval {
-    /// Lanes where the Gaussian is not skipped.
-    hit: Mask,
-    falloff: [f32; LANES],
-    alpha: [f32; LANES],
-}
-
-/// Evaluates `s` at the pixel centres `cx` of the row with centre `cy`, for the lanes of
-/// `lanes`. `None` when no lane is hit, without evaluating the exponential.
+/// Evaluates `s` at the pixel centres `cx` of the row with centre `cy`: the scalar loops'
+/// `evaluate`, lane by lane, for the lanes of `lanes`. Writes every lane's falloff and alpha and
+/// returns the lanes where the Gaussian is not skipped. The exponential is evaluated on every
+/// lane (where the scalar loops skip it, its value is never used), so no branch depends on the
+/// data.
 ///
 /// The skip tests are the scalar loops' negated: `!(sigma.is_nan() || sigma < 0 || sigma > cut)`
 /// is `0 <= sigma && sigma <= cut` and `!(alpha.is_nan() || alpha < ALPHA_MIN)` is
 /// `ALPHA_MIN <= alpha`, as ordered comparisons are false on NaN.
 #[inline(always)]
-fn evaluate<I: LaneIsa>(
+fn evaluate_row<I: LaneIsa>(
     isa: I,
     s: &Splat<f32>,
     lanes: Mask,
     cx: &[f32; LANES],
     cy: f32,
-) -> Option<Eval> {
+    falloff: &mut [f32; LANES],
+    alpha: &mut [f32; LANES],
+) -> Mask {
     let dy = s.my - cy;
     let c_dy2 = s.c * (dy * dy);
     let mut sigma = [0f32; LANES];
@@ -361,16 +358,9 @@ fn evaluate<I: LaneIsa>(
         sigma[l] = 0.5 * (s.a * (dx * dx) + c_dy2) + s.b * dx * dy;
     }
     let hit = isa.le(&[0.0; LANES], &sigma) & isa.le(&sigma, &[s.sigma_cut; LANES]) & lanes;
-    if hit == 0 {
-        return None;
-    }
-    let falloff: [f32; LANES] = std::array::from_fn(|l| exp_f32(-sigma[l]));
-    let (alpha, _) = alphas(isa, s.opacity, &falloff);
-    Some(Eval {
-        hit: hit & isa.le(&[ALPHA_MIN as f32; LANES], &alpha),
-        falloff,
-        alpha,
-    })
+    *falloff = std::array::from_fn(|l| exp_f32(-sigma[l]));
+    (*alpha, _) = alphas(isa, s.opacity, falloff);
+    hit & isa.le(&[ALPHA_MIN as f32; LANES], alpha)
 }
 
 /// `min(ALPHA_MAX, opacity falloff)` of every lane as the scalar loops compute it
@@ -425,10 +415,16 @@ impl Walk {
         }
     }
 
-    /// Walks tile `t`'s Gaussians front to back, calling `blend(k, g, row, lanes, eval, front)`
-    /// for each Gaussian (position `k` in the tile list, id `g`) and tile row where some lane
-    /// blends it, with the transmittances in front of it. Stops when every pixel has stopped.
-    /// `channels` (`D` per Gaussian) is only prefetched.
+    /// Walks tile `t`'s Gaussians front to back, calling `blend(k, g, row, lanes, alpha,
+    /// falloff, front)` for each Gaussian (position `k` in the tile list, id `g`) and tile row
+    /// where some lane blends it, with the transmittances in front of it. Stops when every
+    /// pixel has stopped. `channels` (`D` per Gaussian) is only prefetched.
+    ///
+    /// Per Gaussian, every row it reaches is evaluated first, exponential included, with no
+    /// branch on the data: the rows are independent, so their long dependency chains overlap
+    /// (measured: a tenth to a fifth less time per pass than evaluating and stopping row by
+    /// row). Then the transmittance stop runs row by row; each pixel still sees the scalar
+    /// loops' operations in their order.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn run<I: LaneIsa>(
@@ -439,10 +435,11 @@ impl Walk {
         d: usize,
         bins: &TileBins,
         t: usize,
-        mut blend: impl FnMut(usize, usize, usize, Mask, &Eval, &[f32; LANES]),
+        mut blend: impl FnMut(usize, usize, usize, Mask, &[f32; LANES], &[f32; LANES], &[f32; LANES]),
     ) {
         let (x0, y0, _, y1) = bins.pixel_rect(t);
         let cx: [f32; LANES] = std::array::from_fn(|l| pixel_centre::<f32>(x0 + l as u32));
+        let cy: [f32; LANES] = std::array::from_fn(|r| pixel_centre::<f32>(y0 + r as u32));
         let ids = bins.tile(t);
         for (k, &g) in ids.iter().enumerate() {
             if let Some(&ahead) = ids.get(k + PREFETCH_AHEAD) {
@@ -452,15 +449,28 @@ impl Walk {
             }
             let ls = &packed[g as usize];
             let rows = row_mask(ls.rows, y0, y1) & self.live_rows;
+            let mut falloff = [[0f32; LANES]; LANES];
+            let mut alpha = [[0f32; LANES]; LANES];
+            let mut hit = [0 as Mask; LANES];
             for_each_bit(rows, |r| {
-                let cy = pixel_centre::<f32>(y0 + r as u32);
-                let Some(ev) = evaluate(isa, &ls.s, self.live[r], &cx, cy) else {
+                hit[r] = evaluate_row(
+                    isa,
+                    &ls.s,
+                    self.live[r],
+                    &cx,
+                    cy[r],
+                    &mut falloff[r],
+                    &mut alpha[r],
+                );
+            });
+            for_each_bit(rows, |r| {
+                if hit[r] == 0 {
                     return;
-                };
+                }
                 let (lanes, front) = advance(
                     isa,
-                    ev.hit,
-                    &ev.alpha,
+                    hit[r],
+                    &alpha[r],
                     &mut self.trans[r],
                     &mut self.live[r],
                 );
@@ -468,7 +478,7 @@ impl Walk {
                     self.live_rows &= !(1 << r);
                 }
                 if lanes != 0 {
-                    blend(k, g as usize, r, lanes, &ev, &front);
+                    blend(k, g as usize, r, lanes, &alpha[r], &falloff[r], &front);
                 }
             });
             if self.live_rows == 0 {
@@ -535,10 +545,10 @@ impl ForwardTile<'_, '_> {
             d,
             bins,
             t,
-            |_, g, r, lanes, ev, front| {
+            |_, g, r, lanes, alpha, _, front| {
                 let depth = packed[g].depth;
                 let col = splats.channels_of(g);
-                let w: [f32; LANES] = std::array::from_fn(|l| ev.alpha[l] * front[l]);
+                let w: [f32; LANES] = std::array::from_fn(|l| alpha[l] * front[l]);
                 let z_next: [f32; LANES] = std::array::from_fn(|l| z[r][l] + w[l] * depth);
                 z[r] = isa.select(lanes, &z_next, &z[r]);
                 for (l, n) in n[r].iter_mut().enumerate() {
@@ -627,13 +637,13 @@ impl BackwardTile<'_, '_> {
             d,
             bins,
             t,
-            |k, _, r, lanes, ev, front| {
+            |k, _, r, lanes, _, falloff, front| {
                 blended.push(RowBlend {
                     k: k as u32,
                     row: r as u32,
                     blend: lanes,
                     trans: *front,
-                    falloff: ev.falloff,
+                    falloff: *falloff,
                 })
             },
         );

@@ -273,26 +273,26 @@ pub fn rasterize_backward_with<T: Real>(
                 let g0 = chunk * GATHER_CHUNK;
                 // With `d == 0` the channel chunks are empty.
                 let mut channel_rows = channel_chunk.chunks_exact_mut(d.max(1));
-                for (i, (geo, cursor)) in
-                    geo_chunk.iter_mut().zip(next_chunk.iter_mut()).enumerate()
-                {
+                for (i, geo) in geo_chunk.iter_mut().enumerate() {
                     let mut no_channels: [T; 0] = [];
                     let dst_channels = if d > 0 {
                         channel_rows.next().expect("one channel row per Gaussian")
                     } else {
                         &mut no_channels[..]
                     };
-                    // The first record of a Gaussian a few ahead.
-                    if let Some(&j) = lists
-                        .start
-                        .get(g0 + i + GATHER_AHEAD)
-                        .and_then(|&c| lists.intersections.get(c))
-                    {
-                        let j = j as usize;
-                        if (begin..end).contains(&j) {
+                    // The records of a Gaussian a few ahead, from its cursor on.
+                    let ahead = g0 + i + GATHER_AHEAD;
+                    if ahead < g0 + next_chunk.len() {
+                        let from = next_chunk[i + GATHER_AHEAD];
+                        for &j in &lists.intersections[from..lists.start[ahead + 1]] {
+                            let j = j as usize;
+                            if j >= end {
+                                break;
+                            }
                             prefetch(&records[(j - begin) * stride..(j - begin + 1) * stride]);
                         }
                     }
+                    let cursor = &mut next_chunk[i];
                     let stop = lists.start[g0 + i + 1];
                     while *cursor < stop {
                         let j = lists.intersections[*cursor] as usize;
@@ -336,8 +336,8 @@ pub fn rasterize_backward_with<T: Real>(
 /// Gaussians per task of the gradient gather (any value gives the same result).
 const GATHER_CHUNK: usize = 2048;
 
-/// Gaussians ahead whose first record the gather prefetches.
-const GATHER_AHEAD: usize = 4;
+/// Gaussians ahead whose records the gather prefetches.
+const GATHER_AHEAD: usize = 8;
 
 /// The intersections of each Gaussian, ascending: Gaussian `g`'s are
 /// `intersections[start[g]..start[g + 1]]` (a counting sort of the tile lists by Gaussian).

@@ -4,7 +4,8 @@
 #
 #   benches/side_by_side.sh nets [PYTHON]   the fullres networks in dsgs and, when a Python with
 #                                           PyTorch is available (default: $DSGS_TORCH_PYTHON,
-#                                           then python3), the same passes in PyTorch
+#                                           then python3), the same passes in PyTorch, both
+#                                           with the dsgs binary's allocator setting
 #   benches/side_by_side.sh raster [--quick]
 #                                           the rasterizer's vector lane kernels against its
 #                                           scalar reference loops, forward and backward, on two
@@ -27,6 +28,9 @@ shift || true
 case "$what" in
 nets)
   py="${1:-${DSGS_TORCH_PYTHON:-python3}}"
+  # Both sides run with the allocator setting of the dsgs binary (see the raster case below), so
+  # that neither pays page faults for buffers the other keeps in its heap.
+  export MALLOC_MMAP_THRESHOLD_=1073741824 MALLOC_TRIM_THRESHOLD_=2147483647
   cargo bench -p dsgs-nets --bench networks
   if "$py" -c "import torch" 2>/dev/null; then
     "$py" benches/torch_networks.py 2

@@ -281,9 +281,8 @@ pub fn rasterize_backward_with<T: Real>(
                         &mut no_channels[..]
                     };
                     // The records of a Gaussian a few ahead, from its cursor on.
-                    let ahead = g0 + i + GATHER_AHEAD;
-                    if ahead < g0 + next_chunk.len() {
-                        let from = next_chunk[i + GATHER_AHEAD];
+                    if let Some(&from) = next_chunk.get(i + GATHER_AHEAD) {
+                        let ahead = g0 + i + GATHER_AHEAD;
                         for &j in &lists.intersections[from..lists.start[ahead + 1]] {
                             let j = j as usize;
                             if j >= end {

@@ -451,6 +451,13 @@ impl Walk {
         let cx: [f32; LANES] = std::array::from_fn(|l| pixel_centre::<f32>(x0 + l as u32));
         let cy: [f32; LANES] = std::array::from_fn(|r| pixel_centre::<f32>(y0 + r as u32));
         let ids = bins.tile(t);
+        // Per row of the current Gaussian, its evaluation (`EVERY_ROW`; otherwise only the
+        // first row is used, for the row being evaluated). Every entry read was written for the
+        // same Gaussian first: a row's falloff and alpha are read only when its hit is not
+        // empty, and its hit only when the row is in that Gaussian's rows.
+        let mut falloff = [[0f32; LANES]; LANES];
+        let mut alpha = [[0f32; LANES]; LANES];
+        let mut hit = [0 as Mask; LANES];
         for (k, &g) in ids.iter().enumerate() {
             if let Some(&ahead) = ids.get(k + PREFETCH_AHEAD) {
                 let ahead = ahead as usize;
@@ -459,9 +466,6 @@ impl Walk {
             }
             let ls = &packed[g as usize];
             let rows = row_mask(ls.rows, y0, y1) & self.live_rows;
-            let mut falloff = [[0f32; LANES]; LANES];
-            let mut alpha = [[0f32; LANES]; LANES];
-            let mut hit = [0 as Mask; LANES];
             // The transmittance stop of row `r`, then the blend.
             macro_rules! step {
                 ($r:expr, $hit:expr, $alpha:expr, $falloff:expr) => {{

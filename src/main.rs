@@ -28,6 +28,7 @@ use pipeline::fit_features::{FeatureOverrides, FitFeaturesConfig, FitFeaturesSet
 use pipeline::fit_geometry::{FitGeometryConfig, FitSettings, GeometryOverrides};
 use pipeline::pretrain_decoder::{DecoderOverrides, NetworkFiles, PretrainSettings};
 use pipeline::render::{DepthStyle, RenderKind, SceneInput};
+use pipeline::shard::{Invocation, Part, Shard};
 use pipeline::{Control, RunOutcome};
 use terminal::Terminal;
 use train::bake::STORED_SH_DEGREE;
@@ -65,6 +66,65 @@ enum Command {
     /// Run the whole pipeline on the lego scene at low resolution: geometry, features, a
     /// stylized orbit with four unseen styles, its evaluation, a contact sheet and GIFs.
     Demo(DemoArgs),
+    /// Merge the shards of a `stylize` or `eval` run made with `--shard K/N` into what one
+    /// process writes (animations, contact sheet, report), after checking that every shard
+    /// finished with the same inputs.
+    Assemble(AssembleArgs),
+}
+
+#[derive(Args)]
+struct AssembleArgs {
+    /// The sharded run's output: the folder of `stylize -o`, or the report of `eval -o`.
+    output: PathBuf,
+    /// No progress bar (a plain progress line at least every minute instead)
+    #[arg(long)]
+    no_progress: bool,
+}
+
+/// `--shard K/N`, shared by the commands that can be split over processes.
+#[derive(Args, Clone)]
+struct ShardArgs {
+    /// Run only shard K of N (K from 1 to N): a contiguous block of the frames, written as the
+    /// whole run writes them, and a manifest written last (`shards/` in the output); merge the
+    /// finished shards with `dsgs assemble OUTPUT` [default: the whole run]
+    #[arg(long, value_name = "K/N", value_parser = shard)]
+    shard: Option<Shard>,
+}
+
+fn shard(s: &str) -> Result<Shard, String> {
+    s.parse::<Shard>().map_err(|e| e.to_string())
+}
+
+impl ShardArgs {
+    /// The part of the run: the whole, or this shard with the command line that made it.
+    fn part(&self) -> Result<Part> {
+        let Some(shard) = self.shard else {
+            return Ok(Part::Whole);
+        };
+        Ok(Part::Shard {
+            shard,
+            invocation: Some(invocation()?),
+        })
+    }
+}
+
+/// This process's command line without `--shard`, and its working directory: what
+/// `dsgs assemble` runs again.
+fn invocation() -> Result<Invocation> {
+    let mut args = Vec::new();
+    let mut raw = std::env::args_os().skip(1);
+    while let Some(a) = raw.next() {
+        let Some(a) = a.to_str().map(str::to_string) else {
+            bail!("an argument is not valid UTF-8, so the shard's command line cannot be recorded for `dsgs assemble`: {a:?}");
+        };
+        if a == "--shard" {
+            raw.next();
+        } else if !a.starts_with("--shard=") {
+            args.push(a);
+        }
+    }
+    let cwd = std::env::current_dir().context("reading the working directory")?;
+    Ok(Invocation { args, cwd })
 }
 
 // ---- Help texts and value parsers ----
@@ -749,6 +809,8 @@ struct StylizeArgs {
     /// Views (columns) in the contact sheet (at least 1).
     #[arg(long, default_value_t = 4, value_parser = at_least_one::<usize>())]
     sheet_views: usize,
+    #[command(flatten)]
+    shard: ShardArgs,
     /// No progress bar (a plain progress line at least every minute instead)
     #[arg(long)]
     no_progress: bool,
@@ -778,6 +840,8 @@ struct EvalArgs {
     /// Write the report as JSON [default: none: the table only]
     #[arg(short, long)]
     output: Option<PathBuf>,
+    #[command(flatten)]
+    shard: ShardArgs,
     /// No progress bar (a plain progress line at least every minute instead)
     #[arg(long)]
     no_progress: bool,
@@ -987,9 +1051,16 @@ fn run(cli: Cli) -> Result<()> {
         Command::FitFeatures(a) => fit_features(a)?,
         Command::Bake(a) => bake(a)?,
         Command::Render(a) => render(a)?,
-        Command::Stylize(a) => stylize(a)?,
-        Command::Eval(a) => eval(a)?,
+        Command::Stylize(a) => {
+            let part = a.shard.part()?;
+            stylize(a, part)?
+        }
+        Command::Eval(a) => {
+            let part = a.shard.part()?;
+            eval(a, part)?
+        }
         Command::Demo(a) => demo(a)?,
+        Command::Assemble(a) => assemble(a)?,
     }
     Ok(())
 }
@@ -1240,7 +1311,7 @@ fn demo(a: DemoArgs) -> Result<()> {
     Ok(())
 }
 
-fn stylize(a: StylizeArgs) -> Result<()> {
+fn stylize(a: StylizeArgs, part: Part) -> Result<()> {
     if a.style.styles.is_empty() {
         bail!("give at least one --style image to stylize with");
     }
@@ -1262,33 +1333,58 @@ fn stylize(a: StylizeArgs) -> Result<()> {
         fps: a.fps,
         sheet_views: a.sheet_views,
         tile_budget: a.style.tile_budget << 20,
+        part: part.clone(),
     };
     let terminal = Terminal::new("stylize", !a.no_progress);
     let out = pipeline::stylize::run(&bundle, &cams, &settings, &terminal)?;
-    for (name, frames) in &out.outputs {
+    if let Part::Shard { shard, .. } = &part {
+        let r = shard.range(cams.len());
         println!(
-            "{name}: {} frames in {}",
-            frames.len(),
-            a.output.join(name).display()
+            "shard {shard}: frames {} to {} of {} written for {} output(s) in {}",
+            r.start,
+            r.end.saturating_sub(1),
+            cams.len(),
+            out.outputs.len(),
+            a.output.display()
         );
+        if let Some(m) = &out.manifest {
+            println!("manifest {}", m.display());
+        }
+        println!(
+            "when every shard has finished: dsgs assemble {}",
+            a.output.display()
+        );
+    } else {
+        for (name, _) in &out.outputs {
+            println!(
+                "{name}: {} frames in {}",
+                cams.len(),
+                a.output.join(name).display()
+            );
+        }
     }
     for p in out.gifs.iter().chain(&out.mp4s).chain(&out.contact_sheet) {
         println!("wrote {}", p.display());
     }
-    let s = out.seconds;
-    println!(
-        "seconds per view: raster {:.4}, lift+transform {:.4}, decode {:.4}",
-        s.raster, s.lift_transform, s.decode
-    );
+    if out.decoded > 0 {
+        let s = out.seconds;
+        println!(
+            "seconds per view: raster {:.4}, lift+transform {:.4}, decode {:.4}",
+            s.raster, s.lift_transform, s.decode
+        );
+    }
     Ok(())
 }
 
-fn eval(a: EvalArgs) -> Result<()> {
+fn eval(a: EvalArgs, part: Part) -> Result<()> {
     let warp = WarpOptions {
         alpha_threshold: a.alpha_threshold,
         depth_tolerance: a.depth_tolerance,
     };
     let terminal = Terminal::new("eval", !a.no_progress);
+    if part != Part::Whole && a.frames_dir.is_some() {
+        bail!("--shard splits the evaluation of a bundle's stylized frames, not of --frames-dir");
+    }
     let report = if let Some(frames_dir) = &a.frames_dir {
         let scene_path = a
             .scene
@@ -1320,9 +1416,38 @@ fn eval(a: EvalArgs) -> Result<()> {
             style_side: a.style.style_size,
             warp,
             tile_budget: a.style.tile_budget << 20,
+            part: part.clone(),
         };
         let name = dir.display().to_string();
-        pipeline::eval::evaluate_bundle(&bundle, &name, &cams, &settings, &terminal)?
+        if part == Part::Whole {
+            pipeline::eval::evaluate_bundle(&bundle, &name, &cams, &settings, &terminal)?
+        } else {
+            let Some(report) = &a.output else {
+                bail!("--shard needs the report path (-o REPORT.json): the shards' partial results go beside it");
+            };
+            let done = pipeline::eval::evaluate_sharded(
+                &bundle, &name, &cams, &settings, report, &terminal,
+            )?;
+            let Some(done) = done else {
+                let Part::Shard { shard, .. } = part else {
+                    unreachable!("only a shard returns no report")
+                };
+                let r = shard.range(cams.len());
+                println!(
+                    "shard {shard}: views {} to {} of {} evaluated; partial results in {}",
+                    r.start,
+                    r.end.saturating_sub(1),
+                    cams.len(),
+                    pipeline::eval::shard_dir(report).display()
+                );
+                println!(
+                    "when every shard has finished: dsgs assemble {}",
+                    report.display()
+                );
+                return Ok(());
+            };
+            done
+        }
     };
     print!("{}", pipeline::eval::table(&report));
     if let Some(p) = &a.output {
@@ -1330,6 +1455,82 @@ fn eval(a: EvalArgs) -> Result<()> {
         println!("report written to {}", p.display());
     }
     Ok(())
+}
+
+/// `dsgs assemble OUTPUT`: finds the shard manifests of OUTPUT, runs the recorded command line
+/// again (in its working directory) as the assembly of its shards, writing to OUTPUT.
+fn assemble(a: AssembleArgs) -> Result<()> {
+    let output = std::path::absolute(&a.output)
+        .with_context(|| format!("resolving {}", a.output.display()))?;
+    let places = [
+        (
+            pipeline::stylize::shard_dir(&output),
+            pipeline::stylize::SHARD_COMMAND,
+        ),
+        (
+            pipeline::eval::shard_dir(&output),
+            pipeline::eval::SHARD_COMMAND,
+        ),
+    ];
+    let mut found = None;
+    for (dir, command) in &places {
+        if dir.is_dir() {
+            let manifests = pipeline::shard::read_manifests(dir, command)?;
+            pipeline::shard::check_one_run(dir, &manifests)?;
+            if let Some((path, m)) = manifests.into_iter().next() {
+                found = Some((path, m));
+                break;
+            }
+        }
+    }
+    let Some((path, manifest)) = found else {
+        bail!(
+            "{}: no shard manifests in {} (stylize) or {} (eval): run the shards with --shard K/N first",
+            a.output.display(),
+            places[0].0.display(),
+            places[1].0.display()
+        );
+    };
+    let Some(inv) = manifest.invocation else {
+        bail!(
+            "{}: the manifest records no command line to assemble with",
+            path.display()
+        );
+    };
+    std::env::set_current_dir(&inv.cwd).with_context(|| {
+        format!(
+            "entering {}, the working directory of the shards (recorded in {})",
+            inv.cwd.display(),
+            path.display()
+        )
+    })?;
+    let cli = command()
+        .try_get_matches_from(std::iter::once("dsgs".to_string()).chain(inv.args))
+        .and_then(|m| Cli::from_arg_matches(&m))
+        .map_err(|e| {
+            anyhow::anyhow!(
+                "{}: the recorded command line does not parse any more: {}",
+                path.display(),
+                e.render()
+            )
+        })?;
+    match cli.command {
+        Command::Stylize(mut s) => {
+            s.output = output;
+            s.no_progress = a.no_progress;
+            stylize(s, Part::Assemble)
+        }
+        Command::Eval(mut e) => {
+            e.output = Some(output);
+            e.no_progress = a.no_progress;
+            eval(e, Part::Assemble)
+        }
+        _ => bail!(
+            "{}: a manifest of `{}`, which is not sharded",
+            path.display(),
+            manifest.command
+        ),
+    }
 }
 
 #[cfg(test)]

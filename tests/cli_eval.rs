@@ -164,6 +164,7 @@ fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
         warp: WarpOptions::default(),
         // Small enough for several tiles per frame.
         tile_budget: 1 << 20,
+        part: Default::default(),
     };
     let report = evaluate_bundle(&bundle, "tiny", &cams, &settings, &pipeline::Quiet).unwrap();
 

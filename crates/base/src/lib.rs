@@ -36,7 +36,9 @@
 #![warn(missing_docs)]
 
 pub mod fs;
+pub mod hash;
 pub mod real;
 
 pub use fs::{remove_unfinished_writes, write_atomic};
+pub use hash::{fnv1a_hex, Fnv1a};
 pub use real::{exp_f32, Real};

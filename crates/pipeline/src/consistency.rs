@@ -481,6 +481,34 @@ pub struct RangeMetrics {
     pub perceptual: Option<f64>,
 }
 
+/// One compared pair as the sums of its range take it: enough to add it again later
+/// ([`range_metrics`]), e.g. from the manifest of a shard.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PairRecord {
+    /// The pair's first view `i` in the sequence.
+    pub i: usize,
+    /// Pixels of view `i`.
+    pub pixels: usize,
+    /// Pixels of view `i` with a valid warp.
+    pub valid_pixels: usize,
+    /// Sum of squared differences over the masked pixels and the three channels.
+    pub squared_error: f64,
+    /// Perceptual distance, when there is one.
+    pub perceptual: Option<f64>,
+}
+
+impl PairRecord {
+    fn new(i: usize, m: &PairMetrics, pixels: usize) -> Self {
+        PairRecord {
+            i,
+            pixels,
+            valid_pixels: m.valid_pixels,
+            squared_error: m.squared_error,
+            perceptual: m.perceptual,
+        }
+    }
+}
+
 /// The running sums of one range: the pairs `(i, i + offset)` compared so far, added in the
 /// order of `i`.
 #[derive(Clone, Debug)]
@@ -505,12 +533,12 @@ impl RangeSums {
         }
     }
 
-    /// Adds pair `(i, i + offset)`, whose view `i` has `pixels` pixels.
-    fn add(&mut self, m: &PairMetrics, pixels: usize) {
+    /// Adds a pair `(i, i + offset)`.
+    fn add(&mut self, m: &PairRecord) {
         self.pairs += 1;
         self.squared_error += m.squared_error;
         self.valid += m.valid_pixels;
-        self.total += pixels;
+        self.total += m.pixels;
         if let Some(d) = m.perceptual {
             self.perceptual.push(d);
         }
@@ -533,6 +561,19 @@ impl RangeSums {
     }
 }
 
+/// The metrics of the pairs `(i, i + offset)` recorded in `pairs`, added in the order given
+/// (the order of `i`, as [`StreamedConsistency`] adds them): the same numbers, bit for bit, as
+/// the stream that recorded them, also when the records come from several streams over
+/// consecutive blocks of pairs ([`StreamedConsistency::with_pairs`]).
+pub fn range_metrics<'a>(
+    offset: usize,
+    pairs: impl IntoIterator<Item = &'a PairRecord>,
+) -> RangeMetrics {
+    let mut sums = RangeSums::new(offset);
+    pairs.into_iter().for_each(|p| sums.add(p));
+    sums.metrics()
+}
+
 /// Compares the pairs `(i, i + offset)` of `images` along `views`.
 pub fn sequence_consistency(
     images: &[RgbImage],
@@ -551,7 +592,7 @@ pub fn sequence_consistency(
     for i in 0..images.len().saturating_sub(offset) {
         let j = i + offset;
         let m = compare_pair(&images[i], &views[i], &images[j], &views[j], opts, encoder)?;
-        sums.add(&m, images[i].data.len() / 3);
+        sums.add(&PairRecord::new(i, &m, images[i].data.len() / 3));
     }
     Ok(sums.metrics())
 }
@@ -593,6 +634,14 @@ pub struct StreamedConsistency<'e> {
     window: VecDeque<StreamFrame>,
     /// Per output, per offset.
     sums: Vec<Vec<RangeSums>>,
+    /// Per output, per offset: the pairs added, in order.
+    log: Vec<Vec<Vec<PairRecord>>>,
+    /// Sequence index of the first view pushed.
+    first: usize,
+    /// Views pushed so far.
+    pushed: usize,
+    /// The first views `i` of the pairs compared.
+    pairs: std::ops::Range<usize>,
     peak: usize,
 }
 
@@ -617,8 +666,22 @@ impl<'e> StreamedConsistency<'e> {
             sums: (0..outputs)
                 .map(|_| offsets.iter().map(|&o| RangeSums::new(o)).collect())
                 .collect(),
+            log: vec![vec![Vec::new(); offsets.len()]; outputs],
+            first: 0,
+            pushed: 0,
+            pairs: 0..usize::MAX,
             peak: 0,
         })
+    }
+
+    /// The same stream for a part of the sequence: the first view pushed is view `first` of the
+    /// sequence, and only the pairs `(i, i + offset)` with `i` in `pairs` are compared (a
+    /// shard's block of a sequence: [`crate::shard`]). Feeding the views
+    /// `pairs.start .. pairs.end + max offset` of the sequence compares each of those pairs.
+    pub fn with_pairs(mut self, first: usize, pairs: std::ops::Range<usize>) -> Self {
+        self.first = first;
+        self.pairs = pairs;
+        self
     }
 
     /// The same stream with the encoder's working memory in the perceptual distance bounded by
@@ -654,13 +717,17 @@ impl<'e> StreamedConsistency<'e> {
         for img in &frame.images {
             check_image_size(img, &frame.camera)?;
         }
+        let j = self.first + self.pushed;
         for (k, &offset) in self.offsets.iter().enumerate() {
             let Some(at) = self.window.len().checked_sub(offset) else {
                 continue;
             };
+            if !self.pairs.contains(&(j - offset)) {
+                continue;
+            }
             let earlier = &self.window[at];
             let corr = correspond(&earlier.view(), &view_j, &self.opts)?;
-            for (o, sums) in self.sums.iter_mut().enumerate() {
+            for (o, (sums, log)) in self.sums.iter_mut().zip(&mut self.log).enumerate() {
                 let image_i = &earlier.images[o];
                 let m = compare_warped(
                     image_i,
@@ -669,15 +736,24 @@ impl<'e> StreamedConsistency<'e> {
                     self.encoder,
                     self.tile_budget,
                 )?;
-                sums[k].add(&m, image_i.data.len() / 3);
+                let record = PairRecord::new(j - offset, &m, image_i.data.len() / 3);
+                sums[k].add(&record);
+                log[k].push(record);
             }
         }
+        self.pushed += 1;
         self.window.push_back(frame);
         if self.window.len() > self.capacity() {
             self.window.pop_front();
         }
         self.peak = self.peak.max(self.window.len());
         Ok(())
+    }
+
+    /// The pairs compared, per output sequence and per offset in the order given, each in the
+    /// order of `i` (for [`range_metrics`]).
+    pub fn pair_records(&self) -> &[Vec<Vec<PairRecord>>] {
+        &self.log
     }
 
     /// The metrics of each output sequence, one per offset in the order given.

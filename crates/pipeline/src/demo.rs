@@ -405,6 +405,7 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
         fps: 12.0,
         sheet_views: 6,
         tile_budget: train::bundle::DEFAULT_TILE_BUDGET_BYTES,
+        part: Default::default(),
     };
     let inputs = record::Inputs::new(s, &bundle_dir, &settings)?;
     let stylize_record = record::path(&s.out_dir, "stylize");
@@ -442,6 +443,7 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
                 style_side: settings.style_side,
                 warp: WarpOptions::default(),
                 tile_budget: settings.tile_budget,
+                part: Default::default(),
             };
             let (eval, t) = timed(|| {
                 crate::eval::evaluate_bundle(
@@ -645,6 +647,8 @@ mod record {
                 gifs: self.gifs,
                 mp4s: Vec::new(),
                 contact_sheet: self.contact_sheet,
+                manifest: None,
+                decoded: 0,
                 seconds: StageSeconds {
                     raster,
                     lift_transform,

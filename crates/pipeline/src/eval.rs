@@ -39,9 +39,12 @@ use style::{ChannelMoments, ChannelStats};
 use train::SceneBundle;
 
 use crate::cameras::evenly_spaced;
-use crate::consistency::{RangeMetrics, StreamFrame, StreamedConsistency, WarpOptions};
+use crate::consistency::{
+    range_metrics, PairRecord, RangeMetrics, StreamFrame, StreamedConsistency, WarpOptions,
+};
 use crate::image_io::{self, nchw_from_rgb, RgbImage};
 use crate::render::{render_colour, SceneInput};
+use crate::shard::Part;
 use crate::stylize::{self, StageSeconds, COLOUR_VIEWS};
 use crate::{Sink, Stage, Tally};
 
@@ -111,6 +114,33 @@ pub struct EvalSettings {
     /// Working memory of the networks while decoding a frame, in bytes (`--tile-budget`, in
     /// MiB; see [`stylize::stylize_view`]).
     pub tile_budget: u64,
+    /// The whole evaluation, one shard of it (`--shard K/N`: the losses of its block of views
+    /// and the pairs that start in it, into a manifest), or the merge of the shards' partial
+    /// results into the report (`dsgs assemble`).
+    pub part: Part,
+}
+
+/// The name of the shard manifests of `dsgs eval` ([`crate::shard`]).
+pub const SHARD_COMMAND: &str = "eval";
+
+/// The folder of the shard manifests of an evaluation whose report goes to `report`: the same
+/// path with the extension `shards` (`report.json` -> `report.shards`).
+pub fn shard_dir(report: &Path) -> PathBuf {
+    report.with_extension("shards")
+}
+
+/// A shard's partial results ([`crate::shard::Manifest::data`]): what the report adds up.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ShardSums {
+    /// Per view of the shard's block, per target: `(style loss, content loss)`.
+    pub losses: Vec<Vec<(f64, f64)>>,
+    /// Per output (colour first), per offset (short, long): the pairs that start in the block.
+    pub pairs: Vec<Vec<Vec<PairRecord>>>,
+    /// Sums over the decoded views of the stage seconds.
+    pub seconds: StageSeconds,
+    /// Views decoded (views times targets, including the views after the block that its pairs
+    /// reach).
+    pub decoded: usize,
 }
 
 /// The offsets every output is compared at, short range first.
@@ -248,8 +278,31 @@ impl<'e> FrameLosses<'e> {
     }
 }
 
-/// Renders and evaluates the stylized sequences of a bundle, reporting one
-/// [`Stage::Evaluate`] unit per rendered or decoded view to `sink`.
+/// The fingerprint of an evaluation: the bundle, the cameras, the targets, the strength, the
+/// warp thresholds and the tile budget (the losses of frames encoded in tiles differ from whole
+/// ones in the last bits).
+fn fingerprint(
+    bundle: &SceneBundle,
+    cameras: &[Camera],
+    targets: &[stylize::StyleTarget],
+    settings: &EvalSettings,
+) -> String {
+    let mut h = base::Fnv1a::new();
+    h.eat_str(SHARD_COMMAND);
+    h.eat_str(&bundle.fingerprint());
+    h.eat_u64(cameras.len() as u64);
+    cameras.iter().for_each(|c| stylize::hash_camera(&mut h, c));
+    stylize::hash_targets(&mut h, targets);
+    h.eat_f64(settings.alpha);
+    h.eat_f32(settings.warp.alpha_threshold);
+    h.eat_f64(settings.warp.depth_tolerance);
+    h.eat_u64(settings.tile_budget);
+    h.hex()
+}
+
+/// Renders and evaluates the stylized sequences of a bundle in one process (`settings.part`
+/// must be [`Part::Whole`]; see [`evaluate_sharded`]), reporting one [`Stage::Evaluate`] unit
+/// per rendered or decoded view to `sink`.
 pub fn evaluate_bundle(
     bundle: &SceneBundle,
     scene_name: &str,
@@ -257,6 +310,41 @@ pub fn evaluate_bundle(
     settings: &EvalSettings,
     sink: &dyn Sink,
 ) -> Result<EvalReport> {
+    if settings.part != Part::Whole {
+        bail!("a shard or an assembly of an evaluation needs its report path (evaluate_sharded)");
+    }
+    Ok(evaluate(bundle, scene_name, cameras, settings, None, sink)?.expect("a whole run reports"))
+}
+
+/// [`evaluate_bundle`] for any part of a run whose report goes to `report`:
+///
+/// * [`Part::Whole`]: the report;
+/// * [`Part::Shard`]: the losses of the shard's block of views and the pairs
+///   `(i, i + offset)` that start in it (rendering the views up to `LONG_RANGE` past it), into
+///   the manifest `{shard_dir(report)}/eval-K-of-N.json`; returns `Ok(None)`;
+/// * [`Part::Assemble`]: the shards' partial results added up in sequence order: the
+///   one-process report bit for bit, but for the measured seconds.
+pub fn evaluate_sharded(
+    bundle: &SceneBundle,
+    scene_name: &str,
+    cameras: &[Camera],
+    settings: &EvalSettings,
+    report: &Path,
+    sink: &dyn Sink,
+) -> Result<Option<EvalReport>> {
+    let dir = shard_dir(report);
+    evaluate(bundle, scene_name, cameras, settings, Some(&dir), sink)
+}
+
+fn evaluate(
+    bundle: &SceneBundle,
+    scene_name: &str,
+    cameras: &[Camera],
+    settings: &EvalSettings,
+    shard_dir: Option<&Path>,
+    sink: &dyn Sink,
+) -> Result<Option<EvalReport>> {
+    let started = std::time::Instant::now();
     stylize::check_style_settings(
         settings.alpha,
         settings.weights.as_deref(),
@@ -265,10 +353,10 @@ pub fn evaluate_bundle(
     crate::cameras::check_camera_sizes(cameras)?;
     let (width, height) = check_same_size(cameras)?;
     let styles = stylize::load_styles(&settings.styles, settings.style_side)?;
-    let outputs = if settings.weights.is_some() {
-        1
-    } else {
-        styles.len()
+    let shard_dir = match (&settings.part, shard_dir) {
+        (Part::Whole, _) => None,
+        (_, Some(d)) => Some(d),
+        (_, None) => bail!("a sharded evaluation needs a report path (--output REPORT.json)"),
     };
     let content = if settings.preserve_colour {
         // The colour content needs a few views before the stream starts; rendering is
@@ -286,23 +374,146 @@ pub fn evaluate_bundle(
         settings.weights.as_deref(),
         content.as_ref(),
     )?;
+    let fingerprint = fingerprint(bundle, cameras, &targets, settings);
+    let n = cameras.len();
+    let sums: Vec<ShardSums> = match (&settings.part, shard_dir) {
+        (Part::Assemble, Some(dir)) => {
+            let manifests = crate::shard::collect(
+                dir,
+                &crate::shard::Expected {
+                    command: SHARD_COMMAND,
+                    fingerprint: &fingerprint,
+                    items: n,
+                    root: dir,
+                },
+            )?;
+            manifests
+                .into_iter()
+                .map(|m| {
+                    serde_json::from_value(m.data).with_context(|| {
+                        format!(
+                            "{}: the partial results of shard {} are not readable",
+                            dir.display(),
+                            m.shard
+                        )
+                    })
+                })
+                .collect::<Result<_>>()?
+        }
+        _ => {
+            let block = settings.part.range(n);
+            let views = block.start..(block.end + LONG_RANGE).min(n);
+            let views = if block.is_empty() { 0..0 } else { views };
+            let part = evaluate_block(
+                bundle,
+                cameras,
+                &targets,
+                settings,
+                block.clone(),
+                views,
+                sink,
+            )?;
+            if let (Part::Shard { shard, invocation }, Some(dir)) = (&settings.part, shard_dir) {
+                let manifest = crate::shard::Manifest {
+                    format: crate::shard::MANIFEST_FORMAT.into(),
+                    command: SHARD_COMMAND.into(),
+                    shard: *shard,
+                    items: n,
+                    range: block,
+                    fingerprint,
+                    invocation: invocation.clone(),
+                    files: Vec::new(),
+                    seconds: started.elapsed().as_secs_f64(),
+                    data: serde_json::to_value(&part).context("serialising the shard's sums")?,
+                };
+                crate::shard::write_manifest(dir, &manifest)?;
+                return Ok(None);
+            }
+            vec![part]
+        }
+    };
+
+    // The report: losses summed over the views in sequence order, pairs added in the order of
+    // their first view, as one stream over the whole sequence adds them.
+    let outputs = 1 + targets.len();
+    let views = n as f64;
+    let mut reports = Vec::with_capacity(outputs);
+    for o in 0..outputs {
+        let range = |k: usize, offset: usize| {
+            range_metrics(offset, sums.iter().flat_map(|s| &s.pairs[o][k]))
+        };
+        let (style_loss, content_loss) = if o == 0 {
+            (None, None)
+        } else {
+            let (mut style_sum, mut content_sum) = (0.0f64, 0.0f64);
+            for (style, content) in sums.iter().flat_map(|s| &s.losses).map(|l| l[o - 1]) {
+                style_sum += style;
+                content_sum += content;
+            }
+            (Some(style_sum / views), Some(content_sum / views))
+        };
+        reports.push(OutputReport {
+            name: if o == 0 {
+                "colour".into()
+            } else {
+                targets[o - 1].name.clone()
+            },
+            short_range: range(0, SHORT_RANGE),
+            long_range: range(1, LONG_RANGE),
+            style_loss,
+            content_loss,
+        });
+    }
+    let decoded: usize = sums.iter().map(|s| s.decoded).sum();
+    let d = decoded.max(1) as f64;
+    let total = |f: fn(&StageSeconds) -> f64| sums.iter().map(|s| f(&s.seconds)).sum::<f64>() / d;
+    Ok(Some(EvalReport {
+        scene: scene_name.to_string(),
+        variant: Some(bundle.info.variant.as_str().to_string()),
+        alpha: Some(settings.alpha),
+        frames: n,
+        width,
+        height,
+        warp: settings.warp,
+        outputs: reports,
+        seconds_per_view: Some(StageSeconds {
+            raster: total(|s| s.raster),
+            lift_transform: total(|s| s.lift_transform),
+            decode: total(|s| s.decode),
+        }),
+    }))
+}
+
+/// Renders, stylizes and compares the views `views` of the sequence: the losses of the views
+/// in `block` and the pairs that start in it.
+fn evaluate_block(
+    bundle: &SceneBundle,
+    cameras: &[Camera],
+    targets: &[stylize::StyleTarget],
+    settings: &EvalSettings,
+    block: std::ops::Range<usize>,
+    views: std::ops::Range<usize>,
+    sink: &dyn Sink,
+) -> Result<ShardSums> {
     let encoder = &bundle.encoder;
-    let mut tally = Tally::start(Stage::Evaluate, cameras.len() * (1 + outputs), sink);
+    let mut tally = Tally::start(Stage::Evaluate, views.len() * (1 + targets.len()), sink);
     let mut stream = stream(1 + targets.len(), &settings.warp, Some(encoder))?
-        .with_tile_budget(settings.tile_budget);
-    let mut seconds = StageSeconds::default();
-    let mut decoded = 0usize;
-    // Per target: the sums over the views of the style and content losses, in view order.
-    let mut sums = vec![(0.0f64, 0.0f64); targets.len()];
-    for c in cameras {
+        .with_tile_budget(settings.tile_budget)
+        .with_pairs(views.start, block.clone());
+    let mut out = ShardSums::default();
+    for (i, c) in cameras.iter().enumerate().take(views.end).skip(views.start) {
         let colour = render_colour(&bundle.scene, c, bundle.info.background)?;
         let features = stylize::render_feature_view(bundle, c)?;
         tally.advance(1, "render");
         let colour_image = image_io::clamped(&colour.image);
-        let losses = FrameLosses::new(encoder, &colour_image, settings.tile_budget)?;
+        let losses = block
+            .contains(&i)
+            .then(|| FrameLosses::new(encoder, &colour_image, settings.tile_budget))
+            .transpose()?;
         let mut images = Vec::with_capacity(1 + targets.len());
         images.push(colour_image);
-        for (target, (style_sum, content_sum)) in targets.iter().zip(&mut sums) {
+        let mut view_losses = Vec::with_capacity(targets.len());
+        for target in targets {
             let (img, s) = stylize::stylize_view(
                 bundle,
                 &features,
@@ -310,15 +521,18 @@ pub fn evaluate_bundle(
                 settings.alpha,
                 settings.tile_budget,
             )?;
-            seconds.raster += s.raster;
-            seconds.lift_transform += s.lift_transform;
-            seconds.decode += s.decode;
-            decoded += 1;
-            let (style_loss, content_loss) = losses.of(&img, &target.stats.levels)?;
-            *style_sum += style_loss;
-            *content_sum += content_loss;
+            out.seconds.raster += s.raster;
+            out.seconds.lift_transform += s.lift_transform;
+            out.seconds.decode += s.decode;
+            out.decoded += 1;
+            if let Some(l) = &losses {
+                view_losses.push(l.of(&img, &target.stats.levels)?);
+            }
             images.push(img);
             tally.advance(1, "decode");
+        }
+        if losses.is_some() {
+            out.losses.push(view_losses);
         }
         drop(features);
         stream.push(StreamFrame {
@@ -328,43 +542,12 @@ pub fn evaluate_bundle(
             images,
         })?;
     }
-    let mut ranges = ranges(stream).into_iter();
-    let (short, long) = ranges.next().expect("the colour output");
-    let mut reports = vec![OutputReport {
-        name: "colour".into(),
-        short_range: short,
-        long_range: long,
-        style_loss: None,
-        content_loss: None,
-    }];
-    let views = cameras.len() as f64;
-    for ((target, (style_sum, content_sum)), (short, long)) in targets.iter().zip(sums).zip(ranges)
-    {
-        reports.push(OutputReport {
-            name: target.name.clone(),
-            short_range: short,
-            long_range: long,
-            style_loss: Some(style_sum / views),
-            content_loss: Some(content_sum / views),
-        });
+    out.pairs = stream.pair_records().to_vec();
+    if out.pairs.is_empty() {
+        out.pairs = vec![vec![Vec::new(); OFFSETS.len()]; 1 + targets.len()];
     }
-    let n = decoded.max(1) as f64;
     tally.finish();
-    Ok(EvalReport {
-        scene: scene_name.to_string(),
-        variant: Some(bundle.info.variant.as_str().to_string()),
-        alpha: Some(settings.alpha),
-        frames: cameras.len(),
-        width,
-        height,
-        warp: settings.warp,
-        outputs: reports,
-        seconds_per_view: Some(StageSeconds {
-            raster: seconds.raster / n,
-            lift_transform: seconds.lift_transform / n,
-            decode: seconds.decode / n,
-        }),
-    })
+    Ok(out)
 }
 
 /// The PNG files of a directory, sorted by name.

@@ -90,6 +90,7 @@ pub mod fit_geometry;
 pub mod image_io;
 pub mod pretrain_decoder;
 pub mod render;
+pub mod shard;
 pub mod stylize;
 pub mod weights;
 

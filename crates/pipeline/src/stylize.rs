@@ -41,6 +41,7 @@ use train::{SceneBundle, Variant};
 use crate::cameras::evenly_spaced;
 use crate::image_io::{self, rgb_from_nchw, RgbImage};
 use crate::render::{render_colour, ColourRender};
+use crate::shard::Part;
 use crate::{Sink, Stage, Tally};
 
 /// Camera views whose colour renders make the content of colour preservation.
@@ -358,12 +359,16 @@ pub struct StylizeSettings {
     /// Working memory of the networks per frame, in bytes (`--tile-budget`, in MiB): frames
     /// are decoded in tiles that fit it ([`SceneBundle::decode_in_tiles`]).
     pub tile_budget: u64,
+    /// The whole run, one shard of it (`--shard K/N`: its frames and manifest), or the merge of
+    /// the shards (`dsgs assemble`).
+    pub part: Part,
 }
 
 /// What `dsgs stylize` wrote.
 #[derive(Clone, Debug, Default)]
 pub struct StylizeOutput {
-    /// Per output: its name and frame paths.
+    /// Per output: its name and the frame paths this call wrote (a shard: its block; an
+    /// assembly: none).
     pub outputs: Vec<(String, Vec<PathBuf>)>,
     /// The animated GIFs, one per output (with `gif`).
     pub gifs: Vec<PathBuf>,
@@ -371,8 +376,25 @@ pub struct StylizeOutput {
     pub mp4s: Vec<PathBuf>,
     /// The contact sheet: a row per output under the colour row, its style in the first column.
     pub contact_sheet: Option<PathBuf>,
-    /// Mean stage seconds per view.
+    /// The shard's manifest (a shard only).
+    pub manifest: Option<PathBuf>,
+    /// Frames decoded by this call (views times outputs).
+    pub decoded: usize,
+    /// Mean stage seconds per view of the frames this call decoded.
     pub seconds: StageSeconds,
+}
+
+/// The name of the shard manifests of `dsgs stylize` ([`crate::shard`]).
+pub const SHARD_COMMAND: &str = "stylize";
+
+/// The folder of the shard manifests of a stylization into `out_dir`.
+pub fn shard_dir(out_dir: &Path) -> PathBuf {
+    out_dir.join("shards")
+}
+
+/// The path of frame `i` of output `name`.
+pub fn frame_path(out_dir: &Path, name: &str, i: usize) -> PathBuf {
+    out_dir.join(name).join(format!("frame_{i:04}.png"))
 }
 
 /// Colour renders of the views at `indices`.
@@ -387,17 +409,70 @@ pub fn colour_renders(
         .collect()
 }
 
+/// Feeds a camera's intrinsics and pose bits to `h`.
+pub(crate) fn hash_camera(h: &mut base::Fnv1a, c: &Camera) {
+    let k = c.intrinsics;
+    for v in [k.fx, k.fy, k.cx, k.cy] {
+        h.eat_f64(v);
+    }
+    h.eat_u64(k.width as u64);
+    h.eat_u64(k.height as u64);
+    c.camera_from_world
+        .to_cols_array()
+        .iter()
+        .for_each(|&v| h.eat_f64(v));
+}
+
+/// Feeds the name and every level's statistics of each target to `h`.
+pub(crate) fn hash_targets(h: &mut base::Fnv1a, targets: &[StyleTarget]) {
+    for t in targets {
+        h.eat_str(&t.name);
+        for l in &t.stats.levels {
+            l.mean
+                .iter()
+                .chain(l.std.iter())
+                .for_each(|&v| h.eat_f32(v));
+        }
+    }
+}
+
+/// The fingerprint of a stylization: the bundle ([`SceneBundle::fingerprint`]), the cameras,
+/// the targets and the strength; every frame of the run is a function of these.
+fn fingerprint(
+    bundle: &SceneBundle,
+    cameras: &[Camera],
+    targets: &[StyleTarget],
+    alpha: f64,
+) -> String {
+    let mut h = base::Fnv1a::new();
+    h.eat_str(SHARD_COMMAND);
+    h.eat_str(&bundle.fingerprint());
+    h.eat_u64(cameras.len() as u64);
+    cameras.iter().for_each(|c| hash_camera(&mut h, c));
+    hash_targets(&mut h, targets);
+    h.eat_f64(alpha);
+    h.hex()
+}
+
 /// Runs `dsgs stylize` on a loaded bundle along `cameras`, reporting one [`Stage::Stylize`]
 /// unit per rasterized view and per decoded frame to `sink`.
+///
+/// Frames are rasterized and decoded one camera at a time (every output of a camera from its
+/// one feature map) and written as they are made. The animations and the contact sheet are
+/// then made from the written frames, read back, so that a run in shards
+/// ([`Part::Shard`], then [`Part::Assemble`]) gives the same files byte for byte.
 pub fn run(
     bundle: &SceneBundle,
     cameras: &[Camera],
     settings: &StylizeSettings,
     sink: &dyn Sink,
 ) -> Result<StylizeOutput> {
+    let started = Instant::now();
     if cameras.is_empty() {
         bail!("no cameras to render");
     }
+    let part = &settings.part;
+    let merges = !matches!(part, Part::Shard { .. });
     // Fail early on everything that does not need rendering: the settings, the cameras' sizes,
     // ffmpeg, and every style image, decoded before the first frame.
     check_style_settings(
@@ -406,18 +481,16 @@ pub fn run(
         settings.styles.len(),
     )?;
     crate::cameras::check_camera_sizes(cameras)?;
-    let ffmpeg = if settings.mp4 {
+    let ffmpeg = if settings.mp4 && merges {
         Some(image_io::ffmpeg()?)
     } else {
         None
     };
     let styles = load_styles(&settings.styles, settings.style_side)?;
-    std::fs::create_dir_all(&settings.out_dir)
-        .with_context(|| format!("creating {}", settings.out_dir.display()))?;
+    let out_dir = &settings.out_dir;
+    std::fs::create_dir_all(out_dir).with_context(|| format!("creating {}", out_dir.display()))?;
 
-    let sheet_idx = evenly_spaced(cameras.len(), settings.sheet_views.max(1));
     let colour_idx = evenly_spaced(cameras.len(), COLOUR_VIEWS);
-    let sheet_colour = colour_renders(bundle, cameras, &sheet_idx)?;
     let content = if settings.preserve_colour {
         let renders = colour_renders(bundle, cameras, &colour_idx)?;
         let imgs: Vec<&RgbImage> = renders.iter().map(|r| &r.image).collect();
@@ -431,17 +504,85 @@ pub fn run(
         settings.weights.as_deref(),
         content.as_ref(),
     )?;
-
-    let mut tally = Tally::start(Stage::Stylize, cameras.len() * (1 + targets.len()), sink);
-    let mut views = Vec::with_capacity(cameras.len());
-    for c in cameras {
-        views.push(render_feature_view(bundle, c)?);
-        tally.advance(1, "rasterize");
+    let fingerprint = fingerprint(bundle, cameras, &targets, settings.alpha);
+    if *part == Part::Assemble {
+        crate::shard::collect(
+            &shard_dir(out_dir),
+            &crate::shard::Expected {
+                command: SHARD_COMMAND,
+                fingerprint: &fingerprint,
+                items: cameras.len(),
+                root: out_dir,
+            },
+        )?;
     }
-    let mut out = StylizeOutput::default();
-    // The sheet's first column shows each row's style (white for the colour row, black for a
-    // mixture of several styles); its cells are the frames, reduced if the sheet would be too
-    // large.
+
+    let range = part.range(cameras.len());
+    let mut tally = Tally::start(Stage::Stylize, range.len() * (1 + targets.len()), sink);
+    let mut out = StylizeOutput {
+        outputs: targets
+            .iter()
+            .map(|t| (t.name.clone(), Vec::new()))
+            .collect(),
+        ..Default::default()
+    };
+    let mut total = StageSeconds::default();
+    for i in range.clone() {
+        let view = render_feature_view(bundle, &cameras[i])?;
+        total.raster += view.raster_seconds;
+        tally.advance(1, "rasterize");
+        for (target, (_, frames)) in targets.iter().zip(&mut out.outputs) {
+            let (img, s) =
+                stylize_view(bundle, &view, target, settings.alpha, settings.tile_budget)?;
+            total.lift_transform += s.lift_transform;
+            total.decode += s.decode;
+            out.decoded += 1;
+            let path = frame_path(out_dir, &target.name, i);
+            image_io::write_png(&path, &img)?;
+            frames.push(path);
+            tally.advance(1, "decode");
+        }
+    }
+    let views = range.len().max(1) as f64;
+    let n = out.decoded.max(1) as f64;
+    out.seconds = StageSeconds {
+        raster: total.raster / views,
+        lift_transform: total.lift_transform / n,
+        decode: total.decode / n,
+    };
+
+    if let Part::Shard { shard, invocation } = part {
+        let files = out
+            .outputs
+            .iter()
+            .flat_map(|(_, frames)| frames)
+            .map(|p| crate::shard::record_file(out_dir, p))
+            .collect::<Result<Vec<_>>>()?;
+        let manifest = crate::shard::Manifest {
+            format: crate::shard::MANIFEST_FORMAT.into(),
+            command: SHARD_COMMAND.into(),
+            shard: *shard,
+            items: cameras.len(),
+            range,
+            fingerprint,
+            invocation: invocation.clone(),
+            files,
+            seconds: started.elapsed().as_secs_f64(),
+            data: serde_json::Value::Null,
+        };
+        out.manifest = Some(crate::shard::write_manifest(
+            &shard_dir(out_dir),
+            &manifest,
+        )?);
+        tally.finish();
+        return Ok(out);
+    }
+
+    // The animations and the contact sheet, from the frames on disk. The sheet's first column
+    // shows each row's style (white for the colour row, black for a mixture of several
+    // styles); its cells are the frames, reduced if the sheet would be too large.
+    let sheet_idx = evenly_spaced(cameras.len(), settings.sheet_views.max(1));
+    let sheet_colour = colour_renders(bundle, cameras, &sheet_idx)?;
     let (cw, ch) = image_io::sheet_cell_size(
         cameras[0].intrinsics.width,
         cameras[0].intrinsics.height,
@@ -457,59 +598,40 @@ pub fn run(
     let mut sheet_rows = vec![std::iter::once(corner)
         .chain(sheet_colour.iter().map(|r| cell(&r.image)))
         .collect::<Vec<_>>()];
-    let mut total = StageSeconds::default();
-    let mut decoded = 0usize;
-    for target in &targets {
-        let dir = settings.out_dir.join(&target.name);
-        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-        let mut frames = Vec::new();
+    for (t, target) in targets.iter().enumerate() {
+        let mut row = vec![match (settings.weights.is_some(), styles.get(t)) {
+            (false, Some(st)) => image_io::thumbnail(&st.image, cw, ch),
+            _ => image_io::blank(cw, ch),
+        }];
         let mut gif_frames = Vec::new();
-        let mut row = vec![
-            match (settings.weights.is_some(), styles.get(out.outputs.len())) {
-                (false, Some(st)) => image_io::thumbnail(&st.image, cw, ch),
-                _ => image_io::blank(cw, ch),
-            },
-        ];
-        for (i, v) in views.iter().enumerate() {
-            let (img, s) = stylize_view(bundle, v, target, settings.alpha, settings.tile_budget)?;
-            total.raster += s.raster;
-            total.lift_transform += s.lift_transform;
-            total.decode += s.decode;
-            decoded += 1;
-            let path = dir.join(format!("frame_{i:04}.png"));
-            image_io::write_png(&path, &img)?;
-            frames.push(path);
+        for i in 0..cameras.len() {
+            if !(settings.gif || sheet_idx.contains(&i)) {
+                continue;
+            }
+            let img = image_io::load_image(&frame_path(out_dir, &target.name, i))?;
             if sheet_idx.contains(&i) {
                 row.push(cell(&img));
             }
             if settings.gif {
                 gif_frames.push(img);
             }
-            tally.advance(1, "decode");
         }
         if settings.gif {
-            let p = settings.out_dir.join(format!("{}.gif", target.name));
+            let p = out_dir.join(format!("{}.gif", target.name));
             image_io::write_gif(&p, &gif_frames, settings.fps)?;
             out.gifs.push(p);
         }
         if let Some(ff) = &ffmpeg {
-            let p = settings.out_dir.join(format!("{}.mp4", target.name));
-            image_io::encode_mp4(ff, &dir, settings.fps, &p)?;
+            let p = out_dir.join(format!("{}.mp4", target.name));
+            image_io::encode_mp4(ff, &out_dir.join(&target.name), settings.fps, &p)?;
             out.mp4s.push(p);
         }
         sheet_rows.push(row);
-        out.outputs.push((target.name.clone(), frames));
     }
     let sheet = image_io::contact_sheet(&sheet_rows)?;
-    let sheet_path = settings.out_dir.join("contact_sheet.png");
+    let sheet_path = out_dir.join("contact_sheet.png");
     image_io::write_png(&sheet_path, &sheet)?;
     out.contact_sheet = Some(sheet_path);
-    let n = decoded.max(1) as f64;
-    out.seconds = StageSeconds {
-        raster: views.iter().map(|v| v.raster_seconds).sum::<f64>() / views.len() as f64,
-        lift_transform: total.lift_transform / n,
-        decode: total.decode / n,
-    };
     tally.finish();
     Ok(out)
 }

@@ -134,6 +134,7 @@ fn stylize_settings(out: &Path, styles: Vec<PathBuf>) -> StylizeSettings {
         fps: 10.0,
         sheet_views: 2,
         tile_budget: train::bundle::DEFAULT_TILE_BUDGET_BYTES,
+        part: Default::default(),
     }
 }
 
@@ -165,6 +166,7 @@ fn eval_settings(styles: Vec<PathBuf>) -> EvalSettings {
         style_side: 64,
         warp: WarpOptions::default(),
         tile_budget: train::bundle::DEFAULT_TILE_BUDGET_BYTES,
+        part: Default::default(),
     }
 }
 

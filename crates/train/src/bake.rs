@@ -60,7 +60,7 @@ use style::ChannelStats;
 
 use crate::adam::{Adam, AdamConfig};
 use crate::bundle::SceneBundle;
-use crate::checkpoint::{Fnv1a, StateReader, StateWriter};
+use crate::checkpoint::{StateReader, StateWriter};
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 use crate::error::TrainError;
 use crate::event::{Quiet, Stage, Tally};
@@ -68,6 +68,7 @@ use crate::geometry::View;
 use crate::loss::{photometric_loss_with_grad, psnr};
 use crate::model::{F_DC, F_REST, OPACITY, SCALING};
 use crate::render::{render_color, render_color_backward};
+use base::Fnv1a;
 
 /// The SH degree the baked scene stores (the official 3DGS layout).
 pub const STORED_SH_DEGREE: usize = 3;

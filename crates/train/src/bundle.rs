@@ -44,8 +44,8 @@ use raster::{render, Channels, RenderOptions};
 use serde::{Deserialize, Serialize};
 use style::ChannelStats;
 
-use crate::checkpoint::Fnv1a;
 use crate::error::TrainError;
+use base::Fnv1a;
 
 /// The scene inside a bundle directory: the official 3DGS PLY layout plus the `f_feat_*`
 /// feature properties.
@@ -376,6 +376,46 @@ fn not_a_folder(dir: &Path) -> TrainError {
 }
 
 impl SceneBundle {
+    /// FNV-1a (64-bit) over everything a stylized frame depends on besides the camera and the
+    /// style: the variant, the geometry, colours and features of every Gaussian, the lifter and
+    /// decoder weights, the scene statistics and the backgrounds. Two bundles with the same
+    /// fingerprint decode the same frames; shards of one run compare it
+    /// (`dsgs assemble`).
+    pub fn fingerprint(&self) -> String {
+        let mut h = Fnv1a::new();
+        h.eat_str(self.info.variant.as_str());
+        let s = &self.scene;
+        h.eat_u64(s.len() as u64);
+        h.eat_u64(s.sh_degree as u64);
+        h.eat_u64(s.feature_dim as u64);
+        let geometry = s.means.iter().chain(&s.log_scales).flatten();
+        let rest = s.quats.iter().flatten().chain(&s.opacity_logits);
+        let colour = s.sh.iter().flatten().chain(&s.features);
+        geometry
+            .chain(rest)
+            .chain(colour)
+            .for_each(|&v| h.eat_f32(v));
+        let layers = std::iter::once(self.lifter.layer()).chain(self.decoder.layers());
+        for l in layers {
+            h.eat_str(&l.name);
+            for &d in l.weight.shape() {
+                h.eat_u64(d as u64);
+            }
+            l.weight
+                .iter()
+                .chain(l.bias.iter())
+                .for_each(|&v| h.eat_f32(v));
+        }
+        let info = &self.info;
+        let stats = info.scene_mean.iter().chain(&info.scene_std);
+        stats
+            .chain(&info.feature_background)
+            .chain(&info.background)
+            .for_each(|&v| h.eat_f32(v));
+        h.eat_str(&info.encoder_fingerprint);
+        h.hex()
+    }
+
     /// Checks that the parts fit together: feature width = lifter input, lifter output =
     /// decoder input = encoder's deepest width, statistics and background sizes.
     pub fn validate(&self) -> Result<(), TrainError> {

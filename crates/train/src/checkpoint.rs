@@ -586,29 +586,3 @@ impl<'a> StateReader<'a> {
         Ok(adam)
     }
 }
-
-/// FNV-1a (64-bit): a cheap identity of inputs a checkpoint belongs to (weights, geometry,
-/// bake targets), recorded in checkpoints and bundles and compared on load.
-pub(crate) struct Fnv1a(u64);
-
-impl Fnv1a {
-    pub(crate) fn new() -> Self {
-        Fnv1a(0xcbf2_9ce4_8422_2325)
-    }
-
-    pub(crate) fn eat(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 ^= b as u64;
-            self.0 = self.0.wrapping_mul(0x0100_0000_01b3);
-        }
-    }
-
-    pub(crate) fn eat_f32(&mut self, v: f32) {
-        self.eat(&v.to_bits().to_le_bytes());
-    }
-
-    /// The hash as 16 hexadecimal digits.
-    pub(crate) fn hex(&self) -> String {
-        format!("{:016x}", self.0)
-    }
-}

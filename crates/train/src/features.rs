@@ -75,13 +75,14 @@ use crate::adam::{Adam, AdamConfig};
 use crate::bundle::{
     feature_size, weights_fingerprint, BundleInfo, CameraRecord, SceneBundle, Variant,
 };
-use crate::checkpoint::{Fnv1a, StateReader, StateWriter};
+use crate::checkpoint::{StateReader, StateWriter};
 use crate::decoder_training::{conv_default_init, mix, INIT_STREAM, STEP_STREAM};
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 use crate::error::TrainError;
 use crate::event::{Event, Quiet, Sink, Stage, Tally};
 use crate::geometry::{load_views, View};
 use crate::image_folder::{to_tensor, ImageSet};
+use base::Fnv1a;
 
 /// The `format` metadata of a feature-training checkpoint.
 pub const FEATURE_CHECKPOINT_FORMAT: &str = "dsgs-feature-checkpoint-v1";

@@ -1,0 +1,183 @@
+//! `--shard K/N` and `dsgs assemble` on the tiny bundle: a run split into shards, run in any
+//! order, merges into the files of the one-process run byte for byte; a missing, unfinished or
+//! changed shard is named and the merge refused until it is rerun.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+use common::{assert_same_files, dsgs, fails, ok, save_tiny_bundle, scratch};
+use dsgs_testkit::shared_path;
+use serde_json::Value;
+
+fn styles() -> [PathBuf; 2] {
+    [
+        shared_path("data/styles/mondrian.jpg"),
+        shared_path("data/styles/small-set/3.jpg"),
+    ]
+}
+
+/// `dsgs stylize` of the tiny bundle with two styles along a 7-frame path, with a GIF.
+fn stylize(bundle: &Path, out: &Path, shard: Option<&str>) -> std::process::Command {
+    let [a, b] = styles();
+    let mut cmd = dsgs();
+    cmd.arg("stylize")
+        .arg(bundle)
+        .arg("--style")
+        .arg(a)
+        .arg("--style")
+        .arg(b)
+        .args([
+            "--style-size",
+            "96",
+            "--cameras",
+            "path",
+            "--frames",
+            "7",
+            "--sheet-views",
+            "3",
+            "--gif",
+            "--no-progress",
+            "-o",
+        ])
+        .arg(out);
+    if let Some(s) = shard {
+        cmd.args(["--shard", s]);
+    }
+    cmd
+}
+
+/// The files of a stylize output, but for the shard manifests.
+fn without_manifests(out: &Path, copy: &Path) {
+    let _ = std::fs::remove_dir_all(copy);
+    for e in walk(out) {
+        let rel = e.strip_prefix(out).unwrap();
+        if rel.starts_with("shards") {
+            continue;
+        }
+        let to = copy.join(rel);
+        std::fs::create_dir_all(to.parent().unwrap()).unwrap();
+        std::fs::copy(&e, &to).unwrap();
+    }
+}
+
+fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut files = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            files.extend(walk(&p));
+        } else {
+            files.push(p);
+        }
+    }
+    files
+}
+
+#[test]
+fn stylize_in_three_shards_assembles_to_the_one_process_output() {
+    let dir = scratch("shard-stylize");
+    let bundle = save_tiny_bundle(&dir);
+    let whole = dir.join("whole");
+    ok(&mut stylize(&bundle, &whole, None));
+
+    let out = dir.join("sharded");
+    // Shards in any order; each writes only its block of frames and its manifest.
+    ok(&mut stylize(&bundle, &out, Some("3/3")));
+    ok(&mut stylize(&bundle, &out, Some("1/3")));
+    assert!(out.join("mondrian/frame_0000.png").is_file());
+    assert!(!out.join("mondrian/frame_0002.png").exists());
+    assert!(!out.join("contact_sheet.png").exists() && !out.join("mondrian.gif").exists());
+    let err = fails(dsgs().arg("assemble").arg(&out));
+    assert!(err.contains("shard 2 of 3 is missing"), "{err}");
+    assert!(err.contains("--shard K/3"), "{err}");
+
+    // Shard 2 dies after writing a frame: no manifest, so it is still missing.
+    ok(&mut stylize(&bundle, &out, Some("2/3")));
+    let manifest = out.join("shards/stylize-2-of-3.json");
+    assert!(manifest.is_file());
+    std::fs::remove_file(&manifest).unwrap();
+    let err = fails(dsgs().arg("assemble").arg(&out));
+    assert!(err.contains("shard 2 of 3 is missing"), "{err}");
+
+    // A finished shard's frame changed afterwards: named, refused.
+    ok(&mut stylize(&bundle, &out, Some("2/3")));
+    let frame = out.join("3/frame_0003.png");
+    let good = std::fs::read(&frame).unwrap();
+    std::fs::write(&frame, b"not the frame").unwrap();
+    let err = fails(dsgs().arg("assemble").arg(&out));
+    assert!(
+        err.contains("shard 2/3") && err.contains("frame_0003.png"),
+        "{err}"
+    );
+    std::fs::write(&frame, &good).unwrap();
+
+    // Assembled from another working directory: the recorded one is used.
+    let out = ok(dsgs().arg("assemble").arg(&out).current_dir(&dir));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("contact_sheet.png"), "{text}");
+    let copy = dir.join("sharded-files");
+    without_manifests(&dir.join("sharded"), &copy);
+    assert_same_files(&whole, &copy);
+
+    // A shard of other settings is refused.
+    let mut other = stylize(&bundle, &dir.join("sharded"), Some("1/3"));
+    other.args(["--alpha", "0.5"]);
+    ok(&mut other);
+    let err = fails(dsgs().arg("assemble").arg(dir.join("sharded")));
+    assert!(
+        err.contains("shard 1/3") && err.contains("fingerprint"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn eval_in_shards_assembles_to_the_one_process_report() {
+    let dir = scratch("shard-eval");
+    let bundle = save_tiny_bundle(&dir);
+    let eval = |report: &Path, shard: Option<&str>| {
+        let mut cmd = dsgs();
+        cmd.arg("eval")
+            .arg(&bundle)
+            .arg("--style")
+            .arg(shared_path("data/styles/mondrian.jpg"))
+            .args([
+                "--style-size",
+                "64",
+                "--cameras",
+                "path",
+                "--frames",
+                "12",
+                "--no-progress",
+                "-o",
+            ])
+            .arg(report);
+        if let Some(s) = shard {
+            cmd.args(["--shard", s]);
+        }
+        cmd
+    };
+    let whole = dir.join("whole.json");
+    ok(&mut eval(&whole, None));
+    // Four shards of 3 views: the long-range pairs (i, i + 7) cross up to three shards.
+    let sharded = dir.join("sharded.json");
+    for k in [4, 2, 1] {
+        ok(&mut eval(&sharded, Some(&format!("{k}/4"))));
+    }
+    let err = fails(dsgs().arg("assemble").arg(&sharded));
+    assert!(err.contains("shard 3 of 4 is missing"), "{err}");
+    ok(&mut eval(&sharded, Some("3/4")));
+    ok(dsgs().arg("assemble").arg(&sharded));
+    let read = |p: &Path| -> Value {
+        let mut v: Value = serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap();
+        // Measured wall times differ between any two runs.
+        v.as_object_mut().unwrap().remove("seconds_per_view");
+        v
+    };
+    let (a, b) = (read(&whole), read(&sharded));
+    assert_eq!(a, b);
+    // The comparison is not vacuous: both have pairs at both ranges.
+    assert_eq!(a["outputs"][1]["long_range"]["pairs"], 5);
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -66,16 +66,20 @@ enum Command {
     /// Run the whole pipeline on the lego scene at low resolution: geometry, features, a
     /// stylized orbit with four unseen styles, its evaluation, a contact sheet and GIFs.
     Demo(DemoArgs),
-    /// Merge the shards of a `stylize` or `eval` run made with `--shard K/N` into what one
-    /// process writes (animations, contact sheet, report), after checking that every shard
-    /// finished with the same inputs.
+    /// Merge the shards of a `stylize`, `eval` or `bake` run made with `--shard K/N` into what
+    /// one process writes (animations and contact sheet, report, or the fitted .ply), after
+    /// checking that every shard finished with the same inputs.
     Assemble(AssembleArgs),
 }
 
 #[derive(Args)]
 struct AssembleArgs {
-    /// The sharded run's output: the folder of `stylize -o`, or the report of `eval -o`.
+    /// The sharded run's output: the folder of `stylize -o`, the report of `eval -o`, or the
+    /// .ply of `bake -o`.
     output: PathBuf,
+    /// Bake: continue the fit from this checkpoint of a stopped assembly (as `bake --resume`)
+    #[arg(long)]
+    resume: Option<PathBuf>,
     /// No progress bar (a plain progress line at least every minute instead)
     #[arg(long)]
     no_progress: bool,
@@ -84,9 +88,9 @@ struct AssembleArgs {
 /// `--shard K/N`, shared by the commands that can be split over processes.
 #[derive(Args, Clone)]
 struct ShardArgs {
-    /// Run only shard K of N (K from 1 to N): a contiguous block of the frames, written as the
-    /// whole run writes them, and a manifest written last (`shards/` in the output); merge the
-    /// finished shards with `dsgs assemble OUTPUT` [default: the whole run]
+    /// Run only shard K of N (K from 1 to N): a contiguous block of the frames (of a bake: of
+    /// its stylized target views), written as the whole run writes them, and a manifest written
+    /// last; merge the finished shards with `dsgs assemble OUTPUT` [default: the whole run]
     #[arg(long, value_name = "K/N", value_parser = shard)]
     shard: Option<Shard>,
 }
@@ -663,6 +667,8 @@ struct BakeArgs {
     ))]
     tile_budget: Option<u64>,
     #[command(flatten)]
+    shard: ShardArgs,
+    #[command(flatten)]
     run: RunArgs,
     /// Output .ply (a JSON report is written beside it).
     #[arg(short, long)]
@@ -1049,7 +1055,10 @@ fn run(cli: Cli) -> Result<()> {
         Command::FitGeometry(a) => fit_geometry(a)?,
         Command::PretrainDecoder(a) => pretrain_decoder(a)?,
         Command::FitFeatures(a) => fit_features(a)?,
-        Command::Bake(a) => bake(a)?,
+        Command::Bake(a) => {
+            let part = a.shard.part()?;
+            bake(a, part)?
+        }
         Command::Render(a) => render(a)?,
         Command::Stylize(a) => {
             let part = a.shard.part()?;
@@ -1201,7 +1210,7 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
     finish(&r.run, Some(&r.checkpoint))
 }
 
-fn bake(a: BakeArgs) -> Result<()> {
+fn bake(a: BakeArgs, part: Part) -> Result<()> {
     let settings = BakeSettings {
         bundle: a.bundle,
         styles: a.styles,
@@ -1226,7 +1235,31 @@ fn bake(a: BakeArgs) -> Result<()> {
         },
         output: a.output,
         resume: a.run.resume,
+        part: if part == Part::Assemble {
+            Part::Assemble
+        } else {
+            Part::Whole
+        },
     };
+    if let Part::Shard { shard, invocation } = part {
+        let done = with_control("bake", a.run.no_progress, |c| {
+            Ok(pipeline::bake::render_target_shard(
+                &settings, shard, invocation, c,
+            )?)
+        })?;
+        println!(
+            "shard {shard}: target views {} to {} of {} written to {}",
+            done.range.start,
+            done.range.end.saturating_sub(1),
+            done.targets,
+            pipeline::bake::shard_dir(&settings.output).display()
+        );
+        println!(
+            "when every shard has finished: dsgs assemble {}",
+            settings.output.display()
+        );
+        return Ok(());
+    }
     let out = with_control("bake", a.run.no_progress, |c| {
         Ok(pipeline::bake::run(&settings, c)?)
     })?;
@@ -1471,6 +1504,10 @@ fn assemble(a: AssembleArgs) -> Result<()> {
             pipeline::eval::shard_dir(&output),
             pipeline::eval::SHARD_COMMAND,
         ),
+        (
+            pipeline::bake::shard_dir(&output),
+            pipeline::bake::SHARD_COMMAND,
+        ),
     ];
     let mut found = None;
     for (dir, command) in &places {
@@ -1485,7 +1522,8 @@ fn assemble(a: AssembleArgs) -> Result<()> {
     }
     let Some((path, manifest)) = found else {
         bail!(
-            "{}: no shard manifests in {} (stylize) or {} (eval): run the shards with --shard K/N first",
+            "{}: no shard manifests in {} (stylize) or {} (eval, bake): run the shards with \
+             --shard K/N first",
             a.output.display(),
             places[0].0.display(),
             places[1].0.display()
@@ -1524,6 +1562,14 @@ fn assemble(a: AssembleArgs) -> Result<()> {
             e.output = Some(output);
             e.no_progress = a.no_progress;
             eval(e, Part::Assemble)
+        }
+        Command::Bake(mut b) => {
+            b.output = output;
+            b.run.no_progress = a.no_progress;
+            if a.resume.is_some() {
+                b.run.resume = a.resume;
+            }
+            bake(b, Part::Assemble)
         }
         _ => bail!(
             "{}: a manifest of `{}`, which is not sharded",

@@ -181,3 +181,64 @@ fn eval_in_shards_assembles_to_the_one_process_report() {
     assert_eq!(a["outputs"][1]["long_range"]["pairs"], 5);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn bake_targets_in_shards_fit_to_the_one_process_ply() {
+    let dir = scratch("shard-bake");
+    let bundle = save_tiny_bundle(&dir);
+    let config = dir.join("bake.toml");
+    std::fs::write(
+        &config,
+        "target_views = 4\ninterpolated_per_pair = 1\nheld_out = 2\n",
+    )
+    .unwrap();
+    let bake = |ply: &Path, shard: Option<&str>| {
+        let mut cmd = dsgs();
+        cmd.arg("bake")
+            .arg(&bundle)
+            .arg("--style")
+            .arg(shared_path("data/styles/mondrian.jpg"))
+            .arg("--config")
+            .arg(&config)
+            .args([
+                "--style-size",
+                "64",
+                "--sh-degree",
+                "1",
+                "--iterations",
+                "6",
+                "--no-progress",
+                "-o",
+            ])
+            .arg(ply);
+        if let Some(s) = shard {
+            cmd.args(["--shard", s]);
+        }
+        cmd
+    };
+    let whole = dir.join("whole/baked.ply");
+    ok(&mut bake(&whole, None));
+    let sharded = dir.join("sharded/baked.ply");
+    // Six targets (two held out, four fitted) in four shards: the held-out and training views
+    // share shard 2.
+    for k in [2, 4, 1] {
+        let out = ok(&mut bake(&sharded, Some(&format!("{k}/4"))));
+        let text = String::from_utf8_lossy(&out.stdout);
+        assert!(text.contains("dsgs assemble"), "{text}");
+    }
+    assert!(!sharded.exists());
+    let err = fails(dsgs().arg("assemble").arg(&sharded));
+    assert!(err.contains("shard 3 of 4 is missing"), "{err}");
+    ok(&mut bake(&sharded, Some("3/4")));
+    let text = ok(dsgs().arg("assemble").arg(&sharded)).stdout;
+    let text = String::from_utf8_lossy(&text);
+    assert!(
+        text.contains("4 training and 2 held-out target views"),
+        "{text}"
+    );
+    assert_eq!(
+        std::fs::read(&whole).unwrap(),
+        std::fs::read(&sharded).unwrap()
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -30,6 +30,7 @@ use serde::Serialize;
 use train::{BakeConfig, BakeReport, Variant};
 
 use crate::cameras::check_image_size;
+use crate::shard::{Invocation, Part, Shard};
 use crate::stylize::{check_style_settings, load_bundle, load_styles, style_targets};
 use crate::{config, Control};
 use train::RunOutcome;
@@ -131,6 +132,37 @@ pub struct BakeSettings {
     pub output: PathBuf,
     /// Continue from this checkpoint of a stopped bake of the same inputs.
     pub resume: Option<PathBuf>,
+    /// The whole bake, or the fit of the targets that shards rendered ([`Part::Assemble`];
+    /// a shard itself runs through [`render_target_shard`]).
+    pub part: Part,
+}
+
+/// The name of the shard manifests of `dsgs bake` ([`crate::shard`]).
+pub const SHARD_COMMAND: &str = "bake";
+
+/// The folder of a sharded bake's target files and manifests: the output path with the
+/// extension `shards` (`baked.ply` -> `baked.shards`).
+pub fn shard_dir(ply: &Path) -> PathBuf {
+    ply.with_extension("shards")
+}
+
+/// The file of target `i` of the target sequence ([`train::bake::target_sequence`]) in a
+/// shard folder.
+pub fn target_file(shard_dir: &Path, i: usize) -> PathBuf {
+    shard_dir.join(format!("target-{i:05}.safetensors"))
+}
+
+/// What a shard of the target rendering wrote.
+#[derive(Clone, Debug)]
+pub struct TargetShard {
+    /// Its block of the target sequence.
+    pub range: std::ops::Range<usize>,
+    /// Targets in the whole sequence.
+    pub targets: usize,
+    /// The target files it wrote.
+    pub files: Vec<PathBuf>,
+    /// Its manifest.
+    pub manifest: PathBuf,
 }
 
 /// The JSON report written beside the baked scene.
@@ -213,11 +245,17 @@ pub fn check_target_sizes(info: &train::BundleInfo, scale: f64, bundle: &Path) -
     Ok(())
 }
 
-/// Runs the bake, reporting to the control's sink, and writes the `.ply` and its report when it
-/// completes. A stop request during the optimisation ends it with a checkpoint
-/// ([`RunOutcome::stop_checkpoint`]) and writes nothing else; during the target rendering it
-/// fails with `train::TrainError::Interrupted`.
-pub fn run(settings: &BakeSettings, control: &Control) -> Result<BakeOutput> {
+/// What the bake's parts share: the configuration, the bundle, the style statistics and the
+/// target cameras, all checked.
+struct Prepared {
+    cfg: BakeConfig,
+    bundle: train::SceneBundle,
+    stats: style::ChannelStats<f32>,
+    cameras: train::bake::BakeCameras,
+    fingerprint: String,
+}
+
+fn prepare(settings: &BakeSettings) -> Result<Prepared> {
     let mut cfg: BakeConfig = config::load(settings.config.as_deref())?;
     settings.overrides.apply(&mut cfg);
     cfg.validate().context("checking the bake configuration")?;
@@ -251,15 +289,139 @@ pub fn run(settings: &BakeSettings, control: &Control) -> Result<BakeOutput> {
     let stats = bundle
         .target_stats(target.stats.deepest(), settings.alpha)
         .context("the style's target statistics")?;
+    let cameras = train::bake::bake_cameras(&bundle.cameras(), &cfg)
+        .context("choosing the target cameras")?;
+    // Every target depends on the bundle, the statistics, its camera and the compositing.
+    let mut h = base::Fnv1a::new();
+    h.eat_str(SHARD_COMMAND);
+    h.eat_str(&bundle.fingerprint());
+    stats
+        .mean
+        .iter()
+        .chain(stats.std.iter())
+        .for_each(|&v| h.eat_f32(v));
+    for c in train::bake::target_sequence(&cameras) {
+        h.eat_str(&c.name);
+        crate::stylize::hash_camera(&mut h, &c.camera);
+    }
+    h.eat_u64(cfg.composite_background as u64);
+    let fingerprint = h.hex();
+    Ok(Prepared {
+        cfg,
+        bundle,
+        stats,
+        cameras,
+        fingerprint,
+    })
+}
+
+/// Renders shard `shard` of a bake's stylized targets (a block of
+/// [`train::bake::target_sequence`]) into target files in [`shard_dir`] (exact `f32` images,
+/// [`train::bake::target_to_bytes`]) and writes the shard's manifest last. `dsgs assemble` of
+/// the `.ply` ([`Part::Assemble`]) then fits the targets of every shard, giving the `.ply` of
+/// a one-process bake bit for bit.
+pub fn render_target_shard(
+    settings: &BakeSettings,
+    shard: Shard,
+    invocation: Option<Invocation>,
+    control: &Control,
+) -> Result<TargetShard> {
+    let started = std::time::Instant::now();
+    let p = prepare(settings)?;
+    let sequence = train::bake::target_sequence(&p.cameras);
+    let range = shard.range(sequence.len());
+    let dir = shard_dir(&settings.output);
     let ck_dir = checkpoint_dir(&settings.output);
-    let r: BakeReport = train::bake(
-        &bundle,
-        &stats,
-        &cfg,
-        settings.resume.as_deref(),
+    let (views, _) = train::bake::render_bake_targets(
+        &p.bundle,
+        &p.stats,
+        &sequence[range.clone()],
+        &p.cfg,
         &control.run_in(&ck_dir),
     )
+    .with_context(|| format!("rendering the targets of shard {shard}"))?;
+    let mut files = Vec::with_capacity(views.len());
+    for (i, v) in range.clone().zip(&views) {
+        let path = target_file(&dir, i);
+        let bytes = train::bake::target_to_bytes(v)?;
+        write_atomic(&path, &bytes).with_context(|| format!("writing {}", path.display()))?;
+        files.push(path);
+    }
+    let records = files
+        .iter()
+        .map(|f| crate::shard::record_file(&dir, f))
+        .collect::<Result<Vec<_>>>()?;
+    let manifest = crate::shard::write_manifest(
+        &dir,
+        &crate::shard::Manifest {
+            format: crate::shard::MANIFEST_FORMAT.into(),
+            command: SHARD_COMMAND.into(),
+            shard,
+            items: sequence.len(),
+            range: range.clone(),
+            fingerprint: p.fingerprint,
+            invocation,
+            files: records,
+            seconds: started.elapsed().as_secs_f64(),
+            data: serde_json::Value::Null,
+        },
+    )?;
+    Ok(TargetShard {
+        range,
+        targets: sequence.len(),
+        files,
+        manifest,
+    })
+}
+
+/// Runs the bake, reporting to the control's sink, and writes the `.ply` and its report when it
+/// completes. A stop request during the optimisation ends it with a checkpoint
+/// ([`RunOutcome::stop_checkpoint`]) and writes nothing else; during the target rendering it
+/// fails with `train::TrainError::Interrupted`. With [`Part::Assemble`] the targets are read
+/// from the files of a finished split ([`render_target_shard`], checked by
+/// [`crate::shard::collect`]) instead of rendered.
+pub fn run(settings: &BakeSettings, control: &Control) -> Result<BakeOutput> {
+    if let Part::Shard { .. } = settings.part {
+        bail!("a shard of a bake renders targets only: use render_target_shard");
+    }
+    let p = prepare(settings)?;
+    let ck_dir = checkpoint_dir(&settings.output);
+    let run = control.run_in(&ck_dir);
+    let resume = settings.resume.as_deref();
+    let r: BakeReport = if settings.part == Part::Assemble {
+        let dir = shard_dir(&settings.output);
+        let sequence = train::bake::target_sequence(&p.cameras);
+        let started = std::time::Instant::now();
+        let manifests = crate::shard::collect(
+            &dir,
+            &crate::shard::Expected {
+                command: SHARD_COMMAND,
+                fingerprint: &p.fingerprint,
+                items: sequence.len(),
+                root: &dir,
+            },
+        )?;
+        let mut views = Vec::with_capacity(sequence.len());
+        for (i, c) in sequence.iter().enumerate() {
+            let path = target_file(&dir, i);
+            let bytes =
+                std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+            views.push(train::bake::target_from_bytes(&bytes, &path, c)?);
+        }
+        let train = views.split_off(p.cameras.held_out.len());
+        let targets = train::bake::BakeTargets {
+            train,
+            held_out: views,
+            // The rendering's wall time, summed over the shards, and the reading.
+            seconds: manifests.iter().map(|m| m.seconds).sum::<f64>()
+                + started.elapsed().as_secs_f64(),
+        };
+        train::bake::bake_targets(&p.bundle, targets, &p.cfg, resume, &run)
+    } else {
+        train::bake(&p.bundle, &p.stats, &p.cfg, resume, &run)
+    }
     .with_context(|| format!("baking into the bundle {}", settings.bundle.display()))?;
+    let cfg = p.cfg;
     let summary = BakeSummary {
         bundle: settings.bundle.display().to_string(),
         styles: settings

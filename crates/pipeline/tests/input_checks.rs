@@ -154,6 +154,7 @@ fn bake_settings(dir: &Path, bundle: &Path, styles: Vec<PathBuf>) -> BakeSetting
         },
         output: dir.join("baked.ply"),
         resume: None,
+        part: Default::default(),
     }
 }
 

@@ -558,13 +558,64 @@ fn project_into_budget(values: &mut [f32], initial: &[f32], budget: f32) {
         .for_each(|(v, &v0)| *v = v.clamp(v0 - budget, v0 + budget));
 }
 
+/// The stylized targets of a bake ([`render_bake_targets`], or read back from target files).
+#[derive(Clone, Debug)]
+pub struct BakeTargets {
+    /// Targets fitted to.
+    pub train: Vec<View>,
+    /// Targets held out for evaluation.
+    pub held_out: Vec<View>,
+    /// Wall time of their rendering, in seconds.
+    pub seconds: f64,
+}
+
+/// Checks that target statistics have the bundle's lifter width.
+fn check_stats(bundle: &SceneBundle, stats: &ChannelStats<f32>) -> Result<(), TrainError> {
+    let c = bundle.lifter.out_channels();
+    if stats.batch() != 1 || stats.channels() != c {
+        return Err(TrainError::Shape(format!(
+            "target statistics are {}x{}, expected 1x{c}",
+            stats.batch(),
+            stats.channels()
+        )));
+    }
+    Ok(())
+}
+
+/// Every target camera of a bake in one sequence: the held-out cameras, then the training ones
+/// (the order in which [`bake`] renders them, and the items a sharded target rendering splits).
+pub fn target_sequence(cameras: &BakeCameras) -> Vec<NamedCamera> {
+    cameras
+        .held_out
+        .iter()
+        .chain(&cameras.train)
+        .cloned()
+        .collect()
+}
+
+/// Renders the stylized targets of `cameras` (a block of [`target_sequence`], or all of it),
+/// counting them as [`Stage::BakeTargets`] units on `run`'s sink. A stop request fails with
+/// [`TrainError::Interrupted`].
+pub fn render_bake_targets(
+    bundle: &SceneBundle,
+    stats: &ChannelStats<f32>,
+    cameras: &[NamedCamera],
+    config: &BakeConfig,
+    run: &Run,
+) -> Result<(Vec<View>, f64), TrainError> {
+    config.validate()?;
+    bundle.validate()?;
+    check_stats(bundle, stats)?;
+    let mut tally = Tally::start(Stage::BakeTargets, cameras.len(), run.sink);
+    let views = render_targets(bundle, stats, cameras, config, run, &mut tally)?
+        .ok_or_else(|| TrainError::Interrupted("rendering the stylized targets".into()))?;
+    Ok((views, tally.finish()))
+}
+
 /// Bakes the style given by `stats` (from [`SceneBundle::target_stats`], or any statistics of
-/// the lifter's width) into the bundle's geometry (see the module documentation). The
-/// optimisation runs through the [driver](crate::driver): with an output folder in `run` it
-/// writes `checkpoint.safetensors` there periodically and when stopped, and `resume` continues
-/// from such a checkpoint exactly (the targets are rendered again, bit-identically, and must be
-/// the same ones). A stop request during the target rendering fails with
-/// [`TrainError::Interrupted`]; during the optimisation it ends the run with the partial bake.
+/// the lifter's width) into the bundle's geometry (see the module documentation): renders the
+/// targets ([`render_bake_targets`]) and fits them ([`bake_targets`]). A stop request during the
+/// target rendering fails with [`TrainError::Interrupted`].
 pub fn bake(
     bundle: &SceneBundle,
     stats: &ChannelStats<f32>,
@@ -574,25 +625,39 @@ pub fn bake(
 ) -> Result<BakeReport, TrainError> {
     config.validate()?;
     bundle.validate()?;
-    let c = bundle.lifter.out_channels();
-    if stats.batch() != 1 || stats.channels() != c {
-        return Err(TrainError::Shape(format!(
-            "target statistics are {}x{}, expected 1x{c}",
-            stats.batch(),
-            stats.channels()
-        )));
-    }
+    check_stats(bundle, stats)?;
     let cameras = bake_cameras(&bundle.cameras(), config)?;
-    let background = bundle.info.background;
+    let (mut views, seconds) =
+        render_bake_targets(bundle, stats, &target_sequence(&cameras), config, run)?;
+    let train = views.split_off(cameras.held_out.len());
+    let targets = BakeTargets {
+        train,
+        held_out: views,
+        seconds,
+    };
+    bake_targets(bundle, targets, config, resume, run)
+}
 
-    let total = cameras.train.len() + cameras.held_out.len();
-    let mut tally = Tally::start(Stage::BakeTargets, total, run.sink);
-    let interrupted = || TrainError::Interrupted("rendering the stylized targets".into());
-    let mut render =
-        |cams: &[NamedCamera]| render_targets(bundle, stats, cams, config, run, &mut tally);
-    let held_out = render(&cameras.held_out)?.ok_or_else(interrupted)?;
-    let train = render(&cameras.train)?.ok_or_else(interrupted)?;
-    let target_seconds = tally.finish();
+/// Fits the bundle's geometry to rendered targets (see the module documentation). The
+/// optimisation runs through the [driver](crate::driver): with an output folder in `run` it
+/// writes `checkpoint.safetensors` there periodically and when stopped, and `resume` continues
+/// from such a checkpoint exactly (the targets must be the same ones, bit for bit); a stop
+/// request ends the run with the partial bake.
+pub fn bake_targets(
+    bundle: &SceneBundle,
+    targets: BakeTargets,
+    config: &BakeConfig,
+    resume: Option<&Path>,
+    run: &Run,
+) -> Result<BakeReport, TrainError> {
+    config.validate()?;
+    bundle.validate()?;
+    let background = bundle.info.background;
+    let BakeTargets {
+        train,
+        held_out,
+        seconds: target_seconds,
+    } = targets;
     if train.is_empty() {
         return Err(TrainError::Config("no training targets to bake".into()));
     }
@@ -621,6 +686,52 @@ pub fn bake(
         unbaked_train_psnr,
         unbaked_held_out_psnr,
         target_seconds,
+    })
+}
+
+/// The value of the `format` metadata entry of bake target files.
+pub const BAKE_TARGET_FORMAT: &str = "dsgs-bake-target-v1";
+
+/// Encodes one stylized target as a safetensors file: the image as `image` (`f32`,
+/// `[height, width, 3]`, its exact bits) and the view's name as metadata. Its camera is not
+/// stored: a reader takes it from the bake's cameras and checks the name and size.
+pub fn target_to_bytes(view: &View) -> Result<Vec<u8>, TrainError> {
+    let k = view.camera.intrinsics;
+    let (w, h) = (k.width as usize, k.height as usize);
+    if view.image.len() != w * h * 3 {
+        return Err(TrainError::Shape(format!(
+            "target `{}` has {} values for a {w}x{h} camera",
+            view.name,
+            view.image.len()
+        )));
+    }
+    let mut st = StateWriter::new(BAKE_TARGET_FORMAT);
+    st.meta("name", &view.name);
+    st.f32s("image", vec![h, w, 3], &view.image);
+    st.finish()
+}
+
+/// Reads a target file ([`target_to_bytes`]) written for `camera`: the file must hold a view
+/// of that name and the camera's size. `path` names the file in errors.
+pub fn target_from_bytes(
+    bytes: &[u8],
+    path: &Path,
+    camera: &NamedCamera,
+) -> Result<View, TrainError> {
+    let r = StateReader::new(bytes, path, BAKE_TARGET_FORMAT)?;
+    let name = r.meta_str("name")?;
+    if name != camera.name {
+        return Err(r.err(format!(
+            "holds the target `{name}`, expected `{}`",
+            camera.name
+        )));
+    }
+    let k = camera.camera.intrinsics;
+    let image = r.f32s("image", &[k.height as usize, k.width as usize, 3])?;
+    Ok(View {
+        name: camera.name.clone(),
+        camera: camera.camera,
+        image,
     })
 }
 

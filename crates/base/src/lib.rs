@@ -1,7 +1,8 @@
 //! What every dsgs crate shares, and nothing else: the numeric trait all kernels are generic
-//! over ([`Real`], `f32` or `f64`) and the atomic file write every output goes through
+//! over ([`Real`], `f32` or `f64`), the atomic file write every output goes through
 //! ([`write_atomic`], with [`remove_unfinished_writes`] for a process that must exit in the middle
-//! of one: it deletes the temporary files of the writes still in flight).
+//! of one: it deletes the temporary files of the writes still in flight), and the content hash
+//! that identifies inputs and outputs ([`Fnv1a`]).
 //!
 //! It sits below every other crate of the workspace and depends on none of them.
 //!

@@ -44,6 +44,12 @@
 //! pairs in the order `i = 0, 1, ...` and the results are those of [`sequence_consistency`],
 //! bit for bit, while memory does not grow with the length of the sequence. The correspondence
 //! of a pair is computed once and shared by every output sequence along the same cameras.
+//!
+//! A stream can also take one block of a sequence ([`StreamedConsistency::with_pairs`]: the
+//! pairs whose first view lies in the block, fed the block and the views its pairs reach past
+//! it) and keep a record of each pair ([`PairRecord`]); [`range_metrics`] adds the records of
+//! consecutive blocks in order, which gives the numbers of one stream over the whole sequence,
+//! bit for bit. This is how a sharded `dsgs eval` is assembled.
 
 use std::collections::VecDeque;
 

@@ -21,6 +21,8 @@
 //! * [`stylize`]: zero-shot stylization of a scene bundle (`dsgs stylize`).
 //! * [`consistency`]: multi-view consistency by depth warping; [`eval`]: the evaluation
 //!   report (`dsgs eval`).
+//! * [`shard`]: a run's frames split over processes (`--shard K/N`), each shard's manifest,
+//!   and the checks before `dsgs assemble` merges them into the one-process outputs.
 //! * [`demo`]: the whole pipeline on the lego scene at low resolution (`dsgs demo`).
 //! * [`image_io`]: PNG, GIF, contact sheets, MP4 through `ffmpeg`.
 //! * [`error`]: the crate's [`Error`] (a message, a message explaining an underlying error, or

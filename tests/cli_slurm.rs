@@ -1,5 +1,5 @@
 //! `dsgs stylize` sharded over a Slurm job array with the shipped
-//! `scripts/slurm/dsgs-array.sbatch`: one shard is cancelled while it runs, `dsgs assemble`
+//! `docs/slurm/dsgs-array.sbatch`: one shard is cancelled while it runs, `dsgs assemble`
 //! names it missing, the shard is rerun alone, and the assembled output holds the files of a
 //! single process, byte for byte. Needs a Slurm cluster (`.ci/slurm-up` starts one on this
 //! machine); without one the test is skipped with a loud message, except under CI.
@@ -163,7 +163,7 @@ fn stylize_sharded_on_slurm_matches_one_process() {
     let wrapper = dir.join("dsgs-wrapper");
     std::fs::write(&wrapper, WRAPPER).unwrap();
     std::fs::set_permissions(&wrapper, std::fs::Permissions::from_mode(0o755)).unwrap();
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/slurm/dsgs-array.sbatch");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/slurm/dsgs-array.sbatch");
     let sbatch = |array: &str| {
         let mut c = Command::new("sbatch");
         c.args(["--parsable", "--wait", "--export=ALL"])

@@ -144,9 +144,21 @@ pub fn load_style_image(path: &Path, max_side: u32) -> Result<RgbImage> {
 
 /// Encodes frames (all of one size) as a looping animated GIF at `fps` frames per second.
 pub fn encode_gif(frames: &[RgbImage], fps: f64) -> Result<Vec<u8>> {
-    let Some(first) = frames.first() else {
+    encode_gif_with(frames.len(), fps, |i| {
+        Ok(std::borrow::Cow::Borrowed(&frames[i]))
+    })
+}
+
+/// [`encode_gif`] of `count` frames taken one at a time from `frame(i)` (e.g. read from disk),
+/// so that only the encoded animation and one frame are in memory at once.
+pub fn encode_gif_with<'a>(
+    count: usize,
+    fps: f64,
+    mut frame: impl FnMut(usize) -> Result<std::borrow::Cow<'a, RgbImage>>,
+) -> Result<Vec<u8>> {
+    if count == 0 {
         bail!("an animation needs at least one frame");
-    };
+    }
     if !(fps > 0.0 && fps.is_finite()) {
         bail!("frame rate {fps} is not positive");
     }
@@ -156,17 +168,18 @@ pub fn encode_gif(frames: &[RgbImage], fps: f64) -> Result<Vec<u8>> {
         let mut enc = GifEncoder::new_with_speed(&mut bytes, 10);
         enc.set_repeat(Repeat::Infinite)?;
         let delay = Delay::from_numer_denom_ms((1000.0 / fps).round().max(1.0) as u32, 1);
-        for f in frames {
-            if (f.width, f.height) != (first.width, first.height) {
+        let mut size = None;
+        for i in 0..count {
+            let f = frame(i)?;
+            let (w, h) = *size.get_or_insert((f.width, f.height));
+            if (f.width, f.height) != (w, h) {
                 bail!(
-                    "animation frames differ in size: {}x{} and {}x{}",
-                    first.width,
-                    first.height,
+                    "animation frames differ in size: {w}x{h} and {}x{}",
                     f.width,
                     f.height
                 );
             }
-            let rgba: Vec<u8> = to_rgb8(f)
+            let rgba: Vec<u8> = to_rgb8(&f)
                 .chunks_exact(3)
                 .flat_map(|p| [p[0], p[1], p[2], 255])
                 .collect();

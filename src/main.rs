@@ -70,6 +70,32 @@ enum Command {
     /// one process writes (animations and contact sheet, report, or the fitted .ply), after
     /// checking that every shard finished with the same inputs.
     Assemble(AssembleArgs),
+    /// Look around a scene (bundle or .ply) in the browser, and stylize the current view with
+    /// any painting: starts a local web server and prints its address.
+    View(ViewArgs),
+}
+
+#[derive(Args)]
+struct ViewArgs {
+    /// The scene: a scene bundle directory (stylizable) or any 3DGS .ply file.
+    scene: PathBuf,
+    /// Style image offered in the page; repeat for several (the page can upload more).
+    #[arg(long = "style")]
+    styles: Vec<PathBuf>,
+    /// Port to listen on (0: any free port).
+    #[arg(long, default_value_t = 8080)]
+    port: u16,
+    /// Address to listen on. The default, 127.0.0.1, is reachable from this machine only.
+    /// Another address (e.g. 0.0.0.0) lets every machine that can reach it see the scene and
+    /// its cameras, upload images, and spend this machine's CPU on stylizations and bakes.
+    #[arg(long, default_value = "127.0.0.1")]
+    bind: std::net::IpAddr,
+    /// Longest side of the style images after loading, in pixels (at least 1).
+    #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE, value_parser = at_least_one::<u32>())]
+    style_size: u32,
+    /// Working memory of the networks per stylized view, in MiB (1 to 1048576).
+    #[arg(long, default_value_t = train::bundle::DEFAULT_TILE_BUDGET_BYTES >> 20, value_parser = tile_budget())]
+    tile_budget: u64,
 }
 
 #[derive(Args)]
@@ -1070,6 +1096,7 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Demo(a) => demo(a)?,
         Command::Assemble(a) => assemble(a)?,
+        Command::View(a) => view(a)?,
     }
     Ok(())
 }
@@ -1487,6 +1514,34 @@ fn eval(a: EvalArgs, part: Part) -> Result<()> {
         pipeline::eval::write_report(p, &report)?;
         println!("report written to {}", p.display());
     }
+    Ok(())
+}
+
+/// `dsgs view SCENE`: serves until the process is stopped.
+fn view(a: ViewArgs) -> Result<()> {
+    let config = viewer::ViewerConfig {
+        styles: a.styles,
+        bind: a.bind,
+        port: a.port,
+        style_side: a.style_size,
+        tile_budget: a.tile_budget << 20,
+        ..viewer::ViewerConfig::new(&a.scene)
+    };
+    let running = viewer::start(config)
+        .with_context(|| format!("starting the viewer of {}", a.scene.display()))?;
+    let mut text = format!("dsgs view: {} at {}\n", a.scene.display(), running.url());
+    if !running.addr().ip().is_loopback() {
+        text += &format!(
+            "listening on {}: every machine that reaches it can use this viewer\n",
+            running.addr()
+        );
+    }
+    text += "press Ctrl-C to stop\n";
+    // A closed standard output (the reader went away) must not stop the server.
+    use std::io::Write;
+    let mut out = std::io::stdout();
+    let _ = out.write_all(text.as_bytes()).and_then(|()| out.flush());
+    running.wait();
     Ok(())
 }
 

@@ -230,11 +230,23 @@ pub fn colour_content(renders: &[&RgbImage]) -> Result<Array4<f32>> {
     Ok(image_io::nchw_from_rgb(&sheet))
 }
 
-/// Encodes the styles into targets: one per style, or one mixture (`"mix"`) with weights.
+/// Encodes the styles into targets: one per style, or one mixture (`"mix"`) with weights
+/// ([`encode_styles`], then [`mix_targets`]).
 pub fn style_targets(
     bundle: &SceneBundle,
     styles: &[StyleImage],
     weights: Option<&[f64]>,
+    colour: Option<&Array4<f32>>,
+) -> Result<Vec<StyleTarget>> {
+    let encoded = encode_styles(bundle, styles, colour)?;
+    mix_targets(encoded, weights)
+}
+
+/// One target per style: its statistics at every level of the bundle's encoder, its colours
+/// first matched to `colour` when given ([`style::preserve_colour`]).
+pub fn encode_styles(
+    bundle: &SceneBundle,
+    styles: &[StyleImage],
     colour: Option<&Array4<f32>>,
 ) -> Result<Vec<StyleTarget>> {
     let mut encoded = Vec::new();
@@ -251,6 +263,12 @@ pub fn style_targets(
             stats,
         });
     }
+    Ok(encoded)
+}
+
+/// The targets as they are without weights, or their mixture (`"mix"`): the weights (one per
+/// target, [`normalised_weights`]) applied to each level's mean and std ([`style::mix_stats`]).
+pub fn mix_targets(encoded: Vec<StyleTarget>, weights: Option<&[f64]>) -> Result<Vec<StyleTarget>> {
     let Some(w) = weights else {
         return Ok(encoded);
     };

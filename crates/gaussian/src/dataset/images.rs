@@ -129,6 +129,40 @@ pub fn load_rgb(path: &Path, background: [f32; 3]) -> Result<RgbImage, DatasetEr
     Ok(to_rgb(img, background))
 }
 
+/// Decodes an image held in memory (e.g. an upload) as [`load_rgb`] decodes a file: the header
+/// is read first and a side above [`MAX_IMAGE_SIDE`] refused, then the pixels are decoded under
+/// the same [`image::Limits`]. `name` stands for the path in errors.
+pub fn decode_rgb(
+    bytes: &[u8],
+    name: &Path,
+    background: [f32; 3],
+) -> Result<RgbImage, DatasetError> {
+    let io = |error| DatasetError::Io {
+        path: name.to_path_buf(),
+        error,
+    };
+    let open = |check_side: bool| -> Result<_, DatasetError> {
+        let mut r = ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(io)?;
+        r.limits(decode_limits(check_side));
+        Ok(r)
+    };
+    let (width, height) = open(false)?
+        .into_dimensions()
+        .map_err(|e| decode_error(name, e))?;
+    if width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
+        return Err(DatasetError::ImageTooLarge {
+            path: name.to_path_buf(),
+            problem: format!(
+                "the image is {width}x{height} pixels; the image-size limit is {MAX_IMAGE_SIDE} pixels per side"
+            ),
+        });
+    }
+    let img = open(true)?.decode().map_err(|e| decode_error(name, e))?;
+    Ok(to_rgb(img, background))
+}
+
 /// Converts a decoded image into RGB `f32` (codes over their maximum), compositing any alpha
 /// channel onto `background`, in one pass over the decoded samples.
 fn to_rgb(img: DynamicImage, background: [f32; 3]) -> RgbImage {

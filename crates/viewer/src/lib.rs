@@ -1,0 +1,90 @@
+//! `dsgs view`: a local web server that shows a scene in the browser and stylizes the current
+//! view zero-shot with any painting.
+//!
+//! [`start`] reads the scene (a scene bundle, or any 3DGS `.ply`) and the style images once,
+//! binds (to `127.0.0.1` unless told otherwise) and serves, on a thread of its own, until
+//! [`Running::stop`]:
+//!
+//! * the page and its script, compiled into the library ([`assets`]; no request path reaches
+//!   the file system), which render the Gaussians with WebGL2 under the conventions of
+//!   `docs/conventions.md`;
+//! * the API of [`api`]: the scene and its cameras, the Gaussians in the binary layout of
+//!   [`scene::pack_gaussians`], the style images (given at start or uploaded: decoded under the
+//!   image-size limits, at most [`ViewerConfig::max_upload_bytes`]), a stylized PNG of any camera
+//!   through the real pipeline (render features, lift, transform with the paintings' statistics,
+//!   decode in tiles), and bake jobs whose baked scene the page can load.
+//!
+//! Requests run concurrently: stylizations and uploads on Tokio's blocking threads, bakes on a
+//! thread of their own (one at a time), so a slow stylization does not hold up the scene data or
+//! another tab. Bad requests are answered with a 4xx status and `{"error": "..."}`.
+
+#![warn(missing_docs)]
+
+pub mod api;
+pub mod assets;
+pub mod scene;
+mod server;
+mod state;
+
+pub use server::{start, Running};
+
+use std::net::{IpAddr, Ipv4Addr};
+use std::path::PathBuf;
+
+/// What to serve, and where.
+#[derive(Clone, Debug)]
+pub struct ViewerConfig {
+    /// The scene: a scene bundle directory or a 3DGS `.ply` file.
+    pub scene: PathBuf,
+    /// Style images offered in the page (read at start).
+    pub styles: Vec<PathBuf>,
+    /// The address to listen on (default `127.0.0.1`).
+    pub bind: IpAddr,
+    /// The port (0: any free port).
+    pub port: u16,
+    /// Longest side of style images after loading, in pixels.
+    pub style_side: u32,
+    /// Working memory of the networks per stylized view, in bytes (frames are decoded in
+    /// tiles that fit it).
+    pub tile_budget: u64,
+    /// Largest accepted upload, in bytes.
+    pub max_upload_bytes: usize,
+    /// Largest side of a stylized view, in pixels.
+    pub max_view_side: u32,
+    /// Most uploaded styles kept (the oldest upload is dropped beyond it).
+    pub max_uploads: usize,
+}
+
+impl ViewerConfig {
+    /// The defaults for `scene`: loopback, port 8080, style side 512, tile budget 1 GiB, uploads
+    /// up to 20 MiB, views up to 2048 pixels a side, 16 uploads kept.
+    pub fn new(scene: impl Into<PathBuf>) -> ViewerConfig {
+        ViewerConfig {
+            scene: scene.into(),
+            styles: Vec::new(),
+            bind: IpAddr::V4(Ipv4Addr::LOCALHOST),
+            port: 8080,
+            style_side: pipeline::stylize::DEFAULT_STYLE_SIDE,
+            tile_budget: train::bundle::DEFAULT_TILE_BUDGET_BYTES,
+            max_upload_bytes: 20 << 20,
+            max_view_side: 2048,
+            max_uploads: 16,
+        }
+    }
+}
+
+/// Why the viewer could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum ViewerError {
+    /// The scene or a style image could not be read.
+    #[error("{0}")]
+    Input(#[from] pipeline::Error),
+    /// The address could not be bound, or the server could not start.
+    #[error("{what}: {error}")]
+    Io {
+        /// What was being done.
+        what: String,
+        /// The system's error.
+        error: std::io::Error,
+    },
+}

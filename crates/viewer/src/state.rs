@@ -1,0 +1,501 @@
+//! What the server holds (the scene, its packed Gaussians, the styles, the bake jobs) and the
+//! work behind the API, run off the async threads.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
+
+use axum::http::StatusCode;
+use gaussian::Camera;
+use pipeline::cameras::{CameraRequest, CameraSource};
+use pipeline::image_io::{self, RgbImage};
+use pipeline::render::{render_colour, SceneInput};
+use pipeline::stylize::{self, StyleImage};
+use pipeline::{Event, Stage};
+use train::{BakeConfig, SceneBundle};
+
+use crate::api::{BakeRequest, JobInfo, SceneInfo, StyleInfo, StylizeRequest, WeightedStyle};
+use crate::scene::{pack_gaussians, stride, CameraJson};
+use crate::{ViewerConfig, ViewerError};
+
+/// Side of the style thumbnails, in pixels.
+const THUMBNAIL_SIDE: u32 = 128;
+/// Orbit cameras offered for a `.ply` (which has no cameras of its own).
+const PLY_ORBIT_VIEWS: usize = 8;
+/// Most bake iterations a request may ask for.
+const MAX_BAKE_ITERATIONS: u64 = 100_000;
+
+/// An API error: a status and a message for the page.
+#[derive(Debug)]
+pub(crate) struct ApiError(pub StatusCode, pub String);
+
+impl ApiError {
+    pub(crate) fn bad(message: impl Into<String>) -> Self {
+        ApiError(StatusCode::BAD_REQUEST, message.into())
+    }
+
+    fn not_found(message: impl Into<String>) -> Self {
+        ApiError(StatusCode::NOT_FOUND, message.into())
+    }
+
+    fn conflict(message: impl Into<String>) -> Self {
+        ApiError(StatusCode::CONFLICT, message.into())
+    }
+
+    fn internal(e: impl std::fmt::Display) -> Self {
+        ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string())
+    }
+}
+
+/// A style and its thumbnail.
+struct StoredStyle {
+    info: StyleInfo,
+    image: StyleImage,
+    thumbnail: Arc<Vec<u8>>,
+    uploaded: bool,
+    /// Its statistics at every encoder level, once a request has needed them (without colour
+    /// preservation, which depends on the view).
+    encoded: Option<stylize::StyleTarget>,
+}
+
+/// A bake job's progress and result.
+#[derive(Default)]
+struct Job {
+    state: &'static str,
+    stage: String,
+    done: u64,
+    total: u64,
+    error: String,
+    gaussians: Option<Arc<Vec<u8>>>,
+}
+
+/// Everything the handlers share.
+pub(crate) struct State {
+    pub config: ViewerConfig,
+    scene: SceneInput,
+    name: String,
+    cameras: Vec<(String, Camera)>,
+    pub gaussians: Arc<Vec<u8>>,
+    styles: Mutex<Vec<StoredStyle>>,
+    next_id: AtomicU64,
+    jobs: Mutex<HashMap<String, Arc<Mutex<Job>>>>,
+    /// Raised when the server stops: a running bake ends after its current iteration.
+    pub stop: AtomicBool,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// A thumbnail PNG of `img`, longer side at most [`THUMBNAIL_SIDE`].
+fn thumbnail(img: &RgbImage) -> Result<Vec<u8>, pipeline::Error> {
+    let side = img.width.max(img.height).max(1) as f64;
+    let s = (THUMBNAIL_SIDE as f64 / side).min(1.0);
+    let w = ((img.width as f64 * s).round() as u32).max(1);
+    let h = ((img.height as f64 * s).round() as u32).max(1);
+    image_io::encode_png(&image_io::thumbnail(img, w, h))
+}
+
+/// An upload's name: its printable characters, at most 64, or `upload`.
+fn clean_name(name: &str) -> String {
+    let n: String = name
+        .chars()
+        .filter(|c| c.is_alphanumeric() || " ._-()".contains(*c))
+        .take(64)
+        .collect();
+    let n = n.trim();
+    let n = Path::new(n)
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    if n.is_empty() {
+        "upload".into()
+    } else {
+        n
+    }
+}
+
+impl State {
+    /// Reads the scene and the style images.
+    pub(crate) fn load(config: ViewerConfig) -> Result<State, ViewerError> {
+        let scene = SceneInput::open(&config.scene)?;
+        let name = config
+            .scene
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "scene".into());
+        let known = scene.known_cameras();
+        let cameras: Vec<(String, Camera)> = if known.cameras.is_empty() {
+            let request = CameraRequest {
+                frames: Some(PLY_ORBIT_VIEWS),
+                ..CameraRequest::new(CameraSource::Orbit)
+            };
+            pipeline::cameras::select(&request, &known, scene.gaussians())?
+                .into_iter()
+                .enumerate()
+                .map(|(i, c)| (format!("orbit {i}"), c))
+                .collect()
+        } else {
+            known
+                .names
+                .iter()
+                .cloned()
+                .zip(known.cameras.iter().copied())
+                .collect()
+        };
+        let gaussians = Arc::new(pack_gaussians(scene.gaussians()));
+        let mut styles = Vec::new();
+        let loaded = if config.styles.is_empty() {
+            Vec::new()
+        } else {
+            stylize::load_styles(&config.styles, config.style_side)?
+        };
+        for (i, image) in loaded.into_iter().enumerate() {
+            styles.push(StoredStyle {
+                info: StyleInfo {
+                    id: format!("s{i}"),
+                    name: image.name.clone(),
+                },
+                thumbnail: Arc::new(thumbnail(&image.image)?),
+                image,
+                uploaded: false,
+                encoded: None,
+            });
+        }
+        Ok(State {
+            next_id: AtomicU64::new(styles.len() as u64),
+            config,
+            scene,
+            name,
+            cameras,
+            gaussians,
+            styles: Mutex::new(styles),
+            jobs: Mutex::new(HashMap::new()),
+            stop: AtomicBool::new(false),
+        })
+    }
+
+    fn bundle(&self) -> Result<&SceneBundle, ApiError> {
+        match &self.scene {
+            SceneInput::Bundle { bundle, .. } => Ok(bundle),
+            SceneInput::Ply { .. } => Err(ApiError::conflict(
+                "this scene is a .ply: stylizing needs a scene bundle (dsgs fit-features)",
+            )),
+        }
+    }
+
+    /// `GET /api/scene`.
+    pub(crate) fn info(&self) -> SceneInfo {
+        let g = self.scene.gaussians();
+        let (stylize, variant) = match &self.scene {
+            SceneInput::Bundle { bundle, .. } => (true, Some(bundle.info.variant.as_str().into())),
+            SceneInput::Ply { .. } => (false, None),
+        };
+        SceneInfo {
+            name: self.name.clone(),
+            gaussians: g.len(),
+            sh_degree: g.sh_degree,
+            stride: stride(g.sh_degree),
+            background: self.scene.background(),
+            stylize,
+            variant,
+            cameras: self
+                .cameras
+                .iter()
+                .map(|(n, c)| CameraJson::new(n, c))
+                .collect(),
+            styles: lock(&self.styles).iter().map(|s| s.info.clone()).collect(),
+        }
+    }
+
+    /// A style's thumbnail PNG.
+    pub(crate) fn thumbnail(&self, id: &str) -> Result<Arc<Vec<u8>>, ApiError> {
+        lock(&self.styles)
+            .iter()
+            .find(|s| s.info.id == id)
+            .map(|s| s.thumbnail.clone())
+            .ok_or_else(|| ApiError::not_found(format!("no style `{id}`")))
+    }
+
+    /// `POST /api/styles`: decodes an uploaded image under the size limits and keeps it (the
+    /// oldest upload is dropped beyond [`ViewerConfig::max_uploads`]).
+    pub(crate) fn upload(&self, name: &str, bytes: &[u8]) -> Result<StyleInfo, ApiError> {
+        if bytes.is_empty() {
+            return Err(ApiError::bad(
+                "the upload is empty: send an image file as the body",
+            ));
+        }
+        let name = clean_name(name);
+        let shown = PathBuf::from(format!("upload `{name}`"));
+        let img = gaussian::dataset::images::decode_rgb(bytes, &shown, [0.0; 3]).map_err(|e| {
+            let status = match e {
+                gaussian::dataset::DatasetError::ImageTooLarge { .. } => {
+                    StatusCode::PAYLOAD_TOO_LARGE
+                }
+                _ => StatusCode::BAD_REQUEST,
+            };
+            ApiError(status, e.to_string())
+        })?;
+        let side = self.config.style_side;
+        let img = if img.width.max(img.height) > side {
+            let s = side as f64 / img.width.max(img.height) as f64;
+            let w = ((img.width as f64 * s).round() as u32).max(1);
+            let h = ((img.height as f64 * s).round() as u32).max(1);
+            gaussian::dataset::images::resize(&img, w, h)
+        } else {
+            img
+        };
+        let id = format!("u{}", self.next_id.fetch_add(1, Ordering::Relaxed));
+        let info = StyleInfo {
+            id: id.clone(),
+            name: name.clone(),
+        };
+        let stored = StoredStyle {
+            info: info.clone(),
+            thumbnail: Arc::new(thumbnail(&img).map_err(ApiError::internal)?),
+            image: StyleImage {
+                name,
+                path: shown,
+                image: img,
+            },
+            uploaded: true,
+            encoded: None,
+        };
+        let mut styles = lock(&self.styles);
+        styles.push(stored);
+        let uploads = styles.iter().filter(|s| s.uploaded).count();
+        if uploads > self.config.max_uploads {
+            if let Some(i) = styles.iter().position(|s| s.uploaded) {
+                styles.remove(i);
+            }
+        }
+        Ok(info)
+    }
+
+    /// The style images of a request and their normalised weights (`None` for one style).
+    fn styles_of(
+        &self,
+        chosen: &[WeightedStyle],
+    ) -> Result<(Vec<StyleImage>, Option<Vec<f64>>), ApiError> {
+        if chosen.is_empty() {
+            return Err(ApiError::bad("choose at least one style"));
+        }
+        let styles = lock(&self.styles);
+        let mut images = Vec::new();
+        for c in chosen {
+            let s = styles
+                .iter()
+                .find(|s| s.info.id == c.id)
+                .ok_or_else(|| ApiError::not_found(format!("no style `{}`", c.id)))?;
+            images.push(s.image.clone());
+        }
+        let weights = if chosen.len() > 1 {
+            let w: Vec<f64> = chosen.iter().map(|c| c.weight).collect();
+            Some(
+                stylize::normalised_weights(&w, w.len())
+                    .map_err(|e| ApiError::bad(e.to_string()))?,
+            )
+        } else {
+            None
+        };
+        Ok((images, weights))
+    }
+
+    /// The one target of a request: its styles' statistics (cached per style), mixed by the
+    /// weights; with colour preservation the styles are encoded afresh against `colour`.
+    fn target(
+        &self,
+        chosen: &[WeightedStyle],
+        colour: Option<&ndarray::Array4<f32>>,
+    ) -> Result<stylize::StyleTarget, ApiError> {
+        let bundle = self.bundle()?;
+        let (images, weights) = self.styles_of(chosen)?;
+        let encoded = if colour.is_some() {
+            stylize::encode_styles(bundle, &images, colour).map_err(ApiError::internal)?
+        } else {
+            let mut out = Vec::with_capacity(chosen.len());
+            for (c, img) in chosen.iter().zip(&images) {
+                let cached = lock(&self.styles)
+                    .iter()
+                    .find(|s| s.info.id == c.id)
+                    .and_then(|s| s.encoded.clone());
+                let t = match cached {
+                    Some(t) => t,
+                    None => {
+                        let t = stylize::encode_styles(bundle, std::slice::from_ref(img), None)
+                            .map_err(ApiError::internal)?
+                            .remove(0);
+                        if let Some(s) = lock(&self.styles).iter_mut().find(|s| s.info.id == c.id) {
+                            s.encoded = Some(t.clone());
+                        }
+                        t
+                    }
+                };
+                out.push(t);
+            }
+            out
+        };
+        let mut targets = stylize::mix_targets(encoded, weights.as_deref())
+            .map_err(|e| ApiError::bad(e.to_string()))?;
+        Ok(targets.remove(0))
+    }
+
+    /// `POST /api/stylize`: the stylized view as a PNG.
+    pub(crate) fn stylize(&self, req: &StylizeRequest) -> Result<Vec<u8>, ApiError> {
+        let bundle = self.bundle()?;
+        stylize::check_alpha(req.alpha).map_err(|e| ApiError::bad(e.to_string()))?;
+        let mut camera = req
+            .camera
+            .camera(self.config.max_view_side)
+            .map_err(ApiError::bad)?;
+        if let Some(max) = req.max_side {
+            if max == 0 {
+                return Err(ApiError::bad("max_side must be at least 1"));
+            }
+            let k = camera.intrinsics;
+            let side = k.width.max(k.height);
+            if side > max {
+                camera = camera.scaled(max as f64 / side as f64);
+            }
+        }
+        let content = if req.preserve_colour {
+            let r = render_colour(&bundle.scene, &camera, bundle.info.background)
+                .map_err(ApiError::internal)?;
+            Some(stylize::colour_content(&[&r.image]).map_err(ApiError::internal)?)
+        } else {
+            None
+        };
+        let target = self.target(&req.styles, content.as_ref())?;
+        let view = stylize::render_feature_view(bundle, &camera).map_err(ApiError::internal)?;
+        let (img, _) =
+            stylize::stylize_view(bundle, &view, &target, req.alpha, self.config.tile_budget)
+                .map_err(ApiError::internal)?;
+        image_io::encode_png(&img).map_err(ApiError::internal)
+    }
+
+    /// `POST /api/bake`: checks the request and starts the bake on a thread of its own.
+    pub(crate) fn start_bake(self: &Arc<Self>, req: &BakeRequest) -> Result<String, ApiError> {
+        self.bundle()?;
+        stylize::check_alpha(req.alpha).map_err(|e| ApiError::bad(e.to_string()))?;
+        if !(1..=MAX_BAKE_ITERATIONS).contains(&req.iterations) {
+            return Err(ApiError::bad(format!(
+                "iterations {}: a bake runs 1 to {MAX_BAKE_ITERATIONS} iterations",
+                req.iterations
+            )));
+        }
+        let target = self.target(&req.styles, None)?;
+        let job = Arc::new(Mutex::new(Job {
+            state: "running",
+            stage: "starting".into(),
+            ..Job::default()
+        }));
+        let id = {
+            let mut jobs = lock(&self.jobs);
+            if jobs.values().any(|j| lock(j).state == "running") {
+                return Err(ApiError::conflict(
+                    "a bake is running already; wait for it to finish",
+                ));
+            }
+            let id = format!("bake{}", self.next_id.fetch_add(1, Ordering::Relaxed));
+            jobs.insert(id.clone(), job.clone());
+            id
+        };
+        let state = self.clone();
+        let (alpha, iterations) = (req.alpha, req.iterations);
+        std::thread::spawn(move || {
+            let result = state.bake(&target, alpha, iterations, &job);
+            let mut j = lock(&job);
+            match result {
+                Ok(g) => {
+                    j.state = "done";
+                    j.gaussians = Some(Arc::new(g));
+                }
+                Err(e) => {
+                    j.state = "failed";
+                    j.error = e;
+                }
+            }
+        });
+        Ok(id)
+    }
+
+    fn bake(
+        &self,
+        target: &stylize::StyleTarget,
+        alpha: f64,
+        iterations: u64,
+        job: &Mutex<Job>,
+    ) -> Result<Vec<u8>, String> {
+        let bundle = self.bundle().map_err(|e| e.1)?;
+        let stats = bundle
+            .target_stats(target.stats.deepest(), alpha)
+            .map_err(|e| e.to_string())?;
+        let config = BakeConfig {
+            iterations,
+            tile_budget_mib: (self.config.tile_budget >> 20).max(1),
+            ..BakeConfig::default()
+        };
+        let sink = |e: Event| {
+            let mut j = lock(job);
+            match e {
+                Event::StageStarted { stage, total, done } => {
+                    j.stage = stage_name(stage);
+                    j.total = total;
+                    j.done = done;
+                }
+                Event::Progress { done, .. } => j.done = done,
+                _ => {}
+            }
+        };
+        let run = train::Run {
+            out_dir: None,
+            stop: Some(&self.stop),
+            sink: &sink,
+        };
+        let report = train::bake(bundle, &stats, &config, None, &run).map_err(|e| e.to_string())?;
+        if report.run.interrupted {
+            return Err("the server stopped during the bake".into());
+        }
+        Ok(pack_gaussians(&report.scene))
+    }
+
+    /// `GET /api/jobs/{id}`.
+    pub(crate) fn job(&self, id: &str) -> Result<JobInfo, ApiError> {
+        let job = lock(&self.jobs)
+            .get(id)
+            .cloned()
+            .ok_or_else(|| ApiError::not_found(format!("no job `{id}`")))?;
+        let j = lock(&job);
+        Ok(JobInfo {
+            kind: "bake".into(),
+            state: j.state.into(),
+            done: j.done,
+            total: j.total,
+            message: if j.state == "failed" {
+                j.error.clone()
+            } else {
+                j.stage.clone()
+            },
+        })
+    }
+
+    /// `GET /api/jobs/{id}/gaussians`: the baked scene of a finished job.
+    pub(crate) fn job_gaussians(&self, id: &str) -> Result<Arc<Vec<u8>>, ApiError> {
+        let job = lock(&self.jobs)
+            .get(id)
+            .cloned()
+            .ok_or_else(|| ApiError::not_found(format!("no job `{id}`")))?;
+        let j = lock(&job);
+        j.gaussians
+            .clone()
+            .ok_or_else(|| ApiError::conflict(format!("job `{id}` is {}", j.state)))
+    }
+}
+
+fn stage_name(stage: Stage) -> String {
+    match stage {
+        Stage::BakeTargets => "rendering the stylized targets".into(),
+        other => format!("{other:?}").to_lowercase(),
+    }
+}

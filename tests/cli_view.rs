@@ -1,0 +1,357 @@
+//! `dsgs view` over real HTTP: the program is started on a free loopback port and asked with a
+//! real client for its page, the scene and its Gaussians, a stylized view (the same PNG as
+//! `dsgs stylize` writes for that camera), uploads, a bake job, and bad requests, each answered
+//! with a 4xx status and a message while the server keeps running.
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+
+use common::{dsgs, ok, save_tiny_bundle, scratch};
+use dsgs_testkit::{repo_fixture, shared_path};
+use serde_json::{json, Value};
+
+/// A `dsgs view` process, killed when dropped.
+struct Server {
+    child: Child,
+    url: String,
+    /// The program's standard output, kept open while it runs.
+    _stdout: BufReader<std::process::ChildStdout>,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn serve(scene: &Path, args: &[&str]) -> Server {
+    let mut child = dsgs()
+        .arg("view")
+        .arg(scene)
+        .args(["--port", "0"])
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    let mut stdout = BufReader::new(child.stdout.take().unwrap());
+    stdout.read_line(&mut line).unwrap();
+    let url = line
+        .split_whitespace()
+        .find(|w| w.starts_with("http://"))
+        .unwrap_or_else(|| panic!("no address in {line:?}"))
+        .trim_end_matches('/')
+        .to_string();
+    assert!(url.starts_with("http://127.0.0.1:"), "{url}");
+    Server {
+        child,
+        url,
+        _stdout: stdout,
+    }
+}
+
+fn agent() -> ureq::Agent {
+    ureq::Agent::config_builder()
+        .http_status_as_error(false)
+        .build()
+        .into()
+}
+
+/// `(status, body)` of a GET.
+fn get(s: &Server, path: &str) -> (u16, Vec<u8>) {
+    let mut r = agent().get(format!("{}{path}", s.url)).call().unwrap();
+    let status = r.status().as_u16();
+    (status, r.body_mut().read_to_vec().unwrap())
+}
+
+/// `(status, body)` of a POST of raw bytes.
+fn post(s: &Server, path: &str, content_type: &str, body: &[u8]) -> (u16, Vec<u8>) {
+    let mut r = agent()
+        .post(format!("{}{path}", s.url))
+        .header("Content-Type", content_type)
+        .send(body)
+        .unwrap();
+    let status = r.status().as_u16();
+    (status, r.body_mut().read_to_vec().unwrap())
+}
+
+fn post_json(s: &Server, path: &str, v: &Value) -> (u16, Vec<u8>) {
+    post(s, path, "application/json", v.to_string().as_bytes())
+}
+
+fn json_of(b: &[u8]) -> Value {
+    serde_json::from_slice(b).unwrap_or_else(|_| panic!("not JSON: {}", String::from_utf8_lossy(b)))
+}
+
+/// Asserts a 4xx answer whose message contains `needle`.
+fn refused(answer: (u16, Vec<u8>), status: u16, needle: &str) {
+    let (got, body) = answer;
+    let text = String::from_utf8_lossy(&body);
+    assert_eq!(got, status, "{text}");
+    let msg = json_of(&body)["error"]
+        .as_str()
+        .unwrap_or_default()
+        .to_string();
+    assert!(msg.contains(needle), "{msg}");
+}
+
+/// A PNG claiming `w x h` pixels (valid signature, IHDR and CRCs) without pixel data.
+fn png_header(w: u32, h: u32) -> Vec<u8> {
+    fn crc32(bytes: &[u8]) -> u32 {
+        let mut c = !0u32;
+        for &b in bytes {
+            c ^= b as u32;
+            for _ in 0..8 {
+                c = if c & 1 == 1 {
+                    0xedb8_8320 ^ (c >> 1)
+                } else {
+                    c >> 1
+                };
+            }
+        }
+        !c
+    }
+    let mut ihdr = b"IHDR".to_vec();
+    ihdr.extend_from_slice(&w.to_be_bytes());
+    ihdr.extend_from_slice(&h.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 2, 0, 0, 0]);
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    png.extend_from_slice(&13u32.to_be_bytes());
+    png.extend_from_slice(&ihdr);
+    png.extend_from_slice(&crc32(&ihdr).to_be_bytes());
+    // An empty first data chunk: the header is complete, the pixels are not there.
+    png.extend_from_slice(&0u32.to_be_bytes());
+    png.extend_from_slice(b"IDAT");
+    png.extend_from_slice(&crc32(b"IDAT").to_be_bytes());
+    png
+}
+
+#[test]
+fn the_api_serves_the_scene_stylizes_views_and_refuses_bad_requests() {
+    let dir = scratch("view-api");
+    let bundle = save_tiny_bundle(&dir);
+    let style = shared_path("data/styles/mondrian.jpg");
+    let s = serve(&bundle, &["--style", style.to_str().unwrap()]);
+
+    let (status, page) = get(&s, "/");
+    assert_eq!(status, 200);
+    assert!(
+        String::from_utf8_lossy(&page).contains("<html"),
+        "not a page"
+    );
+    assert_eq!(get(&s, "/assets/viewer.js").0, 200);
+    // Nothing beyond the compiled-in assets is served.
+    for path in [
+        "/assets/..%2F..%2FCargo.toml",
+        "/assets/secret",
+        "/etc/passwd",
+        "/api/nothing",
+    ] {
+        refused(get(&s, path), 404, "no ");
+    }
+
+    let (status, body) = get(&s, "/api/scene");
+    assert_eq!(status, 200);
+    let scene = json_of(&body);
+    assert_eq!(scene["gaussians"], 1500);
+    assert_eq!(scene["stylize"], true);
+    assert_eq!(scene["styles"][0]["name"], "mondrian");
+    let cameras = scene["cameras"].as_array().unwrap().clone();
+    assert_eq!(cameras.len(), 16);
+    let stride = scene["stride"].as_u64().unwrap() as usize;
+    assert_eq!(stride, 11 + 3 * 16);
+    let (status, g) = get(&s, "/api/gaussians");
+    assert_eq!(status, 200);
+    assert_eq!(g.len(), 1500 * stride * 4);
+    let (status, thumb) = get(&s, "/api/styles/s0/thumbnail.png");
+    assert_eq!(status, 200);
+    assert!(image::load_from_memory(&thumb).is_ok());
+
+    // The stylized view of bundle camera 3 is the frame `dsgs stylize` writes for it.
+    let request = |max_side: Value| {
+        json!({"camera": cameras[3], "styles": [{"id": "s0", "weight": 1}], "alpha": 1.0,
+               "max_side": max_side})
+    };
+    let (status, png) = post_json(&s, "/api/stylize", &request(Value::Null));
+    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&png));
+    let out = dir.join("stylized");
+    ok(dsgs()
+        .arg("stylize")
+        .arg(&bundle)
+        .arg("--style")
+        .arg(&style)
+        .args(["--cameras", "dataset", "--no-progress", "-o"])
+        .arg(&out));
+    assert!(
+        png == std::fs::read(out.join("mondrian/frame_0003.png")).unwrap(),
+        "the served view differs from dsgs stylize's frame"
+    );
+    // A preview is reduced.
+    let (status, png) = post_json(&s, "/api/stylize", &request(json!(32)));
+    assert_eq!(status, 200);
+    let img = image::load_from_memory(&png).unwrap();
+    assert_eq!((img.width(), img.height()), (32, 32));
+
+    // Bad requests: a 4xx and a message each, and the server goes on.
+    let mut bad_camera = cameras[3].clone();
+    bad_camera["width"] = json!(0);
+    refused(
+        post_json(
+            &s,
+            "/api/stylize",
+            &json!({"camera": bad_camera, "styles": [{"id": "s0"}]}),
+        ),
+        400,
+        "each side",
+    );
+    refused(
+        post_json(
+            &s,
+            "/api/stylize",
+            &json!({"camera": cameras[0], "styles": [{"id": "x9"}]}),
+        ),
+        404,
+        "no style `x9`",
+    );
+    refused(
+        post_json(
+            &s,
+            "/api/stylize",
+            &json!({"camera": cameras[0], "styles": [{"id": "s0"}], "alpha": 2}),
+        ),
+        400,
+        "--alpha 2",
+    );
+    refused(
+        post(&s, "/api/stylize", "application/json", b"{not json"),
+        400,
+        "request body",
+    );
+    refused(
+        post(&s, "/api/styles", "image/png", b"not an image at all"),
+        400,
+        "upload",
+    );
+    let mut corrupt = Vec::new();
+    image::RgbImage::new(8, 8)
+        .write_to(
+            &mut std::io::Cursor::new(&mut corrupt),
+            image::ImageFormat::Png,
+        )
+        .unwrap();
+    corrupt.truncate(corrupt.len() / 2);
+    refused(
+        post(&s, "/api/styles?name=half.png", "image/png", &corrupt),
+        400,
+        "half",
+    );
+    refused(
+        post(
+            &s,
+            "/api/styles?name=huge.png",
+            "image/png",
+            &png_header(20_000, 20_000),
+        ),
+        413,
+        "pixels per side",
+    );
+    refused(
+        post(
+            &s,
+            "/api/styles",
+            "application/octet-stream",
+            &vec![0u8; 21 << 20],
+        ),
+        413,
+        "upload limit",
+    );
+
+    // A good upload is offered with the others and stylizes.
+    let sketch = std::fs::read(shared_path("data/styles/sketch.png")).unwrap();
+    let (status, body) = post(&s, "/api/styles?name=my%20sketch.png", "image/png", &sketch);
+    assert_eq!(status, 201, "{}", String::from_utf8_lossy(&body));
+    let up = json_of(&body);
+    assert_eq!(up["name"], "my sketch");
+    let id = up["id"].as_str().unwrap().to_string();
+    let scene = json_of(&get(&s, "/api/scene").1);
+    assert!(scene["styles"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|v| v["id"] == id.as_str()));
+    let mixed = json!({"camera": cameras[0], "max_side": 24, "alpha": 0.7,
+        "preserve_colour": true, "styles": [{"id": "s0", "weight": 0.3}, {"id": id, "weight": 0.7}]});
+    assert_eq!(post_json(&s, "/api/stylize", &mixed).0, 200);
+
+    // A bake job runs in the background; its scene is served when done.
+    let (status, body) = post_json(
+        &s,
+        "/api/bake",
+        &json!({"styles": [{"id": "s0"}], "iterations": 3}),
+    );
+    assert_eq!(status, 202, "{}", String::from_utf8_lossy(&body));
+    let job = json_of(&body)["job"].as_str().unwrap().to_string();
+    let mut info = Value::Null;
+    for _ in 0..600 {
+        info = json_of(&get(&s, &format!("/api/jobs/{job}")).1);
+        if info["state"] != "running" {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    assert_eq!(info["state"], "done", "{info}");
+    let (status, baked) = get(&s, &format!("/api/jobs/{job}/gaussians"));
+    assert_eq!(status, 200);
+    assert_eq!(baked.len(), 1500 * (11 + 48) * 4);
+    refused(get(&s, "/api/jobs/nope"), 404, "no job");
+    refused(
+        post_json(
+            &s,
+            "/api/bake",
+            &json!({"styles": [{"id": "s0"}], "iterations": 0}),
+        ),
+        400,
+        "iterations 0",
+    );
+    drop(s);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_ply_is_shown_but_not_stylized() {
+    let s = serve(&repo_fixture("ply/tiny_ascii_deg1.ply"), &[]);
+    let scene = json_of(&get(&s, "/api/scene").1);
+    assert_eq!(scene["gaussians"], 2);
+    assert_eq!(scene["stylize"], false);
+    // A .ply has no cameras: an orbit is offered.
+    assert_eq!(scene["cameras"].as_array().unwrap().len(), 8);
+    let camera = scene["cameras"][0].clone();
+    refused(
+        post_json(
+            &s,
+            "/api/stylize",
+            &json!({"camera": camera, "styles": [{"id": "s0"}]}),
+        ),
+        409,
+        "needs a scene bundle",
+    );
+}
+
+#[test]
+fn a_scene_that_cannot_be_read_is_named() {
+    let dir = scratch("view-missing");
+    let out = Command::new(env!("CARGO_BIN_EXE_dsgs"))
+        .arg("view")
+        .arg(dir.join("nothing.ply"))
+        .args(["--port", "0"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("nothing.ply"), "{err}");
+}

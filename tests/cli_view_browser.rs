@@ -1,0 +1,152 @@
+//! `dsgs view` in a real browser: headless Chromium opens the page at a bundle camera, and its
+//! screenshot of the WebGL2 view matches `dsgs render` of the same camera (the CPU rasterizer)
+//! at 25 dB PSNR or more. Without Chromium the test says loudly that it skipped, except under
+//! CI, where it fails (`.ci/run` installs Debian's `chromium`).
+
+mod common;
+
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::{dsgs, ok, save_tiny_bundle, scratch};
+
+/// Chromium: `DSGS_CHROMIUM`, else `chromium`, `chromium-browser` or `google-chrome` on `PATH`.
+fn chromium() -> Option<PathBuf> {
+    if let Some(p) = std::env::var_os("DSGS_CHROMIUM") {
+        return Some(PathBuf::from(p));
+    }
+    let path = std::env::var_os("PATH")?;
+    ["chromium", "chromium-browser", "google-chrome"]
+        .iter()
+        .flat_map(|name| std::env::split_paths(&path).map(move |d| d.join(name)))
+        .find(|p| p.is_file())
+}
+
+/// Runs `cmd`, killing it after `limit`; whether it exited successfully in time.
+fn run_bounded(cmd: &mut Command, limit: Duration) -> bool {
+    let mut child = cmd
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("the browser starts");
+    let until = Instant::now() + limit;
+    loop {
+        match child.try_wait() {
+            Ok(Some(status)) => return status.success(),
+            Ok(None) if Instant::now() < until => std::thread::sleep(Duration::from_millis(100)),
+            _ => {
+                let _ = child.kill();
+                let _ = child.wait();
+                return false;
+            }
+        }
+    }
+}
+
+/// PSNR (dB) of two RGB8 images of the same size.
+fn psnr(a: &image::RgbImage, b: &image::RgbImage) -> f64 {
+    assert_eq!(a.dimensions(), b.dimensions());
+    let n = a.as_raw().len() as f64;
+    let mse = a
+        .as_raw()
+        .iter()
+        .zip(b.as_raw())
+        .map(|(&x, &y)| (x as f64 - y as f64).powi(2))
+        .sum::<f64>()
+        / n;
+    10.0 * (255.0f64 * 255.0 / mse.max(1e-12)).log10()
+}
+
+/// The page's screenshot of `url` in a `width x height` window.
+fn screenshot(browser: &Path, url: &str, out: &Path, width: u32, height: u32) {
+    let profile = out.with_extension("profile");
+    let done = run_bounded(
+        Command::new(browser)
+            .args([
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--use-gl=angle",
+                "--use-angle=swiftshader",
+                "--enable-unsafe-swiftshader",
+                "--disable-background-networking",
+                "--disable-component-update",
+                "--disable-sync",
+                "--no-first-run",
+                "--hide-scrollbars",
+                // Virtual time runs on while the page loads the scene and draws its first
+                // frame; the screenshot is taken when the budget is spent.
+                "--virtual-time-budget=30000",
+            ])
+            .arg(format!("--user-data-dir={}", profile.display()))
+            .arg(format!("--window-size={width},{height}"))
+            .arg(format!("--screenshot={}", out.display()))
+            .arg(url),
+        Duration::from_secs(180),
+    );
+    assert!(done && out.is_file(), "no screenshot of {url}");
+}
+
+#[test]
+fn the_page_draws_a_bundle_camera_as_dsgs_render_does() {
+    let Some(browser) = chromium() else {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "no Chromium under CI: .ci/run installs Debian's chromium"
+        );
+        let _ = writeln!(
+            std::io::stderr(),
+            "SKIPPED: no Chromium (install Debian's chromium or set DSGS_CHROMIUM): the browser \
+             test of dsgs view did not run"
+        );
+        return;
+    };
+    let dir = scratch("view-browser");
+    let bundle = save_tiny_bundle(&dir);
+    let mut server = dsgs()
+        .arg("view")
+        .arg(&bundle)
+        .args(["--port", "0"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut stdout = BufReader::new(server.stdout.take().unwrap());
+    let mut line = String::new();
+    stdout.read_line(&mut line).unwrap();
+    let url = line
+        .split_whitespace()
+        .find(|w| w.starts_with("http://"))
+        .unwrap_or_else(|| panic!("no address in {line:?}"))
+        .to_string();
+
+    // Camera 3 of the bundle, 64x64, drawn at the page's top left.
+    let shot = dir.join("page.png");
+    screenshot(&browser, &format!("{url}?camera=3"), &shot, 640, 360);
+    let _ = server.kill();
+    let _ = server.wait();
+    let page = image::open(&shot).unwrap().to_rgb8();
+    let view = image::imageops::crop_imm(&page, 0, 0, 64, 64).to_image();
+
+    let frames = dir.join("render");
+    ok(dsgs()
+        .args(["render", "--scene"])
+        .arg(&bundle)
+        .args(["--cameras", "dataset", "--no-progress", "-o"])
+        .arg(&frames));
+    let reference = image::open(frames.join("frame_0003.png"))
+        .unwrap()
+        .to_rgb8();
+    let db = psnr(&view, &reference);
+    println!("PSNR of the page's view against dsgs render: {db:.2} dB");
+    assert!(
+        db >= 25.0,
+        "PSNR {db:.2} dB (screenshot {})",
+        shot.display()
+    );
+    if std::env::var_os("DSGS_KEEP").is_none() {
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}

@@ -191,6 +191,16 @@ fn the_api_serves_the_scene_stylizes_views_and_refuses_bad_requests() {
         png == std::fs::read(out.join("mondrian/frame_0003.png")).unwrap(),
         "the served view differs from dsgs stylize's frame"
     );
+    // Two clients at once: a full-size stylization in one, the scene and its Gaussians in
+    // the other, both answered.
+    std::thread::scope(|scope| {
+        let slow = scope.spawn(|| post_json(&s, "/api/stylize", &request(Value::Null)).0);
+        for _ in 0..3 {
+            assert_eq!(get(&s, "/api/scene").0, 200);
+            assert_eq!(get(&s, "/api/gaussians").1.len(), 1500 * stride * 4);
+        }
+        assert_eq!(slow.join().unwrap(), 200);
+    });
     // A preview is reduced.
     let (status, png) = post_json(&s, "/api/stylize", &request(json!(32)));
     assert_eq!(status, 200);

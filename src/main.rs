@@ -704,9 +704,10 @@ struct BakeArgs {
 #[derive(Args, Clone)]
 struct CameraArgs {
     /// Camera source: the dataset's or bundle's cameras, the held-out ones, a path through
-    /// them, or an orbit.
-    #[arg(long, default_value = "orbit", value_parser = one_of::<CameraSource>(CameraSource::NAMES.iter().copied()))]
-    cameras: CameraSource,
+    /// them, an orbit, or a dense arc (frames 1 degree apart around what the cameras look at)
+    /// [default: orbit; eval: dense]
+    #[arg(long, value_parser = one_of::<CameraSource>(CameraSource::NAMES.iter().copied()))]
+    cameras: Option<CameraSource>,
     #[arg(long, value_parser = at_least_one::<usize>(), help = format!(
         "Number of frames (path and orbit), or at most this many cameras (dataset and test); at \
          least 1 [default: {} for path and orbit, every camera for dataset and test]",
@@ -740,9 +741,10 @@ struct CameraArgs {
 }
 
 impl CameraArgs {
-    fn request(&self) -> CameraRequest {
+    /// The request, with `default` as the source when `--cameras` is not given.
+    fn request(&self, default: CameraSource) -> CameraRequest {
         CameraRequest {
-            source: self.cameras,
+            source: self.cameras.unwrap_or(default),
             frames: self.frames,
             width: self.width,
             height: self.height,
@@ -872,6 +874,11 @@ struct EvalArgs {
     /// Write the report as JSON [default: none: the table only]
     #[arg(short, long)]
     output: Option<PathBuf>,
+    /// Leave out the per-frame 2D baseline (`2d:STYLE`: each colour render stylized on its own
+    /// by the bundle's encoder, AdaIN and decoder), which costs one whole-frame decode per view
+    /// and style
+    #[arg(long)]
+    no_baseline: bool,
     #[command(flatten)]
     shard: ShardArgs,
     /// No progress bar (a plain progress line at least every minute instead)
@@ -1319,7 +1326,11 @@ fn bake(a: BakeArgs, part: Part) -> Result<()> {
 fn render(a: RenderArgs) -> Result<()> {
     let scene = SceneInput::open(&a.scene)?;
     let known = a.cameras.known(scene.known_cameras())?;
-    let cams = pipeline::cameras::select(&a.cameras.request(), &known, scene.gaussians())?;
+    let cams = pipeline::cameras::select(
+        &a.cameras.request(CameraSource::Orbit),
+        &known,
+        scene.gaussians(),
+    )?;
     let terminal = Terminal::new("render", !a.no_progress);
     let written =
         pipeline::render::render_views(&scene, &cams, a.what, a.depth_style, &a.output, &terminal)?;
@@ -1380,7 +1391,11 @@ fn stylize(a: StylizeArgs, part: Part) -> Result<()> {
         &bundle,
         &a.bundle.display().to_string(),
     ))?;
-    let cams = pipeline::cameras::select(&a.cameras.request(), &known, &bundle.scene)?;
+    let cams = pipeline::cameras::select(
+        &a.cameras.request(CameraSource::Orbit),
+        &known,
+        &bundle.scene,
+    )?;
     let settings = pipeline::stylize::StylizeSettings {
         styles: a.style.styles,
         weights: a.style.mix,
@@ -1453,21 +1468,26 @@ fn eval(a: EvalArgs, part: Part) -> Result<()> {
             .context("--frames-dir needs the geometry: --scene PLY_OR_BUNDLE")?;
         let scene = SceneInput::open(scene_path)?;
         let known = a.cameras.known(scene.known_cameras())?;
-        let cams = pipeline::cameras::select(&a.cameras.request(), &known, scene.gaussians())?;
+        let cams = pipeline::cameras::select(
+            &a.cameras.request(CameraSource::Dense),
+            &known,
+            scene.gaussians(),
+        )?;
         pipeline::eval::evaluate_frames(&scene, &cams, frames_dir, &warp, &terminal)?
     } else {
         let Some(dir) = &a.bundle else {
             bail!("give a scene bundle to evaluate (or --frames-dir DIR --scene SCENE)");
         };
-        if a.style.styles.is_empty() {
-            bail!("give at least one --style image to evaluate");
-        }
         let bundle = bundle_with(dir, a.style.variant, a.style.decoder.as_deref())?;
         let known = a.cameras.known(KnownCameras::from_bundle(
             &bundle,
             &dir.display().to_string(),
         ))?;
-        let cams = pipeline::cameras::select(&a.cameras.request(), &known, &bundle.scene)?;
+        let cams = pipeline::cameras::select(
+            &a.cameras.request(CameraSource::Dense),
+            &known,
+            &bundle.scene,
+        )?;
         let settings = pipeline::eval::EvalSettings {
             styles: a.style.styles,
             weights: a.style.mix,
@@ -1476,6 +1496,7 @@ fn eval(a: EvalArgs, part: Part) -> Result<()> {
             style_side: a.style.style_size,
             warp,
             tile_budget: a.style.tile_budget << 20,
+            baseline: !a.no_baseline,
             part: part.clone(),
         };
         let name = dir.display().to_string();

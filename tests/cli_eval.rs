@@ -52,9 +52,10 @@ fn eval_report_and_frames_agree() {
     let r: Value = serde_json::from_slice(&std::fs::read(&report_path).unwrap()).unwrap();
     assert_eq!(r["frames"], 9);
     let outputs = r["outputs"].as_array().unwrap();
-    assert_eq!(outputs.len(), 2);
+    assert_eq!(outputs.len(), 3);
     assert_eq!(outputs[0]["name"], "colour");
-    assert_eq!(outputs[1]["name"], "mondrian");
+    assert_eq!(outputs[1]["name"], "2d:mondrian");
+    assert_eq!(outputs[2]["name"], "mondrian");
     for o in outputs {
         for (range, pairs) in [("short_range", 8.0), ("long_range", 2.0)] {
             assert_eq!(num(o, &[range, "pairs"]), pairs);
@@ -67,11 +68,12 @@ fn eval_report_and_frames_agree() {
             assert!((0.0..=2.0).contains(&p), "{o}");
         }
     }
-    let s = &outputs[1];
-    assert!(
-        num(s, &["style_loss"]) > 0.0 && num(s, &["content_loss"]) > 0.0,
-        "{s}"
-    );
+    for s in &outputs[1..] {
+        assert!(
+            num(s, &["style_loss"]) > 0.0 && num(s, &["content_loss"]) > 0.0,
+            "{s}"
+        );
+    }
     assert!(outputs[0]["style_loss"].is_null());
     for stage in ["raster", "lift_transform", "decode"] {
         assert!(num(&r, &["seconds_per_view", stage]) >= 0.0);
@@ -107,14 +109,36 @@ fn eval_report_and_frames_agree() {
     let r2: Value = serde_json::from_slice(&std::fs::read(&report2).unwrap()).unwrap();
     let o2 = &r2["outputs"][0];
     for range in ["short_range", "long_range"] {
-        let a = num(&outputs[1], &[range, "rmse"]);
+        let a = num(&outputs[2], &[range, "rmse"]);
         let b = num(o2, &[range, "rmse"]);
         assert!((a - b).abs() <= 1.0 / 255.0, "{range}: {a} vs {b}");
         assert_eq!(
-            num(&outputs[1], &[range, "valid_fraction"]),
+            num(&outputs[2], &[range, "valid_fraction"]),
             num(o2, &[range, "valid_fraction"])
         );
     }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn without_a_style_eval_reports_the_colour_floor_on_a_dense_path() {
+    let dir = scratch("eval-floor");
+    let bundle = common::save_tiny_bundle(&dir);
+    let report_path = dir.join("floor.json");
+    ok(dsgs()
+        .arg("eval")
+        .arg(&bundle)
+        .args(["--frames", "9", "--no-progress", "-o"])
+        .arg(&report_path));
+    let r: Value = serde_json::from_slice(&std::fs::read(&report_path).unwrap()).unwrap();
+    let outputs = r["outputs"].as_array().unwrap();
+    assert_eq!(outputs.len(), 1);
+    assert_eq!(outputs[0]["name"], "colour");
+    assert_eq!(num(&outputs[0], &["short_range", "pairs"]), 8.0);
+    assert!(r["seconds_per_view"].is_null(), "{r}");
+    // The default path: frames a fixed 1 degree apart.
+    let step = num(&r, &["path_step", "degrees"]);
+    assert!((step - 1.0).abs() < 1e-6, "{step}");
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -164,6 +188,7 @@ fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
         warp: WarpOptions::default(),
         // Small enough for several tiles per frame.
         tile_budget: 1 << 20,
+        baseline: false,
         part: Default::default(),
     };
     let report = evaluate_bundle(&bundle, "tiny", &cams, &settings, &pipeline::Quiet).unwrap();

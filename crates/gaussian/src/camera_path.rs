@@ -159,7 +159,9 @@ pub fn orbit(
         center,
         radius,
         elevation,
-        n_frames,
+        (n_frames, &|f| {
+            std::f64::consts::TAU * f as f64 / n_frames as f64
+        }),
         up_n,
         up_n.any_orthonormal_vector(),
     )
@@ -171,6 +173,37 @@ pub fn orbit_from(
     start: &Camera,
     center: DVec3,
     n_frames: usize,
+    up: DVec3,
+) -> Result<Vec<Camera>, CameraPathError> {
+    start_on_orbit(
+        start,
+        center,
+        n_frames,
+        &|f| std::f64::consts::TAU * f as f64 / n_frames as f64,
+        up,
+    )
+}
+
+/// `n_frames` cameras on the orbit of [`orbit_from`], `step` radians apart around `up`
+/// (an arc of `step (n_frames - 1)`): a path whose consecutive frames are a fixed, small
+/// rotation and translation apart.
+pub fn arc_from(
+    start: &Camera,
+    center: DVec3,
+    step: f64,
+    n_frames: usize,
+    up: DVec3,
+) -> Result<Vec<Camera>, CameraPathError> {
+    start_on_orbit(start, center, n_frames, &|f| step * f as f64, up)
+}
+
+/// `n_frames` cameras on the orbit through `start` around `center`, frame `f` at angle
+/// `theta(f)` from `start`.
+fn start_on_orbit(
+    start: &Camera,
+    center: DVec3,
+    n_frames: usize,
+    theta: &dyn Fn(usize) -> f64,
     up: DVec3,
 ) -> Result<Vec<Camera>, CameraPathError> {
     let up_n = check_up(up)?;
@@ -185,7 +218,7 @@ pub fn orbit_from(
         center,
         radius,
         elevation,
-        n_frames,
+        (n_frames, theta),
         up_n,
         e1,
     )
@@ -200,7 +233,7 @@ fn orbit_with_start(
     center: DVec3,
     radius: f64,
     elevation: f64,
-    n_frames: usize,
+    (n_frames, theta): (usize, &dyn Fn(usize) -> f64),
     up: DVec3,
     e1: DVec3,
 ) -> Result<Vec<Camera>, CameraPathError> {
@@ -214,8 +247,7 @@ fn orbit_with_start(
     let (sin_e, cos_e) = elevation.sin_cos();
     (0..n_frames)
         .map(|f| {
-            let theta = std::f64::consts::TAU * f as f64 / n_frames as f64;
-            let (s, c) = theta.sin_cos();
+            let (s, c) = theta(f).sin_cos();
             let eye = center + radius * (cos_e * (c * e1 + s * e2) + sin_e * up);
             // |elevation| < 90 degrees keeps the view axis off `up`, so look_at succeeds.
             look_at(intrinsics, eye, center, up).ok_or(CameraPathError::Elevation(elevation))
@@ -390,6 +422,40 @@ mod tests {
             start.camera_from_world,
             1e-12
         ));
+    }
+
+    /// The angle of the rotation taking one camera's axes to the other's, in radians.
+    fn rotation_angle(a: &Camera, b: &Camera) -> f64 {
+        let r = a.rotation().transpose() * b.rotation();
+        let cos = ((r.x_axis.x + r.y_axis.y + r.z_axis.z - 1.0) / 2.0).clamp(-1.0, 1.0);
+        cos.acos()
+    }
+
+    #[test]
+    fn arc_frames_are_a_fixed_step_apart() {
+        let center = DVec3::new(0.5, -0.2, 0.1);
+        let start = look_at(intr(), DVec3::new(3.0, 1.0, 1.5), center, DVec3::Z).unwrap();
+        let step = 1.5f64.to_radians();
+        let path = arc_from(&start, center, step, 12, DVec3::Z).unwrap();
+        assert_eq!(path.len(), 12);
+        assert!(mat_close(
+            path[0].camera_from_world,
+            start.camera_from_world,
+            1e-12
+        ));
+        let radius = (start.center() - center).length();
+        let height = (start.center() - center).dot(DVec3::Z);
+        // Centres on the circle of the start's height: chord 2 r' sin(step / 2).
+        let r_h = (radius * radius - height * height).sqrt();
+        for w in path.windows(2) {
+            let chord = (w[1].center() - w[0].center()).length();
+            assert!(
+                (chord - 2.0 * r_h * (step / 2.0).sin()).abs() < 1e-12,
+                "{chord}"
+            );
+            // Each frame is the last turned by `step` about the up axis.
+            assert!((rotation_angle(&w[0], &w[1]) - step).abs() < 1e-9);
+        }
     }
 
     #[test]

@@ -29,7 +29,7 @@
 
 use crate::error::{bail, Context, Error, Result};
 use gaussian::camera::MAX_IMAGE_SIDE;
-use gaussian::camera_path::{interpolate, look_at_point, mean_up, orbit, orbit_from};
+use gaussian::camera_path::{arc_from, interpolate, look_at_point, mean_up, orbit, orbit_from};
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
 use glam::DVec3;
 
@@ -92,11 +92,46 @@ pub enum CameraSource {
     Path,
     /// An orbit around the scene.
     Orbit,
+    /// An arc of the orbit through the first camera around what the cameras look at, frames
+    /// [`DENSE_STEP_DEGREES`] apart: consecutive frames a small fixed rotation and translation
+    /// apart, as in a video (the default of `dsgs eval`).
+    Dense,
 }
+
+/// How far apart consecutive cameras of a sequence are, on average.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PathStep {
+    /// Mean angle of the rotation between consecutive cameras, in degrees.
+    pub degrees: f64,
+    /// Mean distance between consecutive camera centres, in scene units.
+    pub distance: f64,
+}
+
+/// The mean step between consecutive `cameras` (`None` for fewer than two).
+pub fn path_step(cameras: &[Camera]) -> Option<PathStep> {
+    if cameras.len() < 2 {
+        return None;
+    }
+    let n = (cameras.len() - 1) as f64;
+    let (mut degrees, mut distance) = (0.0, 0.0);
+    for w in cameras.windows(2) {
+        let r = w[0].rotation().transpose() * w[1].rotation();
+        let cos = ((r.x_axis.x + r.y_axis.y + r.z_axis.z - 1.0) / 2.0).clamp(-1.0, 1.0);
+        degrees += cos.acos().to_degrees();
+        distance += (w[1].center() - w[0].center()).length();
+    }
+    Some(PathStep {
+        degrees: degrees / n,
+        distance: distance / n,
+    })
+}
+
+/// Degrees between consecutive frames of the [`CameraSource::Dense`] path.
+pub const DENSE_STEP_DEGREES: f64 = 1.0;
 
 impl CameraSource {
     /// Every value, by its command-line name.
-    pub const NAMES: &'static [&'static str] = &["dataset", "test", "path", "orbit"];
+    pub const NAMES: &'static [&'static str] = &["dataset", "test", "path", "orbit", "dense"];
 
     /// The command-line name.
     pub fn as_str(self) -> &'static str {
@@ -105,6 +140,7 @@ impl CameraSource {
             CameraSource::Test => "test",
             CameraSource::Path => "path",
             CameraSource::Orbit => "orbit",
+            CameraSource::Dense => "dense",
         }
     }
 }
@@ -117,8 +153,9 @@ impl std::str::FromStr for CameraSource {
             "test" => Ok(CameraSource::Test),
             "path" => Ok(CameraSource::Path),
             "orbit" => Ok(CameraSource::Orbit),
+            "dense" => Ok(CameraSource::Dense),
             _ => Err(format!(
-                "unknown camera source `{s}` (expected one of: dataset, test, path, orbit)"
+                "unknown camera source `{s}` (expected one of: dataset, test, path, orbit, dense)"
             )),
         }
     }
@@ -188,7 +225,7 @@ impl KnownCameras {
 /// A camera request.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CameraRequest {
-    /// Which cameras (`--cameras`: `dataset`, `test`, `path` or `orbit`).
+    /// Which cameras (`--cameras`: `dataset`, `test`, `path`, `orbit` or `dense`).
     pub source: CameraSource,
     /// Number of frames of a path or orbit (default [`DEFAULT_FRAMES`]), or at most this many
     /// cameras of `dataset` and `test`, evenly spaced (`--frames`).
@@ -382,6 +419,34 @@ pub fn select(
             interpolate(&known.cameras, req.frames.unwrap_or(DEFAULT_FRAMES))?
         }
         CameraSource::Orbit => orbit_cameras(req, known, scene)?,
+        CameraSource::Dense => {
+            // From the first camera, or without cameras from the first of an orbit around the
+            // scene.
+            let (start, centre) = match known.cameras.first() {
+                Some(c) => (
+                    *c,
+                    look_at_point(&known.cameras).unwrap_or_else(|| median_centre(scene)),
+                ),
+                None => {
+                    let one = CameraRequest {
+                        frames: Some(1),
+                        ..req.clone()
+                    };
+                    (orbit_cameras(&one, known, scene)?[0], median_centre(scene))
+                }
+            };
+            let up = req
+                .up
+                .or_else(|| mean_up(&known.cameras))
+                .unwrap_or(DVec3::NEG_Y);
+            arc_from(
+                &start,
+                centre,
+                DENSE_STEP_DEGREES.to_radians(),
+                req.frames.unwrap_or(DEFAULT_FRAMES),
+                up,
+            )?
+        }
     };
     resize_all(cams, req, &origin_of(known))
 }

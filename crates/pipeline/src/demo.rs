@@ -443,6 +443,7 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
                 style_side: settings.style_side,
                 warp: WarpOptions::default(),
                 tile_budget: settings.tile_budget,
+                baseline: false,
                 part: Default::default(),
             };
             let (eval, t) = timed(|| {

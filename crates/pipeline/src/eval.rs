@@ -2,9 +2,15 @@
 //! stylized sequences (metrics defined in [`crate::consistency`]).
 //!
 //! For a bundle and styles, every camera is rendered once in colour (which also gives the depth
-//! and alpha the warps use) and once as a feature map; each output (the plain colour render,
-//! then each style or the mixture) is compared along the sequence at short range (`j = i + 1`)
-//! and long range (`j = i + 7`). Per stylized output also:
+//! and alpha the warps use) and once as a feature map; each output is compared along the
+//! sequence at short range (`j = i + 1`) and long range (`j = i + 7`). The outputs: the plain
+//! colour render (the floor the warp itself reaches, from resampling and view-dependent colour;
+//! the only output without styles), then per style or mixture its per-frame 2D baseline
+//! (`2d:NAME`, [`baseline_view`]: each colour render stylized on its own, as a 2D method would;
+//! with [`EvalSettings::baseline`]) and the stylized frames. The report states the mean step
+//! between consecutive views ([`crate::cameras::path_step`]): figures compare only between
+//! sequences of the same step (the program's default path is the dense arc of
+//! [`crate::cameras::CameraSource::Dense`]). Per stylized output also:
 //!
 //! * style loss: `style::style_loss` of the output's encoder features (the bundle's encoder at
 //!   its variant, as the style statistics were computed) against the target's statistics at
@@ -89,6 +95,10 @@ pub struct EvalReport {
     pub height: u32,
     /// The masking thresholds of the warps.
     pub warp: WarpOptions,
+    /// How far apart consecutive views are on average (`None` for a single view): the metrics
+    /// of a sequence can only be compared with those of sequences of the same step.
+    #[serde(default)]
+    pub path_step: Option<crate::cameras::PathStep>,
     /// The metrics of each output sequence: for a bundle the colour render first, then each
     /// style or the mixture.
     pub outputs: Vec<OutputReport>,
@@ -114,6 +124,9 @@ pub struct EvalSettings {
     /// Working memory of the networks while decoding a frame, in bytes (`--tile-budget`, in
     /// MiB; see [`stylize::stylize_view`]).
     pub tile_budget: u64,
+    /// Also evaluate the per-frame 2D baseline of each style ([`baseline_view`]; on unless
+    /// `--no-baseline`).
+    pub baseline: bool,
     /// The whole evaluation, one shard of it (`--shard K/N`: the losses of its block of views
     /// and the pairs that start in it, into a manifest), or the merge of the shards' partial
     /// results into the report (`dsgs assemble`).
@@ -278,6 +291,44 @@ impl<'e> FrameLosses<'e> {
     }
 }
 
+/// The prefix of the name of a style's per-frame 2D baseline output (`2d:mondrian`).
+pub const BASELINE_PREFIX: &str = "2d:";
+
+/// The per-frame 2D baseline of a view: its colour render (clamped, `[0, 1]`) encoded, its
+/// deepest features transformed by AdaIN with that frame's own statistics towards the target's
+/// (`style::stylize` at strength `alpha`), and decoded whole by the bundle's decoder; clamped.
+/// What a 2D method that sees each frame alone does, against which the view-consistent design
+/// of the features is measured.
+pub fn baseline_view(
+    bundle: &SceneBundle,
+    colour: &RgbImage,
+    target: &stylize::StyleTarget,
+    alpha: f64,
+) -> Result<RgbImage> {
+    let x = nchw_from_rgb(colour);
+    let y = style::stylize::stylize(
+        &bundle.encoder,
+        &bundle.decoder,
+        &x,
+        target.stats.deepest(),
+        alpha,
+    )?;
+    let (h, w) = (x.dim().2, x.dim().3);
+    let y = train::bundle::crop(y, w as u32, h as u32)?;
+    Ok(image_io::clamped(&image_io::rgb_from_nchw(&y)?))
+}
+
+/// The stylized outputs of an evaluation, after the colour render: per target its baseline
+/// (with `baseline`) then itself, as `(target index, is the baseline)`.
+fn stylized_outputs(targets: usize, baseline: bool) -> Vec<(usize, bool)> {
+    (0..targets)
+        .flat_map(|t| {
+            let b = baseline.then_some((t, true));
+            b.into_iter().chain(std::iter::once((t, false)))
+        })
+        .collect()
+}
+
 /// The fingerprint of an evaluation: the bundle, the cameras, the targets, the strength, the
 /// warp thresholds and the tile budget (the losses of frames encoded in tiles differ from whole
 /// ones in the last bits).
@@ -297,6 +348,7 @@ fn fingerprint(
     h.eat_f32(settings.warp.alpha_threshold);
     h.eat_f64(settings.warp.depth_tolerance);
     h.eat_u64(settings.tile_budget);
+    h.eat_u64(settings.baseline as u64);
     h.hex()
 }
 
@@ -352,7 +404,12 @@ fn evaluate(
     )?;
     crate::cameras::check_camera_sizes(cameras)?;
     let (width, height) = check_same_size(cameras)?;
-    let styles = stylize::load_styles(&settings.styles, settings.style_side)?;
+    // Without styles only the colour render is evaluated: the floor the warp itself reaches.
+    let styles = if settings.styles.is_empty() {
+        Vec::new()
+    } else {
+        stylize::load_styles(&settings.styles, settings.style_side)?
+    };
     let shard_dir = match (&settings.part, shard_dir) {
         (Part::Whole, _) => None,
         (_, Some(d)) => Some(d),
@@ -435,7 +492,8 @@ fn evaluate(
 
     // The report: losses summed over the views in sequence order, pairs added in the order of
     // their first view, as one stream over the whole sequence adds them.
-    let outputs = 1 + targets.len();
+    let stylized = stylized_outputs(targets.len(), settings.baseline);
+    let outputs = 1 + stylized.len();
     let views = n as f64;
     let mut reports = Vec::with_capacity(outputs);
     for o in 0..outputs {
@@ -453,10 +511,10 @@ fn evaluate(
             (Some(style_sum / views), Some(content_sum / views))
         };
         reports.push(OutputReport {
-            name: if o == 0 {
-                "colour".into()
-            } else {
-                targets[o - 1].name.clone()
+            name: match o.checked_sub(1).map(|k| stylized[k]) {
+                None => "colour".into(),
+                Some((t, true)) => format!("{BASELINE_PREFIX}{}", targets[t].name),
+                Some((t, false)) => targets[t].name.clone(),
             },
             short_range: range(0, SHORT_RANGE),
             long_range: range(1, LONG_RANGE),
@@ -475,8 +533,9 @@ fn evaluate(
         width,
         height,
         warp: settings.warp,
+        path_step: crate::cameras::path_step(cameras),
         outputs: reports,
-        seconds_per_view: Some(StageSeconds {
+        seconds_per_view: (decoded > 0).then(|| StageSeconds {
             raster: total(|s| s.raster),
             lift_transform: total(|s| s.lift_transform),
             decode: total(|s| s.decode),
@@ -496,8 +555,9 @@ fn evaluate_block(
     sink: &dyn Sink,
 ) -> Result<ShardSums> {
     let encoder = &bundle.encoder;
-    let mut tally = Tally::start(Stage::Evaluate, views.len() * (1 + targets.len()), sink);
-    let mut stream = stream(1 + targets.len(), &settings.warp, Some(encoder))?
+    let stylized = stylized_outputs(targets.len(), settings.baseline);
+    let mut tally = Tally::start(Stage::Evaluate, views.len() * (1 + stylized.len()), sink);
+    let mut stream = stream(1 + stylized.len(), &settings.warp, Some(encoder))?
         .with_tile_budget(settings.tile_budget)
         .with_pairs(views.start, block.clone());
     let mut out = ShardSums::default();
@@ -510,27 +570,33 @@ fn evaluate_block(
             .contains(&i)
             .then(|| FrameLosses::new(encoder, &colour_image, settings.tile_budget))
             .transpose()?;
-        let mut images = Vec::with_capacity(1 + targets.len());
-        images.push(colour_image);
-        let mut view_losses = Vec::with_capacity(targets.len());
-        for target in targets {
-            let (img, s) = stylize::stylize_view(
-                bundle,
-                &features,
-                target,
-                settings.alpha,
-                settings.tile_budget,
-            )?;
-            out.seconds.raster += s.raster;
-            out.seconds.lift_transform += s.lift_transform;
-            out.seconds.decode += s.decode;
-            out.decoded += 1;
+        let mut images = Vec::with_capacity(1 + stylized.len());
+        let mut view_losses = Vec::with_capacity(stylized.len());
+        for &(t, is_baseline) in &stylized {
+            let target = &targets[t];
+            let img = if is_baseline {
+                baseline_view(bundle, &colour_image, target, settings.alpha)?
+            } else {
+                let (img, s) = stylize::stylize_view(
+                    bundle,
+                    &features,
+                    target,
+                    settings.alpha,
+                    settings.tile_budget,
+                )?;
+                out.seconds.raster += s.raster;
+                out.seconds.lift_transform += s.lift_transform;
+                out.seconds.decode += s.decode;
+                out.decoded += 1;
+                img
+            };
             if let Some(l) = &losses {
                 view_losses.push(l.of(&img, &target.stats.levels)?);
             }
             images.push(img);
             tally.advance(1, "decode");
         }
+        images.insert(0, colour_image);
         if losses.is_some() {
             out.losses.push(view_losses);
         }
@@ -544,7 +610,7 @@ fn evaluate_block(
     }
     out.pairs = stream.pair_records().to_vec();
     if out.pairs.is_empty() {
-        out.pairs = vec![vec![Vec::new(); OFFSETS.len()]; 1 + targets.len()];
+        out.pairs = vec![vec![Vec::new(); OFFSETS.len()]; 1 + stylized.len()];
     }
     tally.finish();
     Ok(out)
@@ -633,6 +699,7 @@ pub fn evaluate_frames(
         width,
         height,
         warp: *warp,
+        path_step: crate::cameras::path_step(cameras),
         outputs: vec![OutputReport {
             name,
             short_range: short,
@@ -655,6 +722,12 @@ pub fn table(r: &EvalReport) -> String {
          short range j=i+{SHORT_RANGE}, long range j=i+{LONG_RANGE}\n",
         r.frames, r.width, r.height
     );
+    if let Some(p) = r.path_step {
+        s += &format!(
+            "consecutive views {:.3} degrees and {:.4} scene units apart on average\n",
+            p.degrees, p.distance
+        );
+    }
     s += &format!(
         "{:<16} {:>10} {:>10} {:>10} {:>10} {:>11} {:>11}\n",
         "output", "short rmse", "short perc", "long rmse", "long perc", "style loss", "content"

@@ -167,6 +167,7 @@ fn eval_settings(styles: Vec<PathBuf>) -> EvalSettings {
         style_side: 64,
         warp: WarpOptions::default(),
         tile_budget: train::bundle::DEFAULT_TILE_BUDGET_BYTES,
+        baseline: false,
         part: Default::default(),
     }
 }

@@ -34,7 +34,12 @@
 //! of at most [`tiles_per_job`] of them. A job transforms its input patches into `V`
 //! (`16 x C x tiles`), multiplies into `M` (`16 x O x tiles`) through [`crate::matmul`]
 //! (single-threaded), and transforms `M` back into its output tiles, adding the bias and applying
-//! the ReLU. The transforms run a tile row's run of tiles at a time as loops over the tiles,
+//! the ReLU. The products always have [`tiles_per_job`] columns (a job with fewer tiles leaves
+//! the rest unused): the GEMM library chooses its blocking by the shapes, and with one shape
+//! each output's sum runs in the same order whichever job and column its tile falls in, so a
+//! region computed alone (`crate::tiled`) equals the same region of the whole image bit for bit
+//! (with fewer columns for a last, shorter job, a compressed relu4_1 encoder level differed in
+//! the last bits). The transforms run a tile row's run of tiles at a time as loops over the tiles,
 //! which the compiler vectorises for the instruction set chosen at run time (`pulp`: AVX-512,
 //! AVX2+FMA, NEON or the baseline); they only add and subtract, so every instruction set
 //! gives the same bits. Jobs run in parallel with rayon and write disjoint output tiles; their
@@ -64,10 +69,10 @@ const E: usize = A * A;
 pub const JOB_BUDGET_BYTES: usize = 8 << 20;
 
 /// Tiles per job for `c` input and `o` output channels of `T`: as many as fit
-/// [`JOB_BUDGET_BYTES`], between 32 and 4096.
+/// [`JOB_BUDGET_BYTES`], between 32 and 4096, a multiple of 32.
 pub fn tiles_per_job<T>(c: usize, o: usize) -> usize {
     let per_tile = E * (c + o) * std::mem::size_of::<T>();
-    (JOB_BUDGET_BYTES / per_tile.max(1)).clamp(32, 4096)
+    (JOB_BUDGET_BYTES / per_tile.max(1)).clamp(32, 4096) / 32 * 32
 }
 
 /// `G g` for one column `g` of a kernel (3 values to 4), in `f64`.
@@ -170,7 +175,13 @@ pub(crate) fn conv3x3_valid<T: Real>(
     // Scratch buffers are recycled through a pool, so at most one set per running job exists.
     let pool: Mutex<Vec<Scratch<T>>> = Mutex::new(Vec::new());
     jobs.par_iter().for_each(|&(img, t0, t1)| {
-        let nt = t1 - t0;
+        // The products always run on `per_job` columns, however many tiles the job has (the
+        // spare columns hold stale finite values and are never read back): the GEMM library
+        // picks its blocking and kernels by the shapes, so with one shape for every job, and
+        // whole panels (a multiple of 32 columns), each output is summed in the same order
+        // wherever its tile falls: in a whole image, in a region of it (`crate::tiled`), first
+        // or last in a job.
+        let nt = per_job;
         let (mut v, mut m, mut rows) = pool
             .lock()
             .ok()

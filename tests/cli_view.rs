@@ -217,7 +217,7 @@ fn the_api_serves_the_scene_stylizes_views_and_refuses_bad_requests() {
             &json!({"camera": bad_camera, "styles": [{"id": "s0"}]}),
         ),
         400,
-        "each side",
+        "width is 0",
     );
     refused(
         post_json(

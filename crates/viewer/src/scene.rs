@@ -76,44 +76,15 @@ impl CameraJson {
         }
     }
 
-    /// The camera, checked: a size from 1 to `max_side` pixels a side, finite positive focal
-    /// lengths, a finite principal point and a rigid `camera_from_world` (orthonormal rotation,
-    /// last row `0 0 0 1`). The error says what is wrong.
+    /// The camera, checked as the dataset loaders and bundles check theirs
+    /// ([`Intrinsics::check`], [`gaussian::camera::check_rigid`]), and at most `max_side` pixels
+    /// a side. The error says which field is wrong and why.
     pub fn camera(&self, max_side: u32) -> Result<Camera, String> {
-        let side_ok = |s: u32| (1..=max_side).contains(&s);
-        if !side_ok(self.width) || !side_ok(self.height) {
+        if self.width.max(self.height) > max_side {
             return Err(format!(
                 "the view is {}x{} pixels; each side must be 1 to {max_side}",
                 self.width, self.height
             ));
-        }
-        if !(self.fx > 0.0 && self.fy > 0.0 && self.fx.is_finite() && self.fy.is_finite()) {
-            return Err(format!(
-                "focal lengths {} and {} must be finite and above 0",
-                self.fx, self.fy
-            ));
-        }
-        if !(self.cx.is_finite() && self.cy.is_finite()) {
-            return Err("the principal point must be finite".into());
-        }
-        let m = &self.camera_from_world;
-        if m.iter().any(|v| !v.is_finite()) {
-            return Err("camera_from_world has a value that is not a finite number".into());
-        }
-        let pose = DMat4::from_cols_array(m).transpose();
-        let r = glam::DMat3::from_mat4(pose);
-        let off = (r * r.transpose() - glam::DMat3::IDENTITY)
-            .to_cols_array()
-            .iter()
-            .fold(0.0f64, |a, v| a.max(v.abs()));
-        if off > 1e-4 || (r.determinant() - 1.0).abs() > 1e-4 {
-            return Err(
-                "camera_from_world is not a rigid transform (its rotation part is not a rotation)"
-                    .into(),
-            );
-        }
-        if (m[12], m[13], m[14], m[15]) != (0.0, 0.0, 0.0, 1.0) {
-            return Err("the last row of camera_from_world must be 0 0 0 1".into());
         }
         let k = Intrinsics {
             fx: self.fx,
@@ -123,6 +94,9 @@ impl CameraJson {
             width: self.width,
             height: self.height,
         };
+        k.check()?;
+        let pose = DMat4::from_cols_array(&self.camera_from_world).transpose();
+        gaussian::camera::check_rigid(&pose).map_err(|p| format!("camera_from_world: {p}"))?;
         Ok(Camera::new(k, pose))
     }
 }
@@ -164,12 +138,12 @@ mod tests {
             let e = j.camera(4096).unwrap_err();
             assert!(e.contains(needle), "{e}");
         };
-        bad(&|j| j.width = 0, "each side");
+        bad(&|j| j.width = 0, "width is 0");
         bad(&|j| j.height = 5000, "each side");
         bad(&|j| j.fx = -1.0, "focal");
-        bad(&|j| j.cy = f64::NAN, "principal");
-        bad(&|j| j.camera_from_world[0] = 2.0, "rigid");
-        bad(&|j| j.camera_from_world[15] = 2.0, "last row");
+        bad(&|j| j.cy = f64::NAN, "cy");
+        bad(&|j| j.camera_from_world[0] = 2.0, "camera_from_world");
+        bad(&|j| j.camera_from_world[15] = 2.0, "camera_from_world");
     }
 
     #[test]

@@ -14,9 +14,9 @@
 //!   through the real pipeline (render features, lift, transform with the paintings' statistics,
 //!   decode in tiles), and bake jobs whose baked scene the page can load.
 //!
-//! Requests run concurrently: stylizations and uploads on Tokio's blocking threads, bakes on a
-//! thread of their own (one at a time), so a slow stylization does not hold up the scene data or
-//! another tab. Bad requests are answered with a 4xx status and `{"error": "..."}`.
+//! Requests run concurrently: stylizations (at most two at once, the others wait) and uploads
+//! on Tokio's blocking threads, bakes on a thread of their own (one at a time), so a slow
+//! stylization does not hold up the scene data or another tab. Bad requests are answered with a 4xx status and `{"error": "..."}`.
 
 #![warn(missing_docs)]
 

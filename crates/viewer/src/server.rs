@@ -124,7 +124,16 @@ async fn stylize(
         Ok(r) => r,
         Err(e) => return e.into_response(),
     };
-    match blocking(move || s.stylize(&req)).await {
+    // Waiting for a slot holds up no other request.
+    let Ok(_slot) = s.stylize_slots.acquire().await else {
+        return ApiError(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "the server is stopping".into(),
+        )
+        .into_response();
+    };
+    let state = s.clone();
+    match blocking(move || state.stylize(&req)).await {
         Ok(png) => bytes("image/png", Arc::new(png)),
         Err(e) => e.into_response(),
     }

@@ -82,7 +82,13 @@ pub(crate) struct State {
     jobs: Mutex<HashMap<String, Arc<Mutex<Job>>>>,
     /// Raised when the server stops: a running bake ends after its current iteration.
     pub stop: AtomicBool,
+    /// Stylizations running at once ([`STYLIZE_SLOTS`]); more wait for a slot.
+    pub stylize_slots: tokio::sync::Semaphore,
 }
+
+/// Most stylizations computed at once: each holds up to the tile budget of network memory, and
+/// two already share the cores; more requests wait their turn.
+pub(crate) const STYLIZE_SLOTS: usize = 2;
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(PoisonError::into_inner)
@@ -173,6 +179,7 @@ impl State {
             styles: Mutex::new(styles),
             jobs: Mutex::new(HashMap::new()),
             stop: AtomicBool::new(false),
+            stylize_slots: tokio::sync::Semaphore::new(STYLIZE_SLOTS),
         })
     }
 

@@ -102,6 +102,12 @@ pub fn image_size(path: &Path) -> Result<(u32, u32), DatasetError> {
     let (width, height) = reader(path, false)?
         .into_dimensions()
         .map_err(|e| decode_error(path, e))?;
+    check_side(path, width, height)
+}
+
+/// `(width, height)`, or [`DatasetError::ImageTooLarge`] naming `path` when a side is above
+/// [`MAX_IMAGE_SIDE`].
+fn check_side(path: &Path, width: u32, height: u32) -> Result<(u32, u32), DatasetError> {
     if width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
         return Err(DatasetError::ImageTooLarge {
             path: path.to_path_buf(),
@@ -151,14 +157,7 @@ pub fn decode_rgb(
     let (width, height) = open(false)?
         .into_dimensions()
         .map_err(|e| decode_error(name, e))?;
-    if width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
-        return Err(DatasetError::ImageTooLarge {
-            path: name.to_path_buf(),
-            problem: format!(
-                "the image is {width}x{height} pixels; the image-size limit is {MAX_IMAGE_SIDE} pixels per side"
-            ),
-        });
-    }
+    check_side(name, width, height)?;
     let img = open(true)?.decode().map_err(|e| decode_error(name, e))?;
     Ok(to_rgb(img, background))
 }

@@ -32,7 +32,7 @@ use pipeline::shard::{Invocation, Part, Shard};
 use pipeline::{Control, RunOutcome};
 use terminal::Terminal;
 use train::bake::STORED_SH_DEGREE;
-use train::{BakeConfig, DecoderTrainConfig, Variant};
+use train::{BakeConfig, DecoderMode, DecoderTrainConfig, FeatureNorm, Variant};
 
 mod terminal;
 
@@ -190,6 +190,29 @@ fn variant() -> impl TypedValueParser<Value = Variant> {
         Variant::Standard | Variant::Fullres => v.as_str(),
     };
     one_of([listed(Variant::Standard), listed(Variant::Fullres)])
+}
+
+/// The `--decoder-mode` parser: `pretrained`, `scratch` or `mlp`, listed in `--help`.
+fn decoder_mode() -> impl TypedValueParser<Value = DecoderMode> {
+    let listed = |v: DecoderMode| match v {
+        DecoderMode::Pretrained | DecoderMode::Scratch | DecoderMode::Mlp => v.as_str(),
+    };
+    one_of([
+        listed(DecoderMode::Pretrained),
+        listed(DecoderMode::Scratch),
+        listed(DecoderMode::Mlp),
+    ])
+}
+
+/// The `--normalize` parser: `before-raster` or `after-raster`, listed in `--help`.
+fn feature_norm() -> impl TypedValueParser<Value = FeatureNorm> {
+    let listed = |v: FeatureNorm| match v {
+        FeatureNorm::BeforeRaster | FeatureNorm::AfterRaster => v.as_str(),
+    };
+    one_of([
+        listed(FeatureNorm::BeforeRaster),
+        listed(FeatureNorm::AfterRaster),
+    ])
 }
 
 /// A whole number in `min..=max`; the message names the range (clap adds the flag).
@@ -556,6 +579,27 @@ struct FitFeaturesArgs {
         FitFeaturesConfig::default().features.variant.as_str(),
     ))]
     variant: Option<Variant>,
+    /// The decoder of stage 3, for the paper's decoder ablation: `pretrained` (the frozen 2D
+    /// decoder of --weights/--decoder, the paper's design), `scratch` (the same CNN initialised
+    /// from --seed and trained here with the features) or `mlp` (a per-pixel MLP, features ->
+    /// 256 -> 128 -> RGB, trained here; needs --variant fullres). The bundle keeps the trained
+    /// decoder [default: pretrained]
+    #[arg(long, value_parser = decoder_mode(), verbatim_doc_comment)]
+    decoder_mode: Option<DecoderMode>,
+    #[arg(long, value_parser = positive, help = with_default(
+        "Adam learning rate of a decoder trained in stage 3 (--decoder-mode scratch or mlp; \
+         above 0)",
+        FitFeaturesConfig::default().features.lr_decoder,
+    ))]
+    lr_decoder: Option<f64>,
+    /// Where the features are normalised, for the paper's consistency ablation:
+    /// `before-raster` (each view's encoder feature is normalised, then distilled into the
+    /// Gaussians, so every view gets the same style transform: the paper's design) or
+    /// `after-raster` (unnormalised features are distilled, and each rendered view is
+    /// normalised with its own statistics before the transform, as 2D AdaIN does). The bundle
+    /// records it and stylization follows it [default: before-raster]
+    #[arg(long, value_parser = feature_norm(), verbatim_doc_comment)]
+    normalize: Option<FeatureNorm>,
     #[arg(long, help = CONFIG_HELP)]
     config: Option<PathBuf>,
     #[arg(long, value_parser = at_least_one::<u64>(), help = with_default(
@@ -642,11 +686,14 @@ struct BakeArgs {
     /// Longest side of the style images after loading, in pixels (at least 1).
     #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE, value_parser = at_least_one::<u32>())]
     style_size: u32,
-    /// Network variant [default: the bundle's]
+    /// Network variant: `standard` (pooling and upsampling) or `fullres` (neither), for the
+    /// paper's standard-against-fullres ablation [default: the bundle's]
     #[arg(long, value_parser = variant())]
     variant: Option<Variant>,
-    /// Replace the bundle's decoder (.safetensors or a PyTorch checkpoint) [default: the
-    /// bundle's]
+    /// Replace the bundle's decoder (.safetensors or a PyTorch checkpoint), e.g. the 2D decoder
+    /// before fine-tuning; not for bundles whose decoder was trained with their features
+    /// (fit-features --decoder-mode scratch or mlp). Where the features are normalised
+    /// (fit-features --normalize) is the bundle's [default: the bundle's decoder]
     #[arg(long)]
     decoder: Option<PathBuf>,
     #[arg(long, help = BAKE_CONFIG_HELP)]
@@ -802,11 +849,14 @@ struct StyleArgs {
     /// Longest side of the style images after loading, in pixels (at least 1).
     #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE, value_parser = at_least_one::<u32>())]
     style_size: u32,
-    /// Network variant [default: the bundle's]
+    /// Network variant: `standard` (pooling and upsampling) or `fullres` (neither), for the
+    /// paper's standard-against-fullres ablation [default: the bundle's]
     #[arg(long, value_parser = variant())]
     variant: Option<Variant>,
-    /// Replace the bundle's decoder (.safetensors or a PyTorch checkpoint) [default: the
-    /// bundle's]
+    /// Replace the bundle's decoder (.safetensors or a PyTorch checkpoint), e.g. the 2D decoder
+    /// before fine-tuning; not for bundles whose decoder was trained with their features
+    /// (fit-features --decoder-mode scratch or mlp). Where the features are normalised
+    /// (fit-features --normalize) is the bundle's [default: the bundle's decoder]
     #[arg(long)]
     decoder: Option<PathBuf>,
     /// Working memory of the networks per frame, in MiB: frames are decoded in tiles that fit
@@ -1218,6 +1268,9 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
             seed: a.seed,
             crop: a.crop,
             variant: a.variant,
+            decoder_mode: a.decoder_mode,
+            lr_decoder: a.lr_decoder,
+            normalize: a.normalize,
             white: a.white,
             no_eval: a.no_eval,
             log_every: a.run.log_every,

@@ -3,6 +3,10 @@
 //! conv unless the weights say so (the compressed decoder has one).
 //!
 //! The fullres variant ([`Resolution::Fullres`]) skips the upsamplings; the weights are the same.
+//!
+//! A *pointwise* decoder ([`Decoder::pointwise`]) has one level of 1x1 convs: a per-pixel MLP
+//! from features to colour, with no spatial context and no upsampling (the MLP decoder of the
+//! paper's decoder ablation). It decodes a feature map to an image of the same size.
 
 use std::path::Path;
 
@@ -43,7 +47,7 @@ impl<T: Real> Decoder<T> {
     /// Builds the decoder from a state dict in the Sequential (AdaIN/WCT) or named (compressed)
     /// layout. Depth and widths come from the weights.
     pub fn from_state_dict(sd: &StateDict) -> Result<Decoder<T>, NetError> {
-        Self::from_spec(sd, decoder_spec(sd, None)?)
+        Self::from_spec(sd, decoder_spec(sd, None)?, 3)
     }
 
     /// Imports a PyTorch checkpoint (`.pth`, legacy or zip format) and builds the network from
@@ -56,13 +60,66 @@ impl<T: Real> Decoder<T> {
         })
     }
 
-    pub(crate) fn from_spec(sd: &StateDict, spec: DecoderSpec) -> Result<Decoder<T>, NetError> {
+    /// A pointwise decoder: the given 1x1 convs run in order as one level, each but the last
+    /// followed by a ReLU (and the last too when `final_relu`). Each conv must take the
+    /// previous one's output width; names must be distinct (they key the weights file, see
+    /// [`crate::weights_file`]: `conv1_{n}` down to `conv1_1` for `n` convs fits the canonical
+    /// layout).
+    pub fn pointwise(layers: Vec<ConvLayer<T>>, final_relu: bool) -> Result<Decoder<T>, NetError> {
+        if layers.is_empty() {
+            return Err(NetError::Input("a pointwise decoder needs at least one conv".into()));
+        }
+        for (i, l) in layers.iter().enumerate() {
+            let (o, c, kh, kw) = l.weight.dim();
+            if kh != 1 || kw != 1 || o == 0 || c == 0 || l.bias.len() != o {
+                return Err(NetError::Input(format!(
+                    "pointwise decoder conv `{}`: weight {:?} and bias [{}], expected [O, C, 1, 1] \
+                     and [O]",
+                    l.name,
+                    l.weight.shape(),
+                    l.bias.len()
+                )));
+            }
+            if i > 0 && layers[i - 1].out_channels() != c {
+                return Err(NetError::Input(format!(
+                    "pointwise decoder conv `{}` takes {c} channels, the conv before it makes {}",
+                    l.name,
+                    layers[i - 1].out_channels()
+                )));
+            }
+            if layers[..i].iter().any(|p| p.name == l.name) {
+                return Err(NetError::Input(format!(
+                    "pointwise decoder: two convs are named `{}`",
+                    l.name
+                )));
+            }
+        }
+        Ok(Decoder {
+            levels: vec![layers],
+            final_relu,
+            resolution: Resolution::Standard,
+        })
+    }
+
+    /// `kernel` is the convs' size: 3 for the decoders of the weight files, 1 for a pointwise
+    /// decoder (canonical files record it, see [`crate::weights_file`]).
+    pub(crate) fn from_spec(
+        sd: &StateDict,
+        spec: DecoderSpec,
+        kernel: usize,
+    ) -> Result<Decoder<T>, NetError> {
+        if kernel == 1 && spec.levels.len() != 1 {
+            return Err(NetError::Layout(format!(
+                "decoder: a pointwise (1x1) decoder has one level, found {}",
+                spec.levels.len()
+            )));
+        }
         let mut c: Option<usize> = None;
         let mut levels = Vec::new();
         for lv in &spec.levels {
             let mut convs = Vec::new();
             for r in lv {
-                let layer: ConvLayer<T> = read_conv(sd, r, 3, c)?;
+                let layer: ConvLayer<T> = read_conv(sd, r, kernel, c)?;
                 c = Some(layer.out_channels());
                 convs.push(layer);
             }
@@ -93,6 +150,16 @@ impl<T: Real> Decoder<T> {
     /// Number of convs per level, deepest level first.
     pub fn convs_per_level(&self) -> Vec<usize> {
         self.levels.iter().map(Vec::len).collect()
+    }
+
+    /// The convs' kernel size: 3, or 1 for a pointwise decoder ([`Decoder::pointwise`]).
+    pub fn kernel(&self) -> usize {
+        self.levels[0][0].kernel()
+    }
+
+    /// Whether this is a pointwise decoder (1x1 convs, [`Decoder::pointwise`]).
+    pub fn is_pointwise(&self) -> bool {
+        self.kernel() == 1
     }
 
     /// Whether a ReLU follows the last conv.

@@ -13,7 +13,8 @@
 //! * `encoder.depth`, `encoder.in_channels`, `encoder.widths` (comma-separated channels of
 //!   `relu{k}_1`), `encoder.convs_per_level` (comma-separated), `encoder.pool` (`ceil`/`floor`);
 //! * `decoder.depth`, `decoder.in_channels`, `decoder.out_channels`, `decoder.convs_per_level`
-//!   (deepest level first), `decoder.final_relu` (`true`/`false`);
+//!   (deepest level first), `decoder.final_relu` (`true`/`false`), `decoder.kernel` (`1`, written
+//!   only for a pointwise decoder, [`Decoder::pointwise`]; without it the convs are 3x3);
 //! * `lifter.in_channels`, `lifter.out_channels`.
 //!
 //! Loading checks the metadata against the tensors and names the offending entry on mismatch.
@@ -136,6 +137,9 @@ impl NetWeights {
             m.insert("decoder.out_channels".into(), d.out_channels().to_string());
             m.insert("decoder.convs_per_level".into(), join(&d.convs_per_level()));
             m.insert("decoder.final_relu".into(), d.final_relu().to_string());
+            if d.is_pointwise() {
+                m.insert("decoder.kernel".into(), d.kernel().to_string());
+            }
         }
         if let Some(l) = &self.lifter {
             m.insert("lifter.in_channels".into(), l.in_channels().to_string());
@@ -262,8 +266,17 @@ impl NetWeights {
                 "false" => false,
                 other => return Err(bad(format!("metadata `decoder.final_relu` = {other}"))),
             };
+            let kernel = match md.get("decoder.kernel").map(String::as_str) {
+                None | Some("3") => 3,
+                Some("1") => 1,
+                Some(other) => {
+                    return Err(bad(format!(
+                        "metadata `decoder.kernel` = {other} (expected 3 or 1)"
+                    )))
+                }
+            };
             let dsd = sub_dict(&sd, "decoder.");
-            let d = Decoder::from_spec(&dsd, decoder_spec(&dsd, Some(final_relu))?)
+            let d = Decoder::from_spec(&dsd, decoder_spec(&dsd, Some(final_relu))?, kernel)
                 .map_err(|e| prefix_tensor(e, "decoder."))?;
             check("decoder.depth", d.depth().to_string())?;
             check("decoder.in_channels", d.in_channels().to_string())?;

@@ -371,3 +371,115 @@ proptest! {
                         hstep, bound);
     }
 }
+
+/// A pointwise decoder `c -> 5 -> 4 -> 3` with random weights (`conv1_3` first).
+fn tiny_pointwise(rng: &mut TestRng, c: usize, final_relu: bool) -> Decoder<f64> {
+    let widths = [c, 5, 4, 3];
+    let layers = (0..3)
+        .map(|i| nets::ConvLayer {
+            name: format!("conv1_{}", 3 - i),
+            source: format!("conv1_{}", 3 - i),
+            weight: rng.array4((widths[i + 1], widths[i], 1, 1)),
+            bias: rng.array1(widths[i + 1]),
+        })
+        .collect();
+    Decoder::pointwise(layers, final_relu).unwrap()
+}
+
+proptest! {
+    #![proptest_config(config(12))]
+
+    /// A pointwise decoder is the per-pixel MLP `W3 relu(W2 relu(W1 x + b1) + b2) + b3` (written
+    /// out here pixel by pixel), keeps the input size at either resolution, and its input and
+    /// parameter gradients match central differences.
+    #[test]
+    fn pointwise_decoder(seed in any::<u64>(), c in 1usize..6, h in 1usize..5, w in 1usize..5,
+                         fullres in any::<bool>(), final_relu in any::<bool>()) {
+        let mut rng = TestRng::new(seed);
+        let res = if fullres { Resolution::Fullres } else { Resolution::Standard };
+        let dec = tiny_pointwise(&mut rng, c, final_relu).with_resolution(res);
+        prop_assert!(dec.is_pointwise());
+        prop_assert_eq!(dec.output_size((h, w)), (h, w));
+        let x = rng.array4((2, c, h, w));
+        let (y, tape) = dec.forward_with_tape(x.view()).unwrap();
+        prop_assert_eq!(y.dim(), (2, 3, h, w));
+        let layers: Vec<_> = dec.layers().collect();
+        for n in 0..2 {
+            for yy in 0..h {
+                for xx in 0..w {
+                    let mut a: Vec<f64> = (0..c).map(|ch| x[[n, ch, yy, xx]]).collect();
+                    for (k, l) in layers.iter().enumerate() {
+                        let relu = k + 1 < layers.len() || final_relu;
+                        a = (0..l.out_channels())
+                            .map(|o| {
+                                let z = l.bias[o]
+                                    + (0..a.len()).map(|i| l.weight[[o, i, 0, 0]] * a[i]).sum::<f64>();
+                                if relu { z.max(0.0) } else { z }
+                            })
+                            .collect();
+                    }
+                    for (o, &want) in a.iter().enumerate() {
+                        let got = y[[n, o, yy, xx]];
+                        // Summation order may differ from the GEMM's: 1e-12 relative.
+                        prop_assert!((got - want).abs() <= 1e-12 * (1.0 + want.abs()),
+                                     "pixel ({n}, {o}, {yy}, {xx}): {got} vs {want}");
+                    }
+                }
+            }
+        }
+        let v = rng.array4(y.dim());
+        let grads = dec.backward(&tape, v.view()).unwrap();
+        let hstep = 1e-6;
+        let d = rng.array4(x.dim());
+        let loss = |dd: &Decoder<f64>, xa: &Array4<f64>| dot(&dd.forward(xa.view()).unwrap(), &v);
+        check_direction("pointwise dx", dot(&grads.input, &d),
+                        loss(&dec, &(&x + &(&d * hstep))), loss(&dec, &(&x - &(&d * hstep))),
+                        hstep, norm(&grads.input) * norm(&d));
+        let dirs: Vec<(Array4<f64>, Array1<f64>)> = dec
+            .layers()
+            .map(|l| (rng.array4(l.weight.dim()), rng.array1(l.bias.len())))
+            .collect();
+        let shifted = |s: f64| {
+            let mut dd = dec.clone();
+            for (l, (dw, db)) in dd.layers_mut().zip(&dirs) {
+                l.weight = &l.weight + &(dw * s);
+                l.bias = &l.bias + &(db * s);
+            }
+            dd
+        };
+        let (mut an, mut g2, mut d2) = (0.0, 0.0, 0.0);
+        for (g, (dw, db)) in grads.params.iter().zip(&dirs) {
+            an += dot(&g.weight, dw) + dot(&g.bias, db);
+            g2 += dot(&g.weight, &g.weight) + dot(&g.bias, &g.bias);
+            d2 += dot(dw, dw) + dot(db, db);
+        }
+        check_direction("pointwise dparams", an, loss(&shifted(hstep), &x),
+                        loss(&shifted(-hstep), &x), hstep, (g2 * d2).sqrt());
+    }
+}
+
+/// Malformed pointwise decoders are refused with the conv named.
+#[test]
+fn bad_pointwise_decoders_are_refused() {
+    let mut rng = TestRng::new(7);
+    let conv = |name: &str, o: usize, c: usize, k: usize, rng: &mut TestRng| nets::ConvLayer {
+        name: name.into(),
+        source: name.into(),
+        weight: rng.array4((o, c, k, k)),
+        bias: rng.array1(o),
+    };
+    let err = |r: Result<Decoder<f64>, nets::NetError>| r.unwrap_err().to_string();
+    assert!(err(Decoder::pointwise(vec![], false)).contains("at least one"));
+    let e = err(Decoder::pointwise(vec![conv("conv1_1", 3, 4, 3, &mut rng)], false));
+    assert!(e.contains("conv1_1") && e.contains("[O, C, 1, 1]"), "{e}");
+    let e = err(Decoder::pointwise(
+        vec![conv("conv1_2", 5, 4, 1, &mut rng), conv("conv1_1", 3, 6, 1, &mut rng)],
+        false,
+    ));
+    assert!(e.contains("takes 6 channels") && e.contains("makes 5"), "{e}");
+    let e = err(Decoder::pointwise(
+        vec![conv("conv1_1", 5, 4, 1, &mut rng), conv("conv1_1", 3, 5, 1, &mut rng)],
+        false,
+    ));
+    assert!(e.contains("two convs"), "{e}");
+}

@@ -377,3 +377,49 @@ fn serialise(sd: &StateDict, md: std::collections::HashMap<String, String>) -> V
         .collect();
     safetensors::serialize(views, Some(md)).unwrap()
 }
+
+/// A pointwise decoder survives the canonical file as one: its `decoder.kernel` entry, its
+/// layers and its outputs; a kernel entry other than 1 or 3 is refused, and a 3x3 decoder's
+/// file has no kernel entry (files written before pointwise decoders stay byte-identical).
+#[test]
+fn pointwise_decoder_round_trips() {
+    let tmp = TempDir::new("pointwise_decoder_round_trips");
+    let mut rng = TestRng::new(11);
+    let widths = [6, 5, 3];
+    let layers = (0..2)
+        .map(|i| nets::ConvLayer {
+            name: format!("conv1_{}", 2 - i),
+            source: format!("conv1_{}", 2 - i),
+            weight: rng.array4((widths[i + 1], widths[i], 1, 1)).mapv(|v| v as f32),
+            bias: rng.array1(widths[i + 1]).mapv(|v| v as f32),
+        })
+        .collect();
+    let decoder = Decoder::pointwise(layers, false).unwrap();
+    let weights = NetWeights {
+        decoder: Some(decoder.clone()),
+        ..Default::default()
+    };
+    let path = tmp.path("mlp.safetensors");
+    weights.save(&path).unwrap();
+    let md = weights.metadata();
+    assert_eq!(md["decoder.kernel"], "1");
+    assert_eq!(md["decoder.convs_per_level"], "2");
+    let back = NetWeights::load(&path).unwrap().decoder.unwrap();
+    assert!(back.is_pointwise());
+    let x = rng.array4((1, 6, 3, 4)).mapv(|v| v as f32);
+    assert_eq!(
+        back.forward(x.view()).unwrap(),
+        decoder.forward(x.view()).unwrap()
+    );
+    let (_, dec) = adain_state_dicts();
+    let cnn = NetWeights {
+        decoder: Some(Decoder::from_state_dict(&dec).unwrap()),
+        ..Default::default()
+    };
+    assert!(!cnn.metadata().contains_key("decoder.kernel"));
+    let mut md = weights.metadata();
+    md.insert("decoder.kernel".into(), "5".into());
+    let bytes = serialise(&weights.to_state_dict(), md);
+    let e = NetWeights::from_bytes(&bytes).unwrap_err().to_string();
+    assert!(e.contains("decoder.kernel") && e.contains('5'), "{e}");
+}

@@ -26,7 +26,10 @@ use gaussian::dataset::{Dataset, LoadOptions};
 use gaussian::ply::load_ply;
 use serde::{Deserialize, Serialize};
 use train::features::{dataset_views, FeatureSetup, ENCODINGS_DIR, FEATURE_CHECKPOINT_FILE};
-use train::{FeatureInputs, FeatureTrainConfig, FeatureTrainer, GeometryConfig, Variant};
+use train::{
+    DecoderMode, FeatureInputs, FeatureNorm, FeatureTrainConfig, FeatureTrainer, GeometryConfig,
+    Variant,
+};
 
 use crate::fit_geometry::{DatasetConfig, FitGeometryConfig};
 use crate::pretrain_decoder::{open_images, NetworkFiles};
@@ -81,6 +84,12 @@ pub struct FeatureOverrides {
     pub crop: Option<u32>,
     /// Network variant (`--variant`; key `variant`).
     pub variant: Option<Variant>,
+    /// The decoder ablation (`--decoder-mode`; key `decoder_mode`).
+    pub decoder_mode: Option<DecoderMode>,
+    /// Adam learning rate of a decoder trained in stage 3 (`--lr-decoder`; key `lr_decoder`).
+    pub lr_decoder: Option<f64>,
+    /// The normalisation design (`--normalize`; key `normalize`).
+    pub normalize: Option<FeatureNorm>,
     /// White background, for NeRF-synthetic scenes (`--white`; key `background`). `false`
     /// leaves the configuration's background.
     pub white: bool,
@@ -118,6 +127,15 @@ impl FeatureOverrides {
         }
         if let Some(v) = self.variant {
             f.variant = v;
+        }
+        if let Some(v) = self.decoder_mode {
+            f.decoder_mode = v;
+        }
+        if let Some(v) = self.lr_decoder {
+            f.lr_decoder = v;
+        }
+        if let Some(v) = self.normalize {
+            f.normalize = v;
         }
         if let Some(v) = self.log_every {
             f.log_interval = v;

@@ -79,6 +79,16 @@ pub fn load_bundle(
 ) -> Result<SceneBundle> {
     let bundle = open_bundle(dir)?;
     let variant = variant.unwrap_or(bundle.info.variant);
+    if let (Some(p), true) = (decoder, bundle.info.decoder_mode.trains_decoder()) {
+        bail!(
+            "the bundle {} was trained with its own {} decoder (fit-features --decoder-mode {}); \
+             its features fit no other decoder, so --decoder {} cannot replace it",
+            dir.display(),
+            bundle.info.decoder_mode.as_str(),
+            bundle.info.decoder_mode.as_str(),
+            p.display()
+        );
+    }
     let dec = match decoder {
         None => bundle.decoder.clone(),
         Some(p) => crate::weights::load_any(p)

@@ -21,7 +21,12 @@
 //!
 //!   `target` is the normalised `relu_k_1` of the content view (see [`align_target`]). The content
 //!   term compares with `t`, which depends on `r`, so its gradient flows through both arguments.
-//!   Gradients: `r` and the lifter's weight and bias.
+//!   Gradients: `r`, the lifter's weight and bias, and the decoder's parameters (used when the
+//!   decoder is trained in this stage, the paper's decoder ablation).
+//!
+//!   The design ablation [`FeatureNorm::AfterRaster`] aligns `l(r)` with the *unnormalised*
+//!   `relu_k_1` instead and normalises each lifted map over its own pixels before the
+//!   transform: `t = T(IN(l(r)))`, `IN` the instance normalisation of [`instance_normalize`].
 //!
 //! Sums of loss terms are formed in `f64` and rounded once.
 
@@ -29,7 +34,9 @@ use base::Real;
 use ndarray::{Array4, ArrayView4};
 use nets::{ConvGrad, Decoder, Encoder, Lifter};
 
-use crate::adain::{instance_normalize, style_transform, style_transform_backward};
+use crate::adain::{
+    instance_normalize, instance_normalize_backward, style_transform, style_transform_backward,
+};
 use crate::cache::StyleFeatureStats;
 use crate::error::{Result, StyleError};
 use crate::loss::{
@@ -142,6 +149,53 @@ impl Default for Stage3Weights {
     }
 }
 
+/// Where the features are normalised: the paper's consistency design and its ablation.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FeatureNorm {
+    /// The paper's design: each view's `relu_k_1` is instance-normalised before it becomes the
+    /// alignment target, so the Gaussians carry normalised features and every view's lifted
+    /// map goes through the same transform `T(l) = std_s l + mean_s`.
+    #[default]
+    BeforeRaster,
+    /// The ablation: the Gaussians are aligned with the unnormalised `relu_k_1`, and each
+    /// rendered view's lifted map is instance-normalised over its own pixels before the
+    /// transform, `T(IN(l))` (AdaIN after rasterization: the statistics depend on the view).
+    AfterRaster,
+}
+
+impl FeatureNorm {
+    /// `"before-raster"` or `"after-raster"`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            FeatureNorm::BeforeRaster => "before-raster",
+            FeatureNorm::AfterRaster => "after-raster",
+        }
+    }
+
+    /// The alignment target for an encoder's deepest features: normalised for
+    /// [`FeatureNorm::BeforeRaster`], as they are for [`FeatureNorm::AfterRaster`].
+    pub fn align_target<T: Real>(self, deepest: &Array4<T>) -> Result<Array4<T>> {
+        match self {
+            FeatureNorm::BeforeRaster => instance_normalize(deepest),
+            FeatureNorm::AfterRaster => Ok(deepest.clone()),
+        }
+    }
+}
+
+impl std::str::FromStr for FeatureNorm {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "before-raster" => Ok(FeatureNorm::BeforeRaster),
+            "after-raster" => Ok(FeatureNorm::AfterRaster),
+            other => Err(format!(
+                "unknown normalization `{other}` (expected `before-raster` or `after-raster`)"
+            )),
+        }
+    }
+}
+
 /// The result of [`stage3_loss`].
 #[derive(Clone, Debug)]
 pub struct Stage3Loss<T: Real> {
@@ -165,6 +219,8 @@ pub struct Stage3Loss<T: Real> {
     pub grad_raster_features: Array4<T>,
     /// `dL/d(W, b)` of the lifter.
     pub grad_lifter: ConvGrad<T>,
+    /// `dL/d(weight, bias)` of every decoder conv in [`Decoder::layers`] order.
+    pub grad_decoder: Vec<ConvGrad<T>>,
 }
 
 /// The alignment target: the content view's `relu_k_1` feature, instance-normalised.
@@ -176,7 +232,9 @@ pub fn align_target<T: Real>(encoder: &Encoder<T>, content_image: &Array4<T>) ->
 /// The 3D stylization loss and its gradients (see the module documentation). `raster_features`
 /// is `[N, F, H, W]`; `align_target` is `[N, C, H, W]` with `C` the lifter's output width, which
 /// must equal the decoder's input width and the encoder's deepest width (fullres networks keep
-/// `H x W` throughout).
+/// `H x W` throughout). `norm` says where the features are normalised ([`FeatureNorm`]);
+/// `align_target` must be the matching target ([`FeatureNorm::align_target`]).
+#[allow(clippy::too_many_arguments)]
 pub fn stage3_loss<T: Real>(
     lifter: &Lifter<T>,
     decoder: &Decoder<T>,
@@ -185,12 +243,17 @@ pub fn stage3_loss<T: Real>(
     align_target: &Array4<T>,
     style: &StyleFeatureStats<T>,
     weights: Stage3Weights,
+    norm: FeatureNorm,
 ) -> Result<Stage3Loss<T>> {
     crate::adain::check_finite("lambda_content", weights.lambda_content)?;
     crate::adain::check_finite("lambda_style", weights.lambda_style)?;
     let (lifted, ltape) = lifter.forward_with_tape(raster_features.view())?;
     let deepest_style = style.deepest();
-    let t = style_transform(&lifted, deepest_style)?;
+    let normalised = match norm {
+        FeatureNorm::BeforeRaster => None,
+        FeatureNorm::AfterRaster => Some(instance_normalize(&lifted)?),
+    };
+    let t = style_transform(normalised.as_ref().unwrap_or(&lifted), deepest_style)?;
     let (image, dtape) = decoder.forward_with_tape(t.view())?;
     let loss_a = align_loss(&lifted, align_target, weights.align)?;
     let (loss_c, loss_s, g_image, g_t_target) = perceptual(
@@ -201,10 +264,17 @@ pub fn stage3_loss<T: Real>(
         weights.lambda_content,
         weights.lambda_style,
     )?;
-    let mut g_t = decoder.backward(&dtape, g_image.view())?.input;
+    let dgrads = decoder.backward(&dtape, g_image.view())?;
+    let mut g_t = dgrads.input;
     // The content term's target is t itself.
     g_t.zip_mut_with(&g_t_target, |a, &b| *a += b);
-    let (mut g_lifted, _) = style_transform_backward(&lifted, deepest_style, &g_t)?;
+    let mut g_lifted = match &normalised {
+        None => style_transform_backward(&lifted, deepest_style, &g_t)?.0,
+        Some(y) => {
+            let g_y = style_transform_backward(y, deepest_style, &g_t)?.0;
+            instance_normalize_backward(&lifted, &g_y)?
+        }
+    };
     let g_align = align_loss_backward(&lifted, align_target, weights.align, T::one())?;
     g_lifted.zip_mut_with(&g_align, |a, &b| *a += b);
     let grads = lifter.backward(&ltape, g_lifted.view())?;
@@ -223,5 +293,6 @@ pub fn stage3_loss<T: Real>(
         loss,
         grad_raster_features: grads.input,
         grad_lifter: grads.params,
+        grad_decoder: dgrads.params,
     })
 }

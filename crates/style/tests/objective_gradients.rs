@@ -50,23 +50,39 @@ fn nets() -> Nets {
     }
 }
 
-/// All ReLU patterns of lifter (if given), decoder and encoder for a decoder input or raster map.
+/// All ReLU patterns of lifter (if given), decoder and encoder for a decoder input or raster map;
+/// `norm` says whether the lifted map is instance-normalised before the transform.
 fn patterns(
     n: &Nets,
     x: &Array4<f64>,
     with_lifter: Option<&Lifter<f64>>,
     style: &StyleFeatureStats<f64>,
 ) -> Vec<Option<Array4<bool>>> {
+    patterns_with(n, &n.dec, x, with_lifter, style, FeatureNorm::BeforeRaster)
+}
+
+fn patterns_with(
+    n: &Nets,
+    dec: &Decoder<f64>,
+    x: &Array4<f64>,
+    with_lifter: Option<&Lifter<f64>>,
+    style: &StyleFeatureStats<f64>,
+    norm: FeatureNorm,
+) -> Vec<Option<Array4<bool>>> {
     let mut out = Vec::new();
     let t = match with_lifter {
         Some(l) => {
             let f = pattern::forward(&pattern::lifter_steps(l), x);
             out.extend(f.pattern);
-            style_transform(&f.outputs[0], style.deepest()).unwrap()
+            let y = match norm {
+                FeatureNorm::BeforeRaster => f.outputs[0].clone(),
+                FeatureNorm::AfterRaster => instance_normalize(&f.outputs[0]).unwrap(),
+            };
+            style_transform(&y, style.deepest()).unwrap()
         }
         None => x.clone(),
     };
-    let d = pattern::forward(&pattern::decoder_steps(&n.dec), &t);
+    let d = pattern::forward(&pattern::decoder_steps(dec), &t);
     out.extend(d.pattern);
     let e = pattern::forward(&pattern::encoder_steps(&n.enc), &d.outputs[0]);
     out.extend(e.pattern);
@@ -102,8 +118,9 @@ proptest! {
         let n = nets();
         let s = encode_style(&n.enc, &style_img).unwrap();
         let weights = Stage3Weights { lambda_content: 0.7, lambda_style: 1.3, align: if l1 { AlignLoss::L1 } else { AlignLoss::Mse } };
-        let out = stage3_loss(&n.lift, &n.dec, &n.enc, &raster, &target, &s, weights).unwrap();
-        let loss_at = |lift: &Lifter<f64>, r: &Array4<f64>| stage3_loss(lift, &n.dec, &n.enc, r, &target, &s, weights).unwrap().loss;
+        let norm = FeatureNorm::BeforeRaster;
+        let out = stage3_loss(&n.lift, &n.dec, &n.enc, &raster, &target, &s, weights, norm).unwrap();
+        let loss_at = |lift: &Lifter<f64>, r: &Array4<f64>| stage3_loss(lift, &n.dec, &n.enc, r, &target, &s, weights, norm).unwrap().loss;
         // Raster direction.
         let (rp, rm) = (&raster + &(&v * H), &raster - &(&v * H));
         let base = patterns(&n, &raster, Some(&n.lift), &s);
@@ -174,5 +191,68 @@ proptest! {
         let g = &out.grad_params[layer];
         let analytic = dot(&g.weight, &dw) + g.bias.iter().zip(&db).map(|(a, b)| a * b).sum::<f64>();
         close(&format!("decoder layer {layer}"), analytic, numeric, out.loss)?;
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(8))]
+
+    /// The design ablation (`FeatureNorm::AfterRaster`: the lifted map instance-normalised over
+    /// its own pixels before the transform) and the decoder's parameter gradients, which a
+    /// decoder trained in stage 3 steps with: both against central differences.
+    #[test]
+    fn stage3_after_raster_and_decoder_gradients_match_differences(
+        raster in map(1, 32, 5, 6, -1.0, 1.0),
+        target in map(1, 64, 5, 6, 0.0, 2.0),
+        style_img in map(1, 3, 6, 5, 0.0, 1.0),
+        v in map(1, 32, 5, 6, -1.0, 1.0),
+        seed in any::<u64>(),
+        after in any::<bool>(),
+    ) {
+        let n = nets();
+        let s = encode_style(&n.enc, &style_img).unwrap();
+        let norm = if after { FeatureNorm::AfterRaster } else { FeatureNorm::BeforeRaster };
+        let weights = Stage3Weights { lambda_content: 0.7, lambda_style: 1.3, align: AlignLoss::Mse };
+        let loss_at = |dec: &Decoder<f64>, r: &Array4<f64>| {
+            stage3_loss(&n.lift, dec, &n.enc, r, &target, &s, weights, norm).unwrap().loss
+        };
+        let out = stage3_loss(&n.lift, &n.dec, &n.enc, &raster, &target, &s, weights, norm).unwrap();
+        let base = patterns_with(&n, &n.dec, &raster, Some(&n.lift), &s, norm);
+        let same = |dec: &Decoder<f64>, r: &Array4<f64>| patterns_with(&n, dec, r, Some(&n.lift), &s, norm) == base;
+        // Raster direction.
+        let (rp, rm) = (&raster + &(&v * H), &raster - &(&v * H));
+        prop_assume!(same(&n.dec, &rp) && same(&n.dec, &rm));
+        let numeric = (loss_at(&n.dec, &rp) - loss_at(&n.dec, &rm)) / (2.0 * H);
+        close("raster features", dot(&out.grad_raster_features, &v), numeric, out.loss)?;
+        // Decoder parameters along one random direction.
+        let mut rng = dsgs_testkit::SplitMix64(seed);
+        let dirs: Vec<(Array4<f64>, Array1<f64>)> = n
+            .dec
+            .layers()
+            .map(|l| {
+                let w = Array4::from_shape_simple_fn(l.weight.dim(), || rng.uniform(-1.0, 1.0));
+                let b = Array1::from_shape_simple_fn(l.bias.len(), || rng.uniform(-1.0, 1.0));
+                (w, b)
+            })
+            .collect();
+        let shifted = |h: f64| {
+            let mut d = n.dec.clone();
+            for (l, (dw, db)) in d.layers_mut().zip(&dirs) {
+                l.weight = &l.weight + &(dw * h);
+                l.bias = &l.bias + &(db * h);
+            }
+            d
+        };
+        let (dp, dm) = (shifted(H), shifted(-H));
+        prop_assume!(same(&dp, &raster) && same(&dm, &raster));
+        prop_assert_eq!(out.grad_decoder.len(), n.dec.layers().count());
+        let analytic: f64 = out
+            .grad_decoder
+            .iter()
+            .zip(&dirs)
+            .map(|(g, (dw, db))| dot(&g.weight, dw) + g.bias.iter().zip(db).map(|(a, b)| a * b).sum::<f64>())
+            .sum();
+        let numeric = (loss_at(&dp, &raster) - loss_at(&dm, &raster)) / (2.0 * H);
+        close("decoder parameters", analytic, numeric, out.loss)?;
     }
 }

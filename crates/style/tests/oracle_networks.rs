@@ -121,6 +121,7 @@ fn stage3<T: Real>(report: &mut Report) -> Stage3Loss<T> {
         &target,
         &s,
         Stage3Weights::default(),
+        FeatureNorm::BeforeRaster,
     )
     .unwrap();
     report.add(

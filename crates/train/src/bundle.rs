@@ -27,7 +27,10 @@
 //! 3. Transform: `t = std_s * l + mean_s`, with the style's deepest-level statistics. Strength
 //!    `alpha` interpolates the target statistics between the scene's own mean statistics
 //!    ([`BundleInfo::scene_mean`], [`BundleInfo::scene_std`], measured on the training views)
-//!    and the style's, so `alpha = 0` reconstructs the scene.
+//!    and the style's, so `alpha = 0` reconstructs the scene. A bundle of the design ablation
+//!    ([`FeatureNorm::AfterRaster`], [`BundleInfo::normalize`]) first normalises the lifted map
+//!    with its own per-channel mean and std over the whole view ([`SceneBundle::view_stats`]):
+//!    `t = std_s * (l - mean_l) / std_l + mean_s`.
 //! 4. Decode and crop to the requested image size (the standard decoder's upsampling can
 //!    overshoot by up to `2^levels - 1` pixels).
 
@@ -42,7 +45,7 @@ use ndarray::{s, Array2, Array4};
 use nets::{Decoder, Encoder, Lifter, NetWeights, Resolution};
 use raster::{render, Channels, RenderOptions};
 use serde::{Deserialize, Serialize};
-use style::ChannelStats;
+use style::{ChannelMoments, ChannelStats, FeatureNorm};
 
 use crate::error::TrainError;
 use base::Fnv1a;
@@ -61,6 +64,9 @@ pub const BUNDLE_FORMAT: &str = "dsgs-bundle-1";
 /// Default working memory of the networks while decoding a frame ([`SceneBundle::decode`]):
 /// 1 GiB, in which the fullres relu3_1 decoder takes tiles of about 300x300 pixels.
 pub const DEFAULT_TILE_BUDGET_BYTES: u64 = 1 << 30;
+
+/// Rows of the feature map lifted at a time by [`SceneBundle::view_stats`].
+pub const VIEW_STATS_ROWS: usize = 16;
 
 /// The largest image width or height a bundle camera may have (the project's one image-size
 /// limit, defined with the cameras).
@@ -104,6 +110,53 @@ impl std::str::FromStr for Variant {
             "fullres" => Ok(Variant::Fullres),
             other => Err(format!(
                 "unknown variant `{other}` (expected `standard` or `fullres`)"
+            )),
+        }
+    }
+}
+
+/// Which decoder the features were trained against in stage 3 (the paper's decoder ablation).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum DecoderMode {
+    /// The decoder pre-trained in 2D (for fullres, fine-tuned), frozen in stage 3: the paper's
+    /// design.
+    #[default]
+    Pretrained,
+    /// The same CNN initialised at random and trained inside stage 3 only, together with the
+    /// features and the lifter.
+    Scratch,
+    /// A per-pixel MLP from features to colour
+    /// ([`init_mlp_decoder`](crate::decoder_training::init_mlp_decoder)) trained inside stage 3
+    /// only. It decodes each feature pixel to one image pixel, so it needs the fullres variant.
+    Mlp,
+}
+
+impl DecoderMode {
+    /// `"pretrained"`, `"scratch"` or `"mlp"`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DecoderMode::Pretrained => "pretrained",
+            DecoderMode::Scratch => "scratch",
+            DecoderMode::Mlp => "mlp",
+        }
+    }
+
+    /// Whether stage 3 trains the decoder.
+    pub fn trains_decoder(self) -> bool {
+        self != DecoderMode::Pretrained
+    }
+}
+
+impl std::str::FromStr for DecoderMode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "pretrained" => Ok(DecoderMode::Pretrained),
+            "scratch" => Ok(DecoderMode::Scratch),
+            "mlp" => Ok(DecoderMode::Mlp),
+            other => Err(format!(
+                "unknown decoder mode `{other}` (expected `pretrained`, `scratch` or `mlp`)"
             )),
         }
     }
@@ -220,6 +273,13 @@ pub struct BundleInfo {
     /// Where the bundle came from (dataset, geometry, style folder); informational.
     #[serde(default)]
     pub provenance: Vec<(String, String)>,
+    /// Which decoder stage 3 trained against (absent in older bundles: pre-trained).
+    #[serde(default)]
+    pub decoder_mode: DecoderMode,
+    /// Where the features are normalised (absent in older bundles: before rasterization, the
+    /// paper's design); see step 3 of the module documentation.
+    #[serde(default)]
+    pub normalize: FeatureNorm,
 }
 
 impl BundleInfo {
@@ -247,6 +307,8 @@ impl BundleInfo {
             scene_std: scene_stats.1,
             cameras,
             provenance: Vec::new(),
+            decoder_mode: DecoderMode::Pretrained,
+            normalize: FeatureNorm::BeforeRaster,
         }
     }
 
@@ -413,6 +475,10 @@ impl SceneBundle {
             .chain(&info.background)
             .for_each(|&v| h.eat_f32(v));
         h.eat_str(&info.encoder_fingerprint);
+        // Only the ablation is hashed, so bundles of the paper's design keep their fingerprints.
+        if info.normalize != FeatureNorm::BeforeRaster {
+            h.eat_str(info.normalize.as_str());
+        }
         h.hex()
     }
 
@@ -452,6 +518,11 @@ impl SceneBundle {
                 self.info.scene_mean.len(),
                 self.info.scene_std.len()
             ));
+        }
+        if self.decoder.is_pointwise() && self.info.variant != Variant::Fullres {
+            problems.push(
+                "the decoder is a per-pixel MLP, which needs the fullres variant".to_string(),
+            );
         }
         if self.info.feature_background.len() != f {
             problems.push(format!(
@@ -547,6 +618,12 @@ impl SceneBundle {
                 self.lifter.out_channels()
             )));
         }
+        if decoder.is_pointwise() && variant != Variant::Fullres {
+            return Err(TrainError::Config(format!(
+                "the decoder is a per-pixel MLP, which needs the fullres variant, not {}",
+                variant.as_str()
+            )));
+        }
         self.decoder = decoder.with_resolution(variant.resolution());
         self.encoder = self.encoder.with_resolution(variant.resolution());
         self.info.variant = variant;
@@ -596,6 +673,32 @@ impl SceneBundle {
             mix(&style.std, &self.info.scene_std),
         )
         .map_err(|e| TrainError::Shape(e.to_string()))
+    }
+
+    /// The per-channel mean and std of the lifted feature map over the whole view, which a
+    /// bundle of the design ablation ([`FeatureNorm::AfterRaster`]) normalises with; `None`
+    /// for the paper's design. The map is lifted [`VIEW_STATS_ROWS`] rows at a time and the
+    /// moments merged in row order ([`ChannelMoments`]), so the result does not depend on how
+    /// the frame is decoded.
+    pub fn view_stats(
+        &self,
+        features: &Array4<f32>,
+    ) -> Result<Option<ChannelStats<f32>>, TrainError> {
+        if self.info.normalize == FeatureNorm::BeforeRaster {
+            return Ok(None);
+        }
+        let shape = |e: String| TrainError::Shape(e);
+        let (n, _, fh, _) = features.dim();
+        let mut moments = ChannelMoments::new(n, self.lifter.out_channels());
+        for y0 in (0..fh).step_by(VIEW_STATS_ROWS) {
+            let band = features.slice(s![.., .., y0..(y0 + VIEW_STATS_ROWS).min(fh), ..]);
+            let lifted = self
+                .lifter
+                .forward(band)
+                .map_err(|e| shape(e.to_string()))?;
+            moments.add(&lifted).map_err(|e| shape(e.to_string()))?;
+        }
+        Ok(Some(moments.stats().map_err(|e| shape(e.to_string()))?))
     }
 
     /// Lifts, transforms and decodes a feature map from [`SceneBundle::render_features`] into
@@ -662,6 +765,8 @@ impl SceneBundle {
     /// ([`Decoder::forward_region`]). Lifting and the transform act on each pixel alone and the
     /// decoder's tiles equal the whole image's ([`nets::tiled`]), so the image is the same,
     /// bit for bit, for any budget; no map wider than the features covers the whole frame.
+    /// A bundle of the design ablation normalises each lifted tile with the statistics of the
+    /// whole view ([`SceneBundle::view_stats`]) before the transform.
     pub fn decode_in_tiles(
         &self,
         features: &Array4<f32>,
@@ -680,16 +785,22 @@ impl SceneBundle {
             )));
         }
         let side = self.decode_tile_side((fh, fw), width, height, budget_bytes);
+        let t0 = Instant::now();
+        let view_stats = self.view_stats(features)?;
+        let stats_seconds = t0.elapsed().as_secs_f64();
         let mut image = Array4::<f32>::zeros((1, self.decoder.out_channels(), th, tw));
-        let mut seconds = [0.0; 2];
+        let mut seconds = [stats_seconds, 0.0];
         for r in nets::tiled::grid(th, tw, side) {
             let t0 = Instant::now();
             let need = self.decoder.input_region((fh, fw), r).map_err(net)?;
             let part = nets::tiled::crop(features.view(), &need);
-            let lifted = self.lifter.forward(part.view()).map_err(net)?;
+            let mut lifted = self.lifter.forward(part.view()).map_err(net)?;
             drop(part);
-            let t = style::style_transform(&lifted, stats)
-                .map_err(|e| TrainError::Shape(e.to_string()))?;
+            let shape = |e: style::StyleError| TrainError::Shape(e.to_string());
+            if let Some(v) = &view_stats {
+                lifted = style::normalize(&lifted, v).map_err(shape)?;
+            }
+            let t = style::style_transform(&lifted, stats).map_err(shape)?;
             drop(lifted);
             let t1 = Instant::now();
             let y = self

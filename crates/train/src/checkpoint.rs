@@ -499,6 +499,11 @@ impl<'a> StateReader<'a> {
             .ok_or_else(|| self.err(format!("metadata entry `{key}` is missing")))
     }
 
+    /// Whether the metadata has an entry `key`.
+    pub(crate) fn has_meta(&self, key: &str) -> bool {
+        self.meta.contains_key(key)
+    }
+
     pub(crate) fn meta_parse<V: std::str::FromStr>(&self, key: &str) -> Result<V, TrainError> {
         let s = self.meta_str(key)?;
         s.parse()

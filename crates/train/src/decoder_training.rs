@@ -39,7 +39,7 @@
 use std::path::{Path, PathBuf};
 
 use ndarray::{Array1, Array4};
-use nets::{Decoder, Encoder, NetWeights, StateDict, TensorF32};
+use nets::{ConvGrad, Decoder, Encoder, NetWeights, StateDict, TensorF32};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
@@ -242,7 +242,7 @@ fn style_err(e: style::StyleError) -> TrainError {
 }
 
 /// Parameter names of the decoder in the optimiser: `{layer}.weight` and `{layer}.bias`.
-fn register_decoder(adam: &mut Adam<f32>, decoder: &Decoder<f32>, lr: f64) {
+pub(crate) fn register_decoder(adam: &mut Adam<f32>, decoder: &Decoder<f32>, lr: f64) {
     for l in decoder.layers() {
         let (o, c, k, _) = l.weight.dim();
         adam.add_param(&format!("{}.weight", l.name), lr, o, c * k * k);
@@ -411,30 +411,7 @@ impl DecoderTrainer {
         for i in 0..self.adam.params().len() {
             self.adam.set_lr(i, lr);
         }
-        for (k, (layer, grad)) in self.decoder.layers_mut().zip(&out.grad_params).enumerate() {
-            if layer.name != grad.name {
-                return Err(TrainError::Shape(format!(
-                    "decoder gradient of `{}` returned for layer `{}`",
-                    grad.name, layer.name
-                )));
-            }
-            let gw = grad.weight.as_standard_layout();
-            let w = layer
-                .weight
-                .as_slice_mut()
-                .ok_or_else(|| TrainError::Shape("decoder weight is not contiguous".into()))?;
-            self.adam.step(
-                2 * k,
-                w,
-                gw.as_slice().expect("standard layout is contiguous"),
-            )?;
-            let b = layer
-                .bias
-                .as_slice_mut()
-                .ok_or_else(|| TrainError::Shape("decoder bias is not contiguous".into()))?;
-            let gb = grad.bias.to_vec();
-            self.adam.step(2 * k + 1, b, &gb)?;
-        }
+        step_decoder(&mut self.adam, 0, &mut self.decoder, &out.grad_params)?;
         self.step = it;
         let (c, s, l) = (
             out.loss_content as f64,
@@ -645,8 +622,50 @@ fn eval_pairs(
     Ok(out)
 }
 
+/// One Adam step of every decoder conv, whose weight and bias are the optimiser's parameters
+/// `first + 2k` and `first + 2k + 1` ([`register_decoder`]).
+pub(crate) fn step_decoder(
+    adam: &mut Adam<f32>,
+    first: usize,
+    decoder: &mut Decoder<f32>,
+    grads: &[ConvGrad<f32>],
+) -> Result<(), TrainError> {
+    if grads.len() != decoder.layers().count() {
+        return Err(TrainError::Shape(format!(
+            "{} decoder gradients for {} convs",
+            grads.len(),
+            decoder.layers().count()
+        )));
+    }
+    for (k, (layer, grad)) in decoder.layers_mut().zip(grads).enumerate() {
+        if layer.name != grad.name {
+            return Err(TrainError::Shape(format!(
+                "decoder gradient of `{}` returned for layer `{}`",
+                grad.name, layer.name
+            )));
+        }
+        let gw = grad.weight.as_standard_layout();
+        let w = layer
+            .weight
+            .as_slice_mut()
+            .ok_or_else(|| TrainError::Shape("decoder weight is not contiguous".into()))?;
+        adam.step(
+            first + 2 * k,
+            w,
+            gw.as_slice().expect("standard layout is contiguous"),
+        )?;
+        let b = layer
+            .bias
+            .as_slice_mut()
+            .ok_or_else(|| TrainError::Shape("decoder bias is not contiguous".into()))?;
+        let gb = grad.bias.to_vec();
+        adam.step(first + 2 * k + 1, b, &gb)?;
+    }
+    Ok(())
+}
+
 /// Checks that a restored optimiser has the parameters (names and sizes) of a fresh one.
-fn check_same_params(restored: &Adam<f32>, fresh: &Adam<f32>) -> Result<(), String> {
+pub(crate) fn check_same_params(restored: &Adam<f32>, fresh: &Adam<f32>) -> Result<(), String> {
     let a = restored.params();
     let b = fresh.params();
     if a.len() != b.len() {
@@ -715,6 +734,14 @@ pub fn conv_default_init<R: Rng>(
 /// up with nearest 2x upsampling between them, and the last conv has no ReLU.
 pub fn init_decoder(encoder: &Encoder<f32>, seed: u64) -> Result<Decoder<f32>, TrainError> {
     let mut rng = StdRng::seed_from_u64(mix(seed, INIT_STREAM, 0));
+    init_decoder_with(encoder, &mut rng)
+}
+
+/// [`init_decoder`] drawing from `rng`.
+pub fn init_decoder_with<R: Rng>(
+    encoder: &Encoder<f32>,
+    rng: &mut R,
+) -> Result<Decoder<f32>, TrainError> {
     // The encoder's 3x3 convs grouped by level (conv0, the 1x1 input conv, is skipped).
     let mut levels: Vec<Vec<(usize, usize)>> = Vec::new();
     let mut convs = encoder.layers().skip(1);
@@ -736,11 +763,43 @@ pub fn init_decoder(encoder: &Encoder<f32>, seed: u64) -> Result<Decoder<f32>, T
             index += 1;
         }
         for &(enc_in, enc_out) in lv.iter().rev() {
-            let (w, b) = conv_default_init(enc_in, enc_out, 3, &mut rng);
+            let (w, b) = conv_default_init(enc_in, enc_out, 3, rng);
             sd.insert(format!("{index}.weight"), TensorF32::from_array(&w));
             sd.insert(format!("{index}.bias"), TensorF32::from_array(&b));
             index += 3;
         }
     }
     Decoder::from_state_dict(&sd).map_err(net_err)
+}
+
+/// The hidden widths of the MLP decoder of the paper's decoder ablation
+/// ([`init_mlp_decoder`]).
+pub const MLP_DECODER_HIDDEN: [usize; 2] = [256, 128];
+
+/// An MLP decoder `in_channels -> 256 -> 128 -> 3` (ReLU between layers, none after the last):
+/// a pointwise decoder ([`Decoder::pointwise`]) of 1x1 convs named `conv1_3`, `conv1_2`,
+/// `conv1_1`, initialised from `rng` with [`conv_default_init`] in that order. It decodes each
+/// feature pixel to one image pixel, with no spatial context.
+pub fn init_mlp_decoder<R: Rng>(
+    in_channels: usize,
+    rng: &mut R,
+) -> Result<Decoder<f32>, TrainError> {
+    let widths: Vec<usize> = std::iter::once(in_channels)
+        .chain(MLP_DECODER_HIDDEN)
+        .chain([3])
+        .collect();
+    let n = widths.len() - 1;
+    let layers = (0..n)
+        .map(|i| {
+            let (weight, bias) = conv_default_init(widths[i + 1], widths[i], 1, rng);
+            let name = format!("conv1_{}", n - i);
+            nets::ConvLayer {
+                source: name.clone(),
+                name,
+                weight,
+                bias,
+            }
+        })
+        .collect();
+    Decoder::pointwise(layers, false).map_err(net_err)
 }

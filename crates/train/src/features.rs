@@ -51,8 +51,18 @@
 //! file is used only if its format, key, length and checksum all match; anything else is
 //! encoded afresh and rewritten, and files no longer used by the run are removed.
 //!
-//! Checkpoints hold the features, the lifter, the Adam state and the step; they name the
-//! geometry and encoder they belong to by fingerprints, which resuming checks.
+//! Ablations (the paper's Fig. 4 and 5), chosen by [`FeatureTrainConfig::decoder_mode`] and
+//! [`FeatureTrainConfig::normalize`] and recorded in the bundle:
+//! - [`DecoderMode::Scratch`] and [`DecoderMode::Mlp`] replace the frozen pre-trained decoder
+//!   by one initialised from the seed (the encoder's mirror CNN, or a per-pixel MLP) whose
+//!   weights Adam steps in every iteration with content and style terms, at
+//!   [`FeatureTrainConfig::lr_decoder`];
+//! - [`FeatureNorm::AfterRaster`] aligns the lifted features with the unnormalised `relu_k_1`
+//!   and normalises each lifted window over its own pixels before the transform (stylization
+//!   then normalises over the whole view, see [`crate::bundle`]).
+//!
+//! Checkpoints hold the features, the lifter, a trained decoder, the Adam state and the step;
+//! they name the geometry and encoder they belong to by fingerprints, which resuming checks.
 
 use std::path::{Path, PathBuf};
 use std::time::{Instant, UNIX_EPOCH};
@@ -60,23 +70,26 @@ use std::time::{Instant, UNIX_EPOCH};
 use gaussian::dataset::Dataset;
 use gaussian::{Camera, FeatureGaussians, Real};
 use ndarray::{s, Array4};
-use nets::{ConvGrad, Decoder, Encoder, Lifter};
+use nets::{ConvGrad, Decoder, Encoder, Lifter, NetWeights};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 use raster::{render, render_backward, Channels, RenderOptions};
 use serde::{Deserialize, Serialize};
 use style::{
-    align_loss, align_loss_backward, channel_stats, encode_style, instance_normalize, stage3_loss,
-    ChannelStats, Stage3Weights, StyleFeatureStats,
+    align_loss, align_loss_backward, channel_stats, encode_style, stage3_loss, ChannelStats,
+    FeatureNorm, Stage3Weights, StyleFeatureStats,
 };
 
 use crate::adam::{Adam, AdamConfig};
 use crate::bundle::{
-    feature_size, weights_fingerprint, BundleInfo, CameraRecord, SceneBundle, Variant,
+    feature_size, weights_fingerprint, BundleInfo, CameraRecord, DecoderMode, SceneBundle, Variant,
 };
 use crate::checkpoint::{StateReader, StateWriter};
-use crate::decoder_training::{conv_default_init, mix, INIT_STREAM, STEP_STREAM};
+use crate::decoder_training::{
+    check_same_params, conv_default_init, init_decoder_with, init_mlp_decoder, mix,
+    register_decoder, step_decoder, INIT_STREAM, STEP_STREAM,
+};
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 use crate::error::TrainError;
 use crate::event::{Event, Quiet, Sink, Stage, Tally};
@@ -143,6 +156,15 @@ pub struct FeatureTrainConfig {
     pub log_interval: u64,
     /// Adam hyper-parameters (PyTorch defaults).
     pub adam: AdamConfig,
+    /// Which decoder stage 3 trains against: the frozen pre-trained one (the paper's design),
+    /// or, for the decoder ablation, a CNN or a per-pixel MLP trained here from random
+    /// initialisation ([`DecoderMode`]).
+    pub decoder_mode: DecoderMode,
+    /// Adam learning rate of a decoder trained in this stage (AdaIN's decoder rate).
+    pub lr_decoder: f64,
+    /// Where the features are normalised: before rasterization (the paper's design) or per view
+    /// after it (the ablation, [`FeatureNorm`]).
+    pub normalize: FeatureNorm,
 }
 
 impl Default for FeatureTrainConfig {
@@ -163,6 +185,9 @@ impl Default for FeatureTrainConfig {
             checkpoint_interval: 500,
             log_interval: 0,
             adam: AdamConfig::default(),
+            decoder_mode: DecoderMode::Pretrained,
+            lr_decoder: 1e-4,
+            normalize: FeatureNorm::BeforeRaster,
         }
     }
 }
@@ -179,12 +204,30 @@ impl FeatureTrainConfig {
         if self.crop == Some(0) {
             return bad("crop is 0".into());
         }
+        if self.decoder_mode == DecoderMode::Mlp && self.variant != Variant::Fullres {
+            return bad(
+                "the MLP decoder decodes each feature pixel to one image pixel, so it needs the \
+                 fullres variant (--variant fullres)"
+                    .into(),
+            );
+        }
+        if self.decoder_mode.trains_decoder()
+            && self.lambda_content == 0.0
+            && self.lambda_style == 0.0
+        {
+            return bad(format!(
+                "the {} decoder is trained by the content and style terms, which the \
+                 alignment-only setting leaves out",
+                self.decoder_mode.as_str()
+            ));
+        }
         for (name, v) in [
             ("feature_init_std", self.feature_init_std),
             ("lr_features", self.lr_features),
             ("lr_lifter", self.lr_lifter),
             ("lambda_content", self.lambda_content),
             ("lambda_style", self.lambda_style),
+            ("lr_decoder", self.lr_decoder),
         ] {
             if !v.is_finite() || v < 0.0 {
                 return bad(format!("{name} = {v} must be finite and non-negative"));
@@ -262,6 +305,8 @@ pub struct Stage3Setup<'a, T: Real> {
     pub feature_background: &'a [T],
     /// The loss weights `lambda_c`, `lambda_s` and the alignment penalty.
     pub weights: Stage3Weights,
+    /// Where the features are normalised ([`FeatureNorm`]); the alignment target must match.
+    pub normalize: FeatureNorm,
 }
 
 /// One sample of the loss: a view, its alignment target, a style and a window.
@@ -294,6 +339,9 @@ pub struct Stage3Gradients<T: Real> {
     pub features: Vec<T>,
     /// `dL/d(W, b)` of the lifter.
     pub lifter: ConvGrad<T>,
+    /// `dL/d(weight, bias)` of every decoder conv; empty when the networks were not run (both
+    /// lambdas 0).
+    pub decoder: Vec<ConvGrad<T>>,
 }
 
 fn net_err(e: nets::NetError) -> TrainError {
@@ -356,14 +404,14 @@ pub fn stage3_gradients<T: Real>(
         ])
         .to_owned();
     let w = setup.weights;
-    let (terms, grad_r, grad_lifter) = if w.lambda_content == 0.0 && w.lambda_style == 0.0 {
+    let (terms, grad_r, grad_lifter, grad_decoder) = if w.lambda_content == 0.0 && w.lambda_style == 0.0 {
         let (lifted, tape) = setup.lifter.forward_with_tape(r.view()).map_err(net_err)?;
         let la = align_loss(&lifted, &target, w.align).map_err(style_err)?;
         let g = align_loss_backward(&lifted, &target, w.align, <T as Real>::lit(1.0))
             .map_err(style_err)?;
         let grads = setup.lifter.backward(&tape, g.view()).map_err(net_err)?;
         let la = Real::to_f64_exact(la);
-        ([la, 0.0, 0.0, la], grads.input, grads.params)
+        ([la, 0.0, 0.0, la], grads.input, grads.params, Vec::new())
     } else {
         let out = stage3_loss(
             setup.lifter,
@@ -373,6 +421,7 @@ pub fn stage3_gradients<T: Real>(
             &target,
             sample.style,
             w,
+            setup.normalize,
         )
         .map_err(style_err)?;
         (
@@ -384,6 +433,7 @@ pub fn stage3_gradients<T: Real>(
             ],
             out.grad_raster_features,
             out.grad_lifter,
+            out.grad_decoder,
         )
     };
     // The window's cotangent inside an otherwise zero full-size (HWC) cotangent.
@@ -399,6 +449,7 @@ pub fn stage3_gradients<T: Real>(
         loss: terms[3],
         features: grads.features,
         lifter: grad_lifter,
+        decoder: grad_decoder,
     })
 }
 
@@ -503,14 +554,20 @@ fn program_identity() -> Option<String> {
 }
 
 impl<'a> EncodingCache<'a> {
-    fn new(dir: &'a Path, encoder: &Encoder<f32>, variant: Variant) -> Option<Self> {
+    fn new(
+        dir: &'a Path,
+        encoder: &Encoder<f32>,
+        variant: Variant,
+        normalize: FeatureNorm,
+    ) -> Option<Self> {
         let program = program_identity()?;
         Some(EncodingCache {
             dir,
             prefix: format!(
-                "{program}\n{}\n{}",
+                "{program}\n{}\n{}\n{}",
                 weights_fingerprint(encoder),
-                variant.as_str()
+                variant.as_str(),
+                normalize.as_str()
             ),
             used: Vec::new(),
             reused: 0,
@@ -645,8 +702,8 @@ fn stats_from_values(
     Ok(StyleFeatureStats { levels })
 }
 
-/// One encoded training view: its alignment target and the per-channel mean and std of its
-/// unnormalised deepest features.
+/// One encoded training view: its alignment target (normalised or not, [`FeatureNorm`]) and the
+/// per-channel mean and std of its unnormalised deepest features.
 struct ViewEncoding {
     target: Array4<f32>,
     mean: Vec<f32>,
@@ -657,6 +714,7 @@ struct ViewEncoding {
 fn encode_view(
     encoder: &Encoder<f32>,
     variant: Variant,
+    normalize: FeatureNorm,
     v: &View,
     deepest: usize,
 ) -> Result<ViewEncoding, TrainError> {
@@ -675,7 +733,8 @@ fn encode_view(
     }
     let stats = channel_stats(deep).map_err(style_err)?;
     Ok(ViewEncoding {
-        target: instance_normalize(deep)
+        target: normalize
+            .align_target(deep)
             .map_err(style_err)?
             .as_standard_layout()
             .into_owned(),
@@ -859,6 +918,13 @@ impl FeatureTrainer {
             .map_err(|e| TrainError::Dataset(format!("geometry: {e}")))?;
         let (w, b) = conv_default_init(deepest, f, 1, &mut rng);
         let lifter = Lifter::new(w, b).map_err(net_err)?;
+        // The ablations' decoders draw after the features and the lifter, so the paper's design
+        // starts from the same values with or without them.
+        let decoder = match config.decoder_mode {
+            DecoderMode::Pretrained => decoder,
+            DecoderMode::Scratch => init_decoder_with(&encoder, &mut rng)?.with_resolution(res),
+            DecoderMode::Mlp => init_mlp_decoder(deepest, &mut rng)?.with_resolution(res),
+        };
         let geometry_fingerprint = geometry_fingerprint(&scene);
 
         let cameras = if cameras.is_empty() {
@@ -880,7 +946,7 @@ impl FeatureTrainer {
         })?;
         let mut cache = setup
             .cache
-            .and_then(|dir| EncodingCache::new(dir, &encoder, config.variant));
+            .and_then(|dir| EncodingCache::new(dir, &encoder, config.variant, config.normalize));
 
         let mut mean_sum = vec![0.0f64; deepest];
         let mut std_sum = vec![0.0f64; deepest];
@@ -906,7 +972,7 @@ impl FeatureTrainer {
                     ViewEncoding { target, mean, std }
                 }
                 None => {
-                    let e = encode_view(&encoder, config.variant, v, deepest)?;
+                    let e = encode_view(&encoder, config.variant, config.normalize, v, deepest)?;
                     if let (Some(c), Some((name, key))) = (&mut cache, &entry) {
                         let mut values = Vec::with_capacity(len);
                         values.extend(e.target.iter().copied());
@@ -991,6 +1057,9 @@ impl FeatureTrainer {
         adam.add_param("features", config.lr_features, n, f);
         adam.add_param("lifter.weight", config.lr_lifter, deepest, f);
         adam.add_param("lifter.bias", config.lr_lifter, 1, deepest);
+        if config.decoder_mode.trains_decoder() {
+            register_decoder(&mut adam, &decoder, config.lr_decoder);
+        }
         Ok(FeatureTrainer {
             config,
             provenance,
@@ -1065,23 +1134,70 @@ impl FeatureTrainer {
             ndarray::Array1::from_vec(b),
         )
         .map_err(net_err)?;
-        let mut adam = r.adam(config.adam)?;
-        let names: Vec<&str> = adam.params().iter().map(|p| p.name.as_str()).collect();
-        let rows: Vec<usize> = adam.params().iter().map(|p| p.rows()).collect();
-        if names != ["features", "lifter.weight", "lifter.bias"] || rows != [n, c, 1] {
-            return Err(r.err(format!(
-                "optimiser tensors {names:?} with rows {rows:?} do not fit this run"
-            )));
+        // Checkpoints from before the ablations carry neither entry: the paper's design.
+        let design = |key: &str, default: &str| -> Result<String, TrainError> {
+            Ok(if r.has_meta(key) {
+                r.meta_str(key)?.to_string()
+            } else {
+                default.to_string()
+            })
+        };
+        for (key, found, want) in [
+            (
+                "decoder_mode",
+                design("decoder_mode", DecoderMode::Pretrained.as_str())?,
+                config.decoder_mode.as_str(),
+            ),
+            (
+                "normalize",
+                design("normalize", FeatureNorm::BeforeRaster.as_str())?,
+                config.normalize.as_str(),
+            ),
+        ] {
+            if found != want {
+                return Err(r.err(format!(
+                    "it was written by a run with {key} `{found}`, this run asks for `{want}`"
+                )));
+            }
         }
+        let decoder = if config.decoder_mode.trains_decoder() {
+            let nets = NetWeights::from_bytes(r.bytes("decoder")?)
+                .map_err(|e| r.err(format!("decoder: {e}")))?;
+            let d = nets
+                .decoder
+                .ok_or_else(|| r.err("the trained decoder is missing".into()))?;
+            if d.in_channels() != c || d.out_channels() != 3 {
+                return Err(r.err(format!(
+                    "its decoder maps {} channels to {}, this run needs {c} to 3",
+                    d.in_channels(),
+                    d.out_channels()
+                )));
+            }
+            Some(d.with_resolution(config.variant.resolution()))
+        } else {
+            None
+        };
+        let mut adam = r.adam(config.adam)?;
+        let mut fresh = Adam::<f32>::new(config.adam);
+        fresh.add_param("features", config.lr_features, n, f);
+        fresh.add_param("lifter.weight", config.lr_lifter, c, f);
+        fresh.add_param("lifter.bias", config.lr_lifter, 1, c);
+        if let Some(d) = &decoder {
+            register_decoder(&mut fresh, d, config.lr_decoder);
+        }
+        check_same_params(&adam, &fresh).map_err(|m| r.err(m))?;
         // The learning rates follow the (possibly new) configuration.
-        adam.set_lr(0, config.lr_features);
-        adam.set_lr(1, config.lr_lifter);
-        adam.set_lr(2, config.lr_lifter);
+        for (i, p) in fresh.params().iter().enumerate() {
+            adam.set_lr(i, p.lr);
+        }
         let step = r.meta_parse("step")?;
         let ema = r.ema()?;
         let mut t = FeatureTrainer::new_with(config, inputs, setup)?;
         t.scene.features = features;
         t.lifter = lifter;
+        if let Some(d) = decoder {
+            t.decoder = d;
+        }
         t.adam = adam;
         t.step = step;
         t.ema = ema;
@@ -1108,7 +1224,7 @@ impl FeatureTrainer {
         &self.encoder
     }
 
-    /// The frozen decoder.
+    /// The decoder: frozen, or trained in this stage for the decoder ablation.
     pub fn decoder(&self) -> &Decoder<f32> {
         &self.decoder
     }
@@ -1163,6 +1279,7 @@ impl FeatureTrainer {
             encoder: &self.encoder,
             feature_background: &bg,
             weights: self.config.weights_at(self.step + 1),
+            normalize: self.config.normalize,
         };
         let sample = Stage3Sample {
             camera: &v.camera,
@@ -1215,6 +1332,10 @@ impl FeatureTrainer {
             .as_slice_mut()
             .ok_or_else(|| TrainError::Shape("lifter bias is not contiguous".into()))?;
         self.adam.step(2, bslice, &g.lifter.bias.to_vec())?;
+        // A trained decoder (the ablations) steps whenever the networks ran.
+        if self.config.decoder_mode.trains_decoder() && !g.decoder.is_empty() {
+            step_decoder(&mut self.adam, 3, &mut self.decoder, &g.decoder)?;
+        }
         self.step = it;
         let now = [g.loss, g.loss_align, g.loss_content, g.loss_style];
         self.ema = Some(match self.ema {
@@ -1270,6 +1391,15 @@ impl FeatureTrainer {
                 ),
             ),
         ];
+        if self.config.decoder_mode.trains_decoder() {
+            provenance.push((
+                "decoder".to_string(),
+                format!(
+                    "{} decoder trained in stage 3 from the seed",
+                    self.config.decoder_mode.as_str()
+                ),
+            ));
+        }
         provenance.extend(self.provenance.iter().cloned());
         SceneBundle {
             scene: self.scene.clone(),
@@ -1278,6 +1408,8 @@ impl FeatureTrainer {
             lifter: self.lifter.clone(),
             info: BundleInfo {
                 provenance,
+                decoder_mode: self.config.decoder_mode,
+                normalize: self.config.normalize,
                 ..BundleInfo::new(
                     &self.encoder,
                     self.config.variant,
@@ -1317,6 +1449,15 @@ impl FeatureTrainer {
             lw.as_slice().expect("standard layout"),
         );
         w.f32s("lifter.bias", vec![l.bias.len()], &l.bias.to_vec());
+        w.meta("decoder_mode", self.config.decoder_mode.as_str());
+        w.meta("normalize", self.config.normalize.as_str());
+        if self.config.decoder_mode.trains_decoder() {
+            let nets = NetWeights {
+                decoder: Some(self.decoder.clone()),
+                ..Default::default()
+            };
+            w.bytes("decoder", nets.to_bytes().map_err(net_err)?);
+        }
         w.adam(&self.adam);
         w.finish()
     }

@@ -115,7 +115,8 @@ pub mod ssim;
 
 pub use adam::{Adam, AdamConfig, ParamState};
 pub use bake::{bake, BakeCameras, BakeConfig, BakeReport};
-pub use bundle::{BundleInfo, CameraRecord, SceneBundle, Variant};
+pub use bundle::{BundleInfo, CameraRecord, DecoderMode, SceneBundle, Variant};
+pub use style::FeatureNorm;
 pub use checkpoint::GeometryCheckpoint;
 pub use decoder_training::{DecoderTrainConfig, DecoderTrainer};
 pub use density::{DensifyConfig, DensifyReport};

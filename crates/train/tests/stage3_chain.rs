@@ -119,6 +119,7 @@ fn gradients(
         encoder: &p.encoder,
         feature_background: &p.background,
         weights,
+        normalize: style::FeatureNorm::BeforeRaster,
     };
     let sample = Stage3Sample {
         camera: &p.camera,

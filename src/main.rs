@@ -584,7 +584,7 @@ struct FitFeaturesArgs {
     /// from --seed and trained here with the features) or `mlp` (a per-pixel MLP, features ->
     /// 256 -> 128 -> RGB, trained here; needs --variant fullres). The bundle keeps the trained
     /// decoder [default: pretrained]
-    #[arg(long, value_parser = decoder_mode(), verbatim_doc_comment)]
+    #[arg(long, value_parser = decoder_mode())]
     decoder_mode: Option<DecoderMode>,
     #[arg(long, value_parser = positive, help = with_default(
         "Adam learning rate of a decoder trained in stage 3 (--decoder-mode scratch or mlp; \
@@ -598,7 +598,7 @@ struct FitFeaturesArgs {
     /// `after-raster` (unnormalised features are distilled, and each rendered view is
     /// normalised with its own statistics before the transform, as 2D AdaIN does). The bundle
     /// records it and stylization follows it [default: before-raster]
-    #[arg(long, value_parser = feature_norm(), verbatim_doc_comment)]
+    #[arg(long, value_parser = feature_norm())]
     normalize: Option<FeatureNorm>,
     #[arg(long, help = CONFIG_HELP)]
     config: Option<PathBuf>,

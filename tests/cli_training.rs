@@ -633,3 +633,142 @@ fn bake_stopped_by_sigterm_resumes_exactly() {
     assert!(cut.with_extension("json").is_file());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The paper's ablations as `fit-features` switches, end to end on the tiny scene: each
+/// trains, records its design in the bundle, stylizes and evaluates, and resumes bit for bit;
+/// the combinations that cannot work are refused with the reason.
+#[test]
+fn fit_features_ablation_switches() {
+    let dir = scratch("fit-features-ablations");
+    let inputs = tiny_features(&dir);
+    let styles = inputs.path("--style").to_path_buf();
+    let (_, pretrained) = wct_relu3();
+    let cases: [(&str, &[&str]); 3] = [
+        ("scratch", &["--decoder-mode", "scratch"]),
+        ("mlp", &["--decoder-mode", "mlp", "--variant", "fullres"]),
+        ("after", &["--normalize", "after-raster"]),
+    ];
+    for (name, args) in cases {
+        let out = dir.join(name);
+        ok(&mut inputs.command(&out, 3, args));
+        let bundle = SceneBundle::load(&out.join("bundle")).unwrap();
+        let info = &bundle.info;
+        match name {
+            "scratch" => {
+                assert_eq!(info.decoder_mode, train::DecoderMode::Scratch);
+                // The mirror CNN of the pre-trained decoder, with weights of its own.
+                let shapes = |d: &nets::Decoder| {
+                    d.layers()
+                        .map(|l| l.weight.shape().to_vec())
+                        .collect::<Vec<_>>()
+                };
+                assert_eq!(shapes(&bundle.decoder), shapes(&pretrained));
+                for (a, b) in bundle.decoder.layers().zip(pretrained.layers()) {
+                    assert_ne!(a.weight, b.weight, "{}", a.name);
+                }
+            }
+            "mlp" => {
+                assert_eq!(info.decoder_mode, train::DecoderMode::Mlp);
+                assert!(bundle.decoder.is_pointwise());
+                assert_eq!(bundle.decoder.layers().count(), 3);
+            }
+            _ => {
+                assert_eq!(info.normalize, train::FeatureNorm::AfterRaster);
+                assert_eq!(info.decoder_mode, train::DecoderMode::Pretrained);
+                for (a, b) in bundle.decoder.layers().zip(pretrained.layers()) {
+                    assert_eq!(a.weight, b.weight, "{}", a.name);
+                }
+            }
+        }
+        // One more iteration from the checkpoint equals four straight through, decoder
+        // included.
+        let checkpoint = out.join("checkpoint.safetensors");
+        ok(&mut inputs.command(
+            &out,
+            4,
+            &[&["--resume", checkpoint.to_str().unwrap()], args].concat(),
+        ));
+        let straight = dir.join(format!("{name}-straight"));
+        ok(&mut inputs.command(&straight, 4, args));
+        let a = SceneBundle::load(&out.join("bundle")).unwrap();
+        let b = SceneBundle::load(&straight.join("bundle")).unwrap();
+        assert_eq!(
+            a.fingerprint(),
+            b.fingerprint(),
+            "{name}: resumed run differs"
+        );
+        assert_eq!(a.scene.features, b.scene.features);
+        assert_ne!(a.fingerprint(), bundle.fingerprint());
+        // The bundle stylizes and evaluates.
+        let frames = dir.join(format!("{name}-frames"));
+        ok(dsgs()
+            .arg("stylize")
+            .arg(out.join("bundle"))
+            .arg("--style")
+            .arg(styles.join("mondrian.png"))
+            .args(["--cameras", "dataset", "--frames", "2", "-o"])
+            .arg(&frames));
+        assert_eq!(
+            common::size_of(&frames.join("mondrian/frame_0000.png")),
+            (32, 32)
+        );
+        let report = dir.join(format!("{name}-eval.json"));
+        ok(dsgs()
+            .arg("eval")
+            .arg(out.join("bundle"))
+            .arg("--style")
+            .arg(styles.join("mondrian.png"))
+            .args([
+                "--frames",
+                "3",
+                "--width",
+                "32",
+                "--height",
+                "32",
+                "--no-progress",
+                "-o",
+            ])
+            .arg(&report));
+        let text = std::fs::read_to_string(&report).unwrap();
+        assert!(text.contains("mondrian"), "{text}");
+    }
+    // Resuming keeps the run's design (from its saved configuration); asking for another is
+    // refused, naming both.
+    let checkpoint = dir.join("scratch/checkpoint.safetensors");
+    let err = fails(&mut inputs.command(
+        &dir.join("scratch"),
+        5,
+        &[
+            "--resume",
+            checkpoint.to_str().unwrap(),
+            "--decoder-mode",
+            "pretrained",
+        ],
+    ));
+    assert!(
+        err.contains("decoder_mode") && err.contains("scratch") && err.contains("pretrained"),
+        "{err}"
+    );
+    // An MLP decoder needs fullres networks.
+    let err = fails(&mut inputs.command(&dir.join("bad"), 3, &["--decoder-mode", "mlp"]));
+    assert!(err.contains("fullres"), "{err}");
+    assert!(!dir.join("bad").join("bundle").exists());
+    // A decoder trained with the features cannot be replaced at stylization.
+    let weights = inputs.path("--weights");
+    let err = fails(
+        dsgs()
+            .arg("stylize")
+            .arg(dir.join("scratch/bundle"))
+            .arg("--style")
+            .arg(styles.join("mondrian.png"))
+            .arg("--decoder")
+            .arg(weights)
+            .arg("-o")
+            .arg(dir.join("bad-frames")),
+    );
+    assert!(
+        err.contains("scratch decoder") && err.contains("--decoder"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

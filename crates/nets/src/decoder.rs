@@ -67,7 +67,9 @@ impl<T: Real> Decoder<T> {
     /// layout).
     pub fn pointwise(layers: Vec<ConvLayer<T>>, final_relu: bool) -> Result<Decoder<T>, NetError> {
         if layers.is_empty() {
-            return Err(NetError::Input("a pointwise decoder needs at least one conv".into()));
+            return Err(NetError::Input(
+                "a pointwise decoder needs at least one conv".into(),
+            ));
         }
         for (i, l) in layers.iter().enumerate() {
             let (o, c, kh, kw) = l.weight.dim();

@@ -470,15 +470,27 @@ fn bad_pointwise_decoders_are_refused() {
     };
     let err = |r: Result<Decoder<f64>, nets::NetError>| r.unwrap_err().to_string();
     assert!(err(Decoder::pointwise(vec![], false)).contains("at least one"));
-    let e = err(Decoder::pointwise(vec![conv("conv1_1", 3, 4, 3, &mut rng)], false));
-    assert!(e.contains("conv1_1") && e.contains("[O, C, 1, 1]"), "{e}");
     let e = err(Decoder::pointwise(
-        vec![conv("conv1_2", 5, 4, 1, &mut rng), conv("conv1_1", 3, 6, 1, &mut rng)],
+        vec![conv("conv1_1", 3, 4, 3, &mut rng)],
         false,
     ));
-    assert!(e.contains("takes 6 channels") && e.contains("makes 5"), "{e}");
+    assert!(e.contains("conv1_1") && e.contains("[O, C, 1, 1]"), "{e}");
     let e = err(Decoder::pointwise(
-        vec![conv("conv1_1", 5, 4, 1, &mut rng), conv("conv1_1", 3, 5, 1, &mut rng)],
+        vec![
+            conv("conv1_2", 5, 4, 1, &mut rng),
+            conv("conv1_1", 3, 6, 1, &mut rng),
+        ],
+        false,
+    ));
+    assert!(
+        e.contains("takes 6 channels") && e.contains("makes 5"),
+        "{e}"
+    );
+    let e = err(Decoder::pointwise(
+        vec![
+            conv("conv1_1", 5, 4, 1, &mut rng),
+            conv("conv1_1", 3, 5, 1, &mut rng),
+        ],
         false,
     ));
     assert!(e.contains("two convs"), "{e}");

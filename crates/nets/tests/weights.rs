@@ -390,7 +390,9 @@ fn pointwise_decoder_round_trips() {
         .map(|i| nets::ConvLayer {
             name: format!("conv1_{}", 2 - i),
             source: format!("conv1_{}", 2 - i),
-            weight: rng.array4((widths[i + 1], widths[i], 1, 1)).mapv(|v| v as f32),
+            weight: rng
+                .array4((widths[i + 1], widths[i], 1, 1))
+                .mapv(|v| v as f32),
             bias: rng.array1(widths[i + 1]).mapv(|v| v as f32),
         })
         .collect();

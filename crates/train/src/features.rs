@@ -404,38 +404,39 @@ pub fn stage3_gradients<T: Real>(
         ])
         .to_owned();
     let w = setup.weights;
-    let (terms, grad_r, grad_lifter, grad_decoder) = if w.lambda_content == 0.0 && w.lambda_style == 0.0 {
-        let (lifted, tape) = setup.lifter.forward_with_tape(r.view()).map_err(net_err)?;
-        let la = align_loss(&lifted, &target, w.align).map_err(style_err)?;
-        let g = align_loss_backward(&lifted, &target, w.align, <T as Real>::lit(1.0))
+    let (terms, grad_r, grad_lifter, grad_decoder) =
+        if w.lambda_content == 0.0 && w.lambda_style == 0.0 {
+            let (lifted, tape) = setup.lifter.forward_with_tape(r.view()).map_err(net_err)?;
+            let la = align_loss(&lifted, &target, w.align).map_err(style_err)?;
+            let g = align_loss_backward(&lifted, &target, w.align, <T as Real>::lit(1.0))
+                .map_err(style_err)?;
+            let grads = setup.lifter.backward(&tape, g.view()).map_err(net_err)?;
+            let la = Real::to_f64_exact(la);
+            ([la, 0.0, 0.0, la], grads.input, grads.params, Vec::new())
+        } else {
+            let out = stage3_loss(
+                setup.lifter,
+                setup.decoder,
+                setup.encoder,
+                &r,
+                &target,
+                sample.style,
+                w,
+                setup.normalize,
+            )
             .map_err(style_err)?;
-        let grads = setup.lifter.backward(&tape, g.view()).map_err(net_err)?;
-        let la = Real::to_f64_exact(la);
-        ([la, 0.0, 0.0, la], grads.input, grads.params, Vec::new())
-    } else {
-        let out = stage3_loss(
-            setup.lifter,
-            setup.decoder,
-            setup.encoder,
-            &r,
-            &target,
-            sample.style,
-            w,
-            setup.normalize,
-        )
-        .map_err(style_err)?;
-        (
-            [
-                Real::to_f64_exact(out.loss_align),
-                Real::to_f64_exact(out.loss_content),
-                Real::to_f64_exact(out.loss_style),
-                Real::to_f64_exact(out.loss),
-            ],
-            out.grad_raster_features,
-            out.grad_lifter,
-            out.grad_decoder,
-        )
-    };
+            (
+                [
+                    Real::to_f64_exact(out.loss_align),
+                    Real::to_f64_exact(out.loss_content),
+                    Real::to_f64_exact(out.loss_style),
+                    Real::to_f64_exact(out.loss),
+                ],
+                out.grad_raster_features,
+                out.grad_lifter,
+                out.grad_decoder,
+            )
+        };
     // The window's cotangent inside an otherwise zero full-size (HWC) cotangent.
     let mut v_image = vec![<T as Real>::lit(0.0); fh * fw * f];
     for ((_, ch, y, x), &g) in grad_r.indexed_iter() {

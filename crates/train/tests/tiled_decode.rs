@@ -4,6 +4,12 @@
 //!
 //! No tolerance: lifting and the style transform act on each pixel alone, and the decoder's tiles
 //! equal the whole image's (`nets::tiled`, property-tested there).
+//!
+//! A bundle of the design ablation (`FeatureNorm::AfterRaster`) normalises every tile with the
+//! statistics of the whole view (`SceneBundle::view_stats`), which do not depend on the budget
+//! either; those statistics equal `channel_stats` of the whole lifted map up to the `f64`
+//! rounding of another summation order, which the cast to `f32` leaves at most one `f32` ulp
+//! (1.2e-7 relative) apart: checked to 1e-6.
 
 mod common;
 
@@ -12,7 +18,7 @@ use ndarray::{s, Array2};
 use proptest::prelude::*;
 use style::ChannelStats;
 use train::bundle::feature_size;
-use train::Variant;
+use train::{FeatureNorm, Variant};
 
 /// Lift, transform and decode the whole feature map at once, then crop: the definition the
 /// tiles must reproduce.
@@ -23,7 +29,10 @@ fn whole(
     width: u32,
     height: u32,
 ) -> ndarray::Array4<f32> {
-    let lifted = bundle.lifter.forward(features.view()).unwrap();
+    let mut lifted = bundle.lifter.forward(features.view()).unwrap();
+    if let Some(v) = bundle.view_stats(features).unwrap() {
+        lifted = style::normalize(&lifted, &v).unwrap();
+    }
     let t = style::style_transform(&lifted, stats).unwrap();
     let image = bundle.decoder.forward(t.view()).unwrap();
     image
@@ -38,9 +47,13 @@ proptest! {
     fn a_frame_decoded_in_tiles_equals_the_frame_decoded_whole(
         width in 20u32..72, height in 20u32..72, budget_kib in 16u64..4096,
         fullres in any::<bool>(), camera in 0usize..4, shift in -0.5f32..0.5,
+        after in any::<bool>(),
     ) {
         let variant = if fullres { Variant::Fullres } else { Variant::Standard };
-        let bundle = small_bundle(5);
+        let mut bundle = small_bundle(5);
+        if after {
+            bundle.info.normalize = FeatureNorm::AfterRaster;
+        }
         let decoder = bundle.decoder.clone();
         let bundle = bundle.with_decoder(decoder, variant).unwrap();
         let cam = bundle.cameras()[camera].resized(width, height);
@@ -63,5 +76,14 @@ proptest! {
         }
         prop_assert!(side >= 16);
         prop_assert_eq!(tiled, whole(&bundle, &features, &stats, width, height));
+        let view = bundle.view_stats(&features).unwrap();
+        prop_assert_eq!(view.is_some(), after);
+        if let Some(v) = view {
+            let lifted = bundle.lifter.forward(features.view()).unwrap();
+            let direct = style::channel_stats(&lifted).unwrap();
+            for (a, b) in v.mean.iter().chain(&v.std).zip(direct.mean.iter().chain(&direct.std)) {
+                prop_assert!((a - b).abs() <= 1e-6 * (1.0 + b.abs()), "{a} vs {b}");
+            }
+        }
     }
 }

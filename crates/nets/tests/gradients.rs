@@ -309,39 +309,7 @@ proptest! {
         let dec = dec.with_resolution(res);
         let mut rng = TestRng::new(seed ^ 2);
         let x = rng.array4((n, 6, h, w)).mapv(|u| u.abs()); // decoder inputs are ReLU features
-        let (y, tape) = dec.forward_with_tape(x.view()).unwrap();
-        let v = rng.array4(y.dim());
-        let grads = dec.backward(&tape, v.view()).unwrap();
-        let hstep = 1e-6;
-        // Input.
-        let d = rng.array4(x.dim());
-        let loss = |dd: &Decoder<f64>, xa: &Array4<f64>| dot(&dd.forward(xa.view()).unwrap(), &v);
-        check_direction("decoder dx", dot(&grads.input, &d),
-                        loss(&dec, &(&x + &(&d * hstep))), loss(&dec, &(&x - &(&d * hstep))),
-                        hstep, norm(&grads.input) * norm(&d));
-        // All parameters along one random direction.
-        let dirs: Vec<(Array4<f64>, Array1<f64>)> = dec
-            .layers()
-            .map(|l| (rng.array4(l.weight.dim()), rng.array1(l.bias.len())))
-            .collect();
-        let shifted = |s: f64| {
-            let mut dd = dec.clone();
-            for (l, (dw, db)) in dd.layers_mut().zip(&dirs) {
-                l.weight = &l.weight + &(dw * s);
-                l.bias = &l.bias + &(db * s);
-            }
-            dd
-        };
-        let mut an = 0.0;
-        let mut gnorm2 = 0.0;
-        let mut dnorm2 = 0.0;
-        for (g, (dw, db)) in grads.params.iter().zip(&dirs) {
-            an += dot(&g.weight, dw) + dot(&g.bias, db);
-            gnorm2 += dot(&g.weight, &g.weight) + dot(&g.bias, &g.bias);
-            dnorm2 += dot(dw, dw) + dot(db, db);
-        }
-        check_direction("decoder dparams", an, loss(&shifted(hstep), &x), loss(&shifted(-hstep), &x),
-                        hstep, (gnorm2 * dnorm2).sqrt());
+        check_decoder_gradients("decoder", &dec, &x, &mut rng);
     }
 
     /// Lifter input and parameter gradients (generic random weights: ReLU kinks avoided as in
@@ -370,6 +338,51 @@ proptest! {
         check_direction("lifter dparams", an, loss(&shifted(hstep), &x), loss(&shifted(-hstep), &x),
                         hstep, bound);
     }
+}
+
+/// A decoder's input gradient along a random direction, and its parameter gradients along one
+/// random direction of all parameters, against central differences of `<v, decoder(x)>`.
+fn check_decoder_gradients(what: &str, dec: &Decoder<f64>, x: &Array4<f64>, rng: &mut TestRng) {
+    let (y, tape) = dec.forward_with_tape(x.view()).unwrap();
+    let v = rng.array4(y.dim());
+    let grads = dec.backward(&tape, v.view()).unwrap();
+    let hstep = 1e-6;
+    let d = rng.array4(x.dim());
+    let loss = |dd: &Decoder<f64>, xa: &Array4<f64>| dot(&dd.forward(xa.view()).unwrap(), &v);
+    check_direction(
+        &format!("{what} dx"),
+        dot(&grads.input, &d),
+        loss(dec, &(x + &(&d * hstep))),
+        loss(dec, &(x - &(&d * hstep))),
+        hstep,
+        norm(&grads.input) * norm(&d),
+    );
+    let dirs: Vec<(Array4<f64>, Array1<f64>)> = dec
+        .layers()
+        .map(|l| (rng.array4(l.weight.dim()), rng.array1(l.bias.len())))
+        .collect();
+    let shifted = |s: f64| {
+        let mut dd = dec.clone();
+        for (l, (dw, db)) in dd.layers_mut().zip(&dirs) {
+            l.weight = &l.weight + &(dw * s);
+            l.bias = &l.bias + &(db * s);
+        }
+        dd
+    };
+    let (mut an, mut g2, mut d2) = (0.0, 0.0, 0.0);
+    for (g, (dw, db)) in grads.params.iter().zip(&dirs) {
+        an += dot(&g.weight, dw) + dot(&g.bias, db);
+        g2 += dot(&g.weight, &g.weight) + dot(&g.bias, &g.bias);
+        d2 += dot(dw, dw) + dot(db, db);
+    }
+    check_direction(
+        &format!("{what} dparams"),
+        an,
+        loss(&shifted(hstep), x),
+        loss(&shifted(-hstep), x),
+        hstep,
+        (g2 * d2).sqrt(),
+    );
 }
 
 /// A pointwise decoder `c -> 5 -> 4 -> 3` with random weights (`conv1_3` first).
@@ -401,7 +414,7 @@ proptest! {
         prop_assert!(dec.is_pointwise());
         prop_assert_eq!(dec.output_size((h, w)), (h, w));
         let x = rng.array4((2, c, h, w));
-        let (y, tape) = dec.forward_with_tape(x.view()).unwrap();
+        let y = dec.forward(x.view()).unwrap();
         prop_assert_eq!(y.dim(), (2, 3, h, w));
         let layers: Vec<_> = dec.layers().collect();
         for n in 0..2 {
@@ -427,34 +440,7 @@ proptest! {
                 }
             }
         }
-        let v = rng.array4(y.dim());
-        let grads = dec.backward(&tape, v.view()).unwrap();
-        let hstep = 1e-6;
-        let d = rng.array4(x.dim());
-        let loss = |dd: &Decoder<f64>, xa: &Array4<f64>| dot(&dd.forward(xa.view()).unwrap(), &v);
-        check_direction("pointwise dx", dot(&grads.input, &d),
-                        loss(&dec, &(&x + &(&d * hstep))), loss(&dec, &(&x - &(&d * hstep))),
-                        hstep, norm(&grads.input) * norm(&d));
-        let dirs: Vec<(Array4<f64>, Array1<f64>)> = dec
-            .layers()
-            .map(|l| (rng.array4(l.weight.dim()), rng.array1(l.bias.len())))
-            .collect();
-        let shifted = |s: f64| {
-            let mut dd = dec.clone();
-            for (l, (dw, db)) in dd.layers_mut().zip(&dirs) {
-                l.weight = &l.weight + &(dw * s);
-                l.bias = &l.bias + &(db * s);
-            }
-            dd
-        };
-        let (mut an, mut g2, mut d2) = (0.0, 0.0, 0.0);
-        for (g, (dw, db)) in grads.params.iter().zip(&dirs) {
-            an += dot(&g.weight, dw) + dot(&g.bias, db);
-            g2 += dot(&g.weight, &g.weight) + dot(&g.bias, &g.bias);
-            d2 += dot(dw, dw) + dot(db, db);
-        }
-        check_direction("pointwise dparams", an, loss(&shifted(hstep), &x),
-                        loss(&shifted(-hstep), &x), hstep, (g2 * d2).sqrt());
+        check_decoder_gradients("pointwise", &dec, &x, &mut rng);
     }
 }
 

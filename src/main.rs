@@ -567,6 +567,17 @@ struct FitFeaturesArgs {
     /// Style image folder or file; repeat for several (at least one).
     #[arg(long = "style", required = true)]
     styles: Vec<PathBuf>,
+    /// Paintings never trained on, for the evaluation of held-out views (folder or file; repeat
+    /// for several) [default: the --style images]
+    #[arg(long = "eval-style")]
+    eval_styles: Vec<PathBuf>,
+    #[arg(long, help = with_default(
+        "Iterations between evaluations of the stage-3 loss on fixed held-out samples (the \
+         held-out views with --eval-style paintings; training views with --no-eval), also made \
+         before the first iteration and at the end; 0: only those two",
+        FitFeaturesConfig::default().features.eval_interval,
+    ))]
+    eval_every: Option<u64>,
     /// Canonical network weights (.safetensors) holding the encoder and decoder.
     #[arg(long)]
     weights: PathBuf,
@@ -1251,6 +1262,7 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
         geometry: a.geometry,
         dataset: a.dataset,
         styles: a.styles,
+        eval_styles: a.eval_styles,
         networks: NetworkFiles {
             weights: Some(a.weights),
             encoder: None,
@@ -1275,6 +1287,7 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
             no_eval: a.no_eval,
             log_every: a.run.log_every,
             checkpoint_every: a.run.checkpoint_every,
+            eval_every: a.eval_every,
         },
         encoding_cache: !a.no_encoding_cache,
     };
@@ -1292,6 +1305,14 @@ fn fit_features(a: FitFeaturesArgs) -> Result<()> {
     if let Some([total, align, content, style]) = r.running_losses {
         println!(
             "running loss {total:.5} (align {align:.5}, content {content:.5}, style {style:.5})"
+        );
+    }
+    let samples = if r.held_out { "held-out" } else { "training" };
+    for e in &r.evaluations {
+        println!(
+            "iteration {}: evaluation loss {:.5} (align {:.5}, content {:.5}, style {:.5}, {} \
+             {samples} samples)",
+            e.step, e.loss, e.loss_align, e.loss_content, e.loss_style, e.pairs
         );
     }
     finish(&r.run, Some(&r.checkpoint))

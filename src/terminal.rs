@@ -242,7 +242,7 @@ impl Sink for Terminal {
                 step,
                 metrics: m,
             } => {
-                let line = format!("[ITER {step}] {} held-out: {}", stage.name(), metrics(&m));
+                let line = format!("[ITER {step}] {} evaluation: {}", stage.name(), metrics(&m));
                 state.say(inner, &line);
             }
             Event::CheckpointWritten { step, path, .. } => {

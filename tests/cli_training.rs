@@ -772,3 +772,58 @@ fn fit_features_ablation_switches() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `--eval-style` and `--eval-every`: the stage-3 loss on fixed held-out samples before training,
+/// on schedule and at the end, printed with the samples' kind; training views and styles with
+/// `--no-eval`; a painting that does not exist is named.
+#[test]
+fn fit_features_evaluates_held_out_views_and_paintings() {
+    let dir = scratch("fit-features-evaluation");
+    let inputs = tiny_features(&dir);
+    let painting = small_images(&dir.join("unseen"), &["styles/brushstrokes.jpg"]);
+    let lines = |out: &Path, args: &[&str]| -> Vec<String> {
+        let o = ok(&mut inputs.command(out, 3, args));
+        String::from_utf8_lossy(&o.stdout)
+            .lines()
+            .filter(|l| l.contains("evaluation loss"))
+            .map(str::to_string)
+            .collect()
+    };
+    let held = lines(
+        &dir.join("held"),
+        &[
+            "--eval-style",
+            painting.to_str().unwrap(),
+            "--eval-every",
+            "2",
+        ],
+    );
+    let steps: Vec<&str> = held.iter().map(|l| l.split(':').next().unwrap()).collect();
+    assert_eq!(
+        steps,
+        ["iteration 0", "iteration 2", "iteration 3"],
+        "{held:?}"
+    );
+    assert!(
+        held.iter().all(|l| l.contains("8 held-out samples")),
+        "{held:?}"
+    );
+    let saved = std::fs::read_to_string(dir.join("held/config.toml")).unwrap();
+    assert!(saved.contains("eval_interval = 2"), "{saved}");
+    // Without a held-out split the training views and styles are the yardstick.
+    let train = lines(&dir.join("train"), &["--no-eval"]);
+    assert_eq!(train.len(), 2, "{train:?}");
+    assert!(
+        train.iter().all(|l| l.contains("training samples")),
+        "{train:?}"
+    );
+    assert_ne!(held[0], train[0]);
+    let missing = dir.join("no-such-painting.jpg");
+    let err = fails(&mut inputs.command(
+        &dir.join("bad"),
+        3,
+        &["--eval-style", missing.to_str().unwrap()],
+    ));
+    assert!(err.contains("no-such-painting.jpg"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -76,8 +76,12 @@ impl Nets {
                 std::hint::black_box(self.dec.forward(self.feat.view()).unwrap());
             }
             _ => {
-                let (_, tape) = self.dec.forward_with_tape(self.feat.view()).unwrap();
-                std::hint::black_box(self.dec.backward(&tape, self.cot.view()).unwrap());
+                let (_, tape) = self.dec.forward_with_param_tape(self.feat.view()).unwrap();
+                std::hint::black_box(
+                    self.dec
+                        .backward_with_params(&tape, self.cot.view())
+                        .unwrap(),
+                );
             }
         }
     }

@@ -227,12 +227,30 @@ impl<T: Real> Decoder<T> {
         Ok(outs.pop().expect("one output"))
     }
 
-    /// [`Decoder::forward`], also returning the tape for [`Decoder::backward`].
+    /// [`Decoder::forward`], also returning the tape for [`Decoder::backward`] (the input
+    /// gradient only: the tape keeps the ReLU masks, not the conv inputs).
     pub fn forward_with_tape(
         &self,
         x: ArrayView4<T>,
     ) -> Result<(Array4<T>, DecoderTape<T>), NetError> {
-        let (mut outs, tape) = sequential::forward(&self.steps(), x, true, true, "decoder")?;
+        self.forward_taped(x, false)
+    }
+
+    /// [`Decoder::forward_with_tape`] that also keeps every conv input, as
+    /// [`Decoder::backward_with_params`] needs (more memory).
+    pub fn forward_with_param_tape(
+        &self,
+        x: ArrayView4<T>,
+    ) -> Result<(Array4<T>, DecoderTape<T>), NetError> {
+        self.forward_taped(x, true)
+    }
+
+    fn forward_taped(
+        &self,
+        x: ArrayView4<T>,
+        keep_inputs: bool,
+    ) -> Result<(Array4<T>, DecoderTape<T>), NetError> {
+        let (mut outs, tape) = sequential::forward(&self.steps(), x, true, keep_inputs, "decoder")?;
         Ok((
             outs.pop().expect("one output"),
             DecoderTape(tape.expect("tape requested")),
@@ -286,8 +304,20 @@ impl<T: Real> Decoder<T> {
         )
     }
 
-    /// Gradients of `<dy, decoder(x)>` with respect to the input and to every parameter.
+    /// The gradient of `<dy, decoder(x)>` with respect to the input `x` (no parameter
+    /// gradients: half the work of [`Decoder::backward_with_params`]). Takes a tape from either
+    /// forward pass.
     pub fn backward(
+        &self,
+        tape: &DecoderTape<T>,
+        dy: ArrayView4<T>,
+    ) -> Result<Array4<T>, NetError> {
+        Ok(sequential::backward(&self.steps(), &tape.0, &[Some(dy)], false, "decoder")?.input)
+    }
+
+    /// Gradients of `<dy, decoder(x)>` with respect to the input and to every parameter. Needs
+    /// a tape from [`Decoder::forward_with_param_tape`].
+    pub fn backward_with_params(
         &self,
         tape: &DecoderTape<T>,
         dy: ArrayView4<T>,

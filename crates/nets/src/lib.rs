@@ -10,7 +10,7 @@
 //!
 //! * [`Encoder`]: features `relu1_1 ..= relu{depth}_1`, forward with tape, backward from
 //!   cotangents on any subset of the features.
-//! * [`Decoder`]: forward with tape, backward to the input and every parameter.
+//! * [`Decoder`]: forward with tape, backward to the input, and to every parameter too.
 //! * [`Lifter`]: `relu(conv1x1(x))`, forward and backward.
 //! * [`tiled`]: an encoder level or the decoded image over any [`Region`], from the input region
 //!   it depends on, bit-identical to the whole image (`Encoder::forward_region`,
@@ -29,12 +29,13 @@
 //!     dec: &Decoder,
 //!     t: &Array4<f32>,
 //! ) -> Result<nets::DecoderGrads, NetError> {
-//!     let (image, dec_tape) = dec.forward_with_tape(t.view())?;
+//!     let (image, dec_tape) = dec.forward_with_param_tape(t.view())?;
 //!     let (feats, enc_tape) = enc.forward_with_tape(image.view())?;
 //!     // d loss / d relu{k}_1; here a cotangent on relu1_1 only (None = no loss on that level).
 //!     let cot = feats[0].mapv(|v| 2.0 * v);
 //!     let d_image = enc.backward(&enc_tape, &[Some(cot.view())])?;
-//!     dec.backward(&dec_tape, d_image.view()) // .input and .params (one per decoder conv)
+//!     // .input and .params (one per decoder conv); `dec.backward` gives the input gradient alone.
+//!     dec.backward_with_params(&dec_tape, d_image.view())
 //! }
 //! ```
 //!

@@ -343,9 +343,26 @@ proptest! {
 /// A decoder's input gradient along a random direction, and its parameter gradients along one
 /// random direction of all parameters, against central differences of `<v, decoder(x)>`.
 fn check_decoder_gradients(what: &str, dec: &Decoder<f64>, x: &Array4<f64>, rng: &mut TestRng) {
-    let (y, tape) = dec.forward_with_tape(x.view()).unwrap();
+    let (y, tape) = dec.forward_with_param_tape(x.view()).unwrap();
     let v = rng.array4(y.dim());
-    let grads = dec.backward(&tape, v.view()).unwrap();
+    let grads = dec.backward_with_params(&tape, v.view()).unwrap();
+    // The input gradient alone, from either tape, is the same computation.
+    let (y_light, light) = dec.forward_with_tape(x.view()).unwrap();
+    assert_eq!(y_light, y, "{what}: the two taped forward passes differ");
+    assert_eq!(
+        dec.backward(&light, v.view()).unwrap(),
+        grads.input,
+        "{what}: input gradient"
+    );
+    assert_eq!(
+        dec.backward(&tape, v.view()).unwrap(),
+        grads.input,
+        "{what}: input gradient"
+    );
+    assert!(
+        dec.backward_with_params(&light, v.view()).is_err(),
+        "{what}: parameter gradients from a tape without the conv inputs"
+    );
     let hstep = 1e-6;
     let d = rng.array4(x.dim());
     let loss = |dd: &Decoder<f64>, xa: &Array4<f64>| dot(&dd.forward(xa.view()).unwrap(), &v);

@@ -196,7 +196,7 @@ fn check_decoder_gradients(res: Resolution) {
     let v = variant_name(res);
     let (enc, dec) = networks_f64(res);
     let t = arr4::<f64>(fx.get(&format!("{v}.adain")));
-    let (image, dtape) = dec.forward_with_tape(t.view()).unwrap();
+    let (image, dtape) = dec.forward_with_param_tape(t.view()).unwrap();
     let (gf, etape) = enc.forward_with_tape(image.view()).unwrap();
     let sf = enc.forward(arr4::<f64>(fx.get("style")).view()).unwrap();
     let (loss, cot) = style_loss_cotangents(&gf, &sf, &t);
@@ -207,7 +207,7 @@ fn check_decoder_gradients(res: Resolution) {
     );
     let views: Vec<_> = cot.iter().map(|c| Some(c.view())).collect();
     let dimage = enc.backward(&etape, &views).unwrap();
-    let grads = dec.backward(&dtape, dimage.view()).unwrap();
+    let grads = dec.backward_with_params(&dtape, dimage.view()).unwrap();
     let err = rel_err(&grads.input, fx.get(&format!("{v}.grad.decoder_input")));
     println!("{v} grad decoder_input: {err:.2e}");
     assert!(err <= TOL_F64, "{v} decoder input gradient error {err:.3e}");
@@ -234,7 +234,7 @@ fn check_decoder_gradients(res: Resolution) {
     // The same in f32 (the loss cotangents are formed in f64 from the f32 features).
     let (enc, dec) = networks_f32(res);
     let t32 = arr4::<f32>(fx.get(&format!("{v}.adain")));
-    let (image, dtape) = dec.forward_with_tape(t32.view()).unwrap();
+    let (image, dtape) = dec.forward_with_param_tape(t32.view()).unwrap();
     let (gf, etape) = enc.forward_with_tape(image.view()).unwrap();
     let sf = enc.forward(arr4::<f32>(fx.get("style")).view()).unwrap();
     let up = |a: &Array4<f32>| a.mapv(|x| x as f64);
@@ -244,7 +244,7 @@ fn check_decoder_gradients(res: Resolution) {
     let cot32: Vec<Array4<f32>> = cot.iter().map(|c| c.mapv(|x| x as f32)).collect();
     let views: Vec<_> = cot32.iter().map(|c| Some(c.view())).collect();
     let dimage = enc.backward(&etape, &views).unwrap();
-    let grads = dec.backward(&dtape, dimage.view()).unwrap();
+    let grads = dec.backward_with_params(&dtape, dimage.view()).unwrap();
     let mut worst = rel_err(&grads.input, fx.get(&format!("{v}.grad.decoder_input")));
     for g in &grads.params {
         worst = worst

@@ -282,6 +282,8 @@ pub fn feature_config(s: &DemoSettings) -> FitFeaturesConfig {
             variant: s.variant,
             checkpoint_interval: ((s.align_warmup + s.feature_iterations) / 6).max(1),
             log_interval: 0,
+            // The demo evaluates its result with `eval`; no loss curve.
+            eval_pairs: 0,
             ..FeatureTrainConfig::default()
         },
         ..FitFeaturesConfig::default()
@@ -364,6 +366,7 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
             geometry: ply.clone(),
             dataset: scene.clone(),
             styles: vec![s.shared.join(TRAINING_STYLES)],
+            eval_styles: Vec::new(),
             networks: NetworkFiles {
                 weights: Some(weights.clone()),
                 encoder: None,

@@ -16,6 +16,11 @@
 //! "Encoding cache"), so a resumed or repeated run with the same inputs skips the encoding and
 //! trains exactly as without the cache.
 //!
+//! Evaluation: with a held-out split, `eval_pairs` fixed samples of held-out views and paintings
+//! (`--eval-style`, or the training styles) are evaluated before training, every
+//! `eval_interval` iterations and at the end (`train::features`, "Evaluation"), reported as
+//! evaluation events; without one, training views and styles.
+//!
 //! Outputs: the scene bundle `OUT/bundle/` (loadable by `dsgs stylize`) and
 //! `OUT/checkpoint.safetensors`, written at the checkpoint interval and again at the end.
 
@@ -26,9 +31,10 @@ use gaussian::dataset::{Dataset, LoadOptions};
 use gaussian::ply::load_ply;
 use serde::{Deserialize, Serialize};
 use train::features::{dataset_views, FeatureSetup, ENCODINGS_DIR, FEATURE_CHECKPOINT_FILE};
+use train::geometry::{load_views, View};
 use train::{
-    DecoderMode, FeatureInputs, FeatureNorm, FeatureTrainConfig, FeatureTrainer, GeometryConfig,
-    Variant,
+    DecoderMode, FeatureEvaluation, FeatureInputs, FeatureNorm, FeatureTrainConfig, FeatureTrainer,
+    GeometryConfig, Variant,
 };
 
 use crate::fit_geometry::{DatasetConfig, FitGeometryConfig};
@@ -100,6 +106,8 @@ pub struct FeatureOverrides {
     /// Iterations between checkpoints, 0 for only when stopped (`--checkpoint-every`; key
     /// `checkpoint_interval`).
     pub checkpoint_every: Option<u64>,
+    /// Iterations between evaluations (`--eval-every`; key `eval_interval`).
+    pub eval_every: Option<u64>,
 }
 
 impl FeatureOverrides {
@@ -143,6 +151,9 @@ impl FeatureOverrides {
         if let Some(k) = self.checkpoint_every {
             f.checkpoint_interval = k;
         }
+        if let Some(k) = self.eval_every {
+            f.eval_interval = k;
+        }
         if let Some(v) = self.downscale {
             c.dataset.downscale = v;
             c.dataset.images_folder = None;
@@ -165,6 +176,9 @@ pub struct FitFeaturesSettings {
     pub dataset: PathBuf,
     /// Style image folders and/or files.
     pub styles: Vec<PathBuf>,
+    /// Paintings never trained on, for the evaluation (`--eval-style`); empty: the training
+    /// styles.
+    pub eval_styles: Vec<PathBuf>,
     /// The frozen encoder and decoder: `--weights`, and `--decoder` to replace its decoder.
     pub networks: NetworkFiles,
     /// Output directory (`--output`); the bundle goes to `OUT/bundle`.
@@ -195,6 +209,11 @@ pub struct FitFeaturesReport {
     pub run: RunOutcome,
     /// Running averages of the total, align, content and style losses at the end.
     pub running_losses: Option<[f64; 4]>,
+    /// The evaluations of this run, in order (see [`FitFeaturesReport::held_out`]).
+    pub evaluations: Vec<FeatureEvaluation>,
+    /// Whether the evaluations are on held-out views (the dataset's held-out split, with
+    /// `--eval-style` paintings when given); otherwise on training views and styles.
+    pub held_out: bool,
     /// `OUT/checkpoint.safetensors`.
     pub checkpoint: PathBuf,
 }
@@ -209,12 +228,13 @@ pub fn effective_config(settings: &FitFeaturesSettings) -> Result<FitFeaturesCon
     )
 }
 
-/// Reads every input of a run.
+/// Reads every input of a run, and the held-out views of the evaluation (none without a
+/// held-out split or evaluation).
 fn inputs(
     settings: &FitFeaturesSettings,
     cfg: &FitFeaturesConfig,
     control: &Control,
-) -> Result<FeatureInputs> {
+) -> Result<(FeatureInputs, Vec<View>)> {
     let geometry = load_ply(&settings.geometry)
         .with_context(|| format!("reading the geometry {}", settings.geometry.display()))?;
     let styles = open_images(&settings.styles, false, "style")?;
@@ -226,6 +246,16 @@ fn inputs(
     control.report_dataset(&dataset);
     let (views, cameras) = dataset_views(&dataset, cfg.dataset.eval, control.sink)
         .with_context(|| format!("reading the views of {}", settings.dataset.display()))?;
+    let held_out = if cfg.features.eval_pairs > 0 && cfg.dataset.eval {
+        load_views(&dataset, &dataset.split().test).with_context(|| {
+            format!(
+                "reading the held-out views of {}",
+                settings.dataset.display()
+            )
+        })?
+    } else {
+        Vec::new()
+    };
     let n = &settings.networks;
     let mut provenance = vec![
         (
@@ -246,24 +276,38 @@ fn inputs(
             provenance.push((key.to_string(), p.display().to_string()));
         }
     }
-    Ok(FeatureInputs {
-        geometry,
-        views,
-        cameras,
-        styles,
-        encoder,
-        decoder,
-        background: cfg.background,
-        provenance,
-    })
+    Ok((
+        FeatureInputs {
+            geometry,
+            views,
+            cameras,
+            styles,
+            encoder,
+            decoder,
+            background: cfg.background,
+            provenance,
+        },
+        held_out,
+    ))
 }
 
 /// Trains the features, reporting to the control's sink. A stop request ends the run after the
 /// current iteration with a checkpoint of it ([`RunOutcome::stop_checkpoint`]).
 pub fn run(settings: &FitFeaturesSettings, control: &Control) -> Result<FitFeaturesReport> {
     let cfg = effective_config(settings)?;
-    let inputs = inputs(settings, &cfg, control)?;
+    let (inputs, held_out) = inputs(settings, &cfg, control)?;
     let (gaussians, train_views) = (inputs.geometry.len(), inputs.views.len());
+    let eval_styles = if held_out.is_empty() {
+        None
+    } else if settings.eval_styles.is_empty() {
+        Some(inputs.styles.clone())
+    } else {
+        Some(open_images(
+            &settings.eval_styles,
+            false,
+            "evaluation style",
+        )?)
+    };
     let cache = settings.out_dir.join(ENCODINGS_DIR);
     let setup = FeatureSetup {
         sink: control.sink,
@@ -275,6 +319,11 @@ pub fn run(settings: &FitFeaturesSettings, control: &Control) -> Result<FitFeatu
         None => FeatureTrainer::new_with(cfg.features.clone(), inputs, &setup)
             .context("setting up feature training")?,
     };
+    if let Some(styles) = &eval_styles {
+        trainer = trainer
+            .with_held_out(&held_out, styles, control.sink)
+            .context("encoding the held-out views and styles of the evaluation")?;
+    }
     config::save(&cfg, &settings.out_dir)?;
     let summary = trainer.train(&control.run_in(&settings.out_dir))?;
     let checkpoint = settings.out_dir.join(FEATURE_CHECKPOINT_FILE);
@@ -290,6 +339,8 @@ pub fn run(settings: &FitFeaturesSettings, control: &Control) -> Result<FitFeatu
         style_images: trainer.counts().1,
         run: summary.run,
         running_losses: summary.running_losses,
+        evaluations: summary.evaluations,
+        held_out: eval_styles.is_some(),
         checkpoint,
     })
 }

@@ -21,8 +21,9 @@
 //!
 //!   `target` is the normalised `relu_k_1` of the content view (see [`align_target`]). The content
 //!   term compares with `t`, which depends on `r`, so its gradient flows through both arguments.
-//!   Gradients: `r`, the lifter's weight and bias, and the decoder's parameters (used when the
-//!   decoder is trained in this stage, the paper's decoder ablation).
+//!   Gradients: `r`, the lifter's weight and bias, and, when [`Stage3Weights::train_decoder`]
+//!   asks for them, the decoder's parameters (the decoder is trained in this stage in the
+//!   paper's decoder ablation).
 //!
 //!   The design ablation [`FeatureNorm::AfterRaster`] aligns `l(r)` with the *unnormalised*
 //!   `relu_k_1` instead and normalises each lifted map over its own pixels before the
@@ -113,10 +114,10 @@ pub fn decoder_training_loss<T: Real>(
     style_weight: f64,
 ) -> Result<DecoderLoss<T>> {
     crate::adain::check_finite("style weight", style_weight)?;
-    let (image, dtape) = decoder.forward_with_tape(input.view())?;
+    let (image, dtape) = decoder.forward_with_param_tape(input.view())?;
     let (loss_c, loss_s, g_image, _) =
         perceptual(encoder, &image, content_target, style, 1.0, style_weight)?;
-    let grads = decoder.backward(&dtape, g_image.view())?;
+    let grads = decoder.backward_with_params(&dtape, g_image.view())?;
     let loss = T::lit(loss_c.to_f64_exact() + style_weight * loss_s.to_f64_exact());
     Ok(DecoderLoss {
         image,
@@ -137,6 +138,10 @@ pub struct Stage3Weights {
     pub lambda_style: f64,
     /// The alignment penalty (default MSE).
     pub align: AlignLoss,
+    /// Whether to compute the decoder's parameter gradients ([`Stage3Loss::grad_decoder`]), for
+    /// the ablations that train the decoder in stage 3 (default `false`: the paper's frozen
+    /// decoder, whose backward pass then costs the input gradient alone).
+    pub train_decoder: bool,
 }
 
 impl Default for Stage3Weights {
@@ -145,6 +150,7 @@ impl Default for Stage3Weights {
             lambda_content: 1.0,
             lambda_style: 1.0,
             align: AlignLoss::Mse,
+            train_decoder: false,
         }
     }
 }
@@ -219,7 +225,8 @@ pub struct Stage3Loss<T: Real> {
     pub grad_raster_features: Array4<T>,
     /// `dL/d(W, b)` of the lifter.
     pub grad_lifter: ConvGrad<T>,
-    /// `dL/d(weight, bias)` of every decoder conv in [`Decoder::layers`] order.
+    /// `dL/d(weight, bias)` of every decoder conv in [`Decoder::layers`] order when
+    /// [`Stage3Weights::train_decoder`] is set, empty otherwise.
     pub grad_decoder: Vec<ConvGrad<T>>,
 }
 
@@ -254,7 +261,11 @@ pub fn stage3_loss<T: Real>(
         FeatureNorm::AfterRaster => Some(instance_normalize(&lifted)?),
     };
     let t = style_transform(normalised.as_ref().unwrap_or(&lifted), deepest_style)?;
-    let (image, dtape) = decoder.forward_with_tape(t.view())?;
+    let (image, dtape) = if weights.train_decoder {
+        decoder.forward_with_param_tape(t.view())?
+    } else {
+        decoder.forward_with_tape(t.view())?
+    };
     let loss_a = align_loss(&lifted, align_target, weights.align)?;
     let (loss_c, loss_s, g_image, g_t_target) = perceptual(
         encoder,
@@ -264,8 +275,12 @@ pub fn stage3_loss<T: Real>(
         weights.lambda_content,
         weights.lambda_style,
     )?;
-    let dgrads = decoder.backward(&dtape, g_image.view())?;
-    let mut g_t = dgrads.input;
+    let (mut g_t, grad_decoder) = if weights.train_decoder {
+        let dgrads = decoder.backward_with_params(&dtape, g_image.view())?;
+        (dgrads.input, dgrads.params)
+    } else {
+        (decoder.backward(&dtape, g_image.view())?, Vec::new())
+    };
     // The content term's target is t itself.
     g_t.zip_mut_with(&g_t_target, |a, &b| *a += b);
     let mut g_lifted = match &normalised {
@@ -293,6 +308,6 @@ pub fn stage3_loss<T: Real>(
         loss,
         grad_raster_features: grads.input,
         grad_lifter: grads.params,
-        grad_decoder: dgrads.params,
+        grad_decoder,
     })
 }

@@ -117,7 +117,7 @@ proptest! {
     ) {
         let n = nets();
         let s = encode_style(&n.enc, &style_img).unwrap();
-        let weights = Stage3Weights { lambda_content: 0.7, lambda_style: 1.3, align: if l1 { AlignLoss::L1 } else { AlignLoss::Mse } };
+        let weights = Stage3Weights { lambda_content: 0.7, lambda_style: 1.3, align: if l1 { AlignLoss::L1 } else { AlignLoss::Mse }, train_decoder: false };
         let norm = FeatureNorm::BeforeRaster;
         let out = stage3_loss(&n.lift, &n.dec, &n.enc, &raster, &target, &s, weights, norm).unwrap();
         let loss_at = |lift: &Lifter<f64>, r: &Array4<f64>| stage3_loss(lift, &n.dec, &n.enc, r, &target, &s, weights, norm).unwrap().loss;
@@ -212,11 +212,20 @@ proptest! {
         let n = nets();
         let s = encode_style(&n.enc, &style_img).unwrap();
         let norm = if after { FeatureNorm::AfterRaster } else { FeatureNorm::BeforeRaster };
-        let weights = Stage3Weights { lambda_content: 0.7, lambda_style: 1.3, align: AlignLoss::Mse };
+        let weights = Stage3Weights { lambda_content: 0.7, lambda_style: 1.3, align: AlignLoss::Mse, train_decoder: true };
         let loss_at = |dec: &Decoder<f64>, r: &Array4<f64>| {
             stage3_loss(&n.lift, dec, &n.enc, r, &target, &s, weights, norm).unwrap().loss
         };
         let out = stage3_loss(&n.lift, &n.dec, &n.enc, &raster, &target, &s, weights, norm).unwrap();
+        // A frozen decoder: no decoder gradients, and every other result the same bits.
+        let frozen = Stage3Weights { train_decoder: false, ..weights };
+        let f = stage3_loss(&n.lift, &n.dec, &n.enc, &raster, &target, &s, frozen, norm).unwrap();
+        prop_assert!(f.grad_decoder.is_empty());
+        prop_assert_eq!(f.loss.to_bits(), out.loss.to_bits());
+        prop_assert_eq!(&f.image, &out.image);
+        prop_assert_eq!(&f.grad_raster_features, &out.grad_raster_features);
+        prop_assert_eq!(&f.grad_lifter.weight, &out.grad_lifter.weight);
+        prop_assert_eq!(&f.grad_lifter.bias, &out.grad_lifter.bias);
         let base = patterns_with(&n, &n.dec, &raster, Some(&n.lift), &s, norm);
         let same = |dec: &Decoder<f64>, r: &Array4<f64>| patterns_with(&n, dec, r, Some(&n.lift), &s, norm) == base;
         // Raster direction.

@@ -61,6 +61,16 @@
 //!   and normalises each lifted window over its own pixels before the transform (stylization
 //!   then normalises over the whole view, see [`crate::bundle`]).
 //!
+//! Evaluation ([`FeatureTrainer::evaluate_fixed`]): the mean loss, with the full loss weights
+//! (content and style terms included, also during the warm-up), over `eval_pairs` fixed samples
+//! drawn once from the seed, each a view, a style and the centred `crop x crop` window of the
+//! view's feature map. By default the views and styles are the training ones (a fixed
+//! yardstick of how the training loss moves); [`FeatureTrainer::with_held_out`] draws them from
+//! held-out views and styles never trained on instead, so the curve measures generalisation to
+//! new views and paintings. The run evaluates before its first iteration, every
+//! `eval_interval` iterations and at the end, and reports each as an [`Event::Evaluation`]; an
+//! evaluation changes nothing, so it does not affect training or resuming.
+//!
 //! Checkpoints hold the features, the lifter, a trained decoder, the Adam state and the step;
 //! they name the geometry and encoder they belong to by fingerprints, which resuming checks.
 
@@ -88,11 +98,11 @@ use crate::bundle::{
 use crate::checkpoint::{StateReader, StateWriter};
 use crate::decoder_training::{
     check_same_params, conv_default_init, init_decoder_with, init_mlp_decoder, mix,
-    register_decoder, step_decoder, INIT_STREAM, STEP_STREAM,
+    register_decoder, step_decoder, EVAL_STREAM, INIT_STREAM, STEP_STREAM,
 };
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 use crate::error::TrainError;
-use crate::event::{Event, Quiet, Sink, Stage, Tally};
+use crate::event::{Event, Metric, Quiet, Sink, Stage, Tally};
 use crate::geometry::{load_views, View};
 use crate::image_folder::{to_tensor, ImageSet};
 use base::Fnv1a;
@@ -165,6 +175,12 @@ pub struct FeatureTrainConfig {
     /// Where the features are normalised: before rasterization (the paper's design) or per view
     /// after it (the ablation, [`FeatureNorm`]).
     pub normalize: FeatureNorm,
+    /// Number of fixed (view, style) samples of the periodic evaluation (0: none; see
+    /// "Evaluation" in the module documentation).
+    pub eval_pairs: usize,
+    /// Iterations between evaluations (0: only before the first iteration and at the end, when
+    /// `eval_pairs > 0`).
+    pub eval_interval: u64,
 }
 
 impl Default for FeatureTrainConfig {
@@ -188,6 +204,8 @@ impl Default for FeatureTrainConfig {
             decoder_mode: DecoderMode::Pretrained,
             lr_decoder: 1e-4,
             normalize: FeatureNorm::BeforeRaster,
+            eval_pairs: 8,
+            eval_interval: 500,
         }
     }
 }
@@ -249,6 +267,7 @@ impl FeatureTrainConfig {
         Stage3Weights {
             lambda_content: self.lambda_content,
             lambda_style: self.lambda_style,
+            train_decoder: self.decoder_mode.trains_decoder(),
             ..Stage3Weights::default()
         }
     }
@@ -316,7 +335,8 @@ pub struct Stage3Sample<'a, T> {
     pub camera: &'a Camera,
     /// `(width, height)` of the feature map.
     pub feature_size: (u32, u32),
-    /// The whole view's target `[1, C, height, width]`.
+    /// The alignment target: the whole view's, `[1, C, height, width]`, or the window's alone,
+    /// `[1, C, window.height, window.width]`.
     pub align_target: &'a Array4<T>,
     /// The style's per-level encoder statistics (per-channel mean and standard deviation).
     pub style: &'a StyleFeatureStats<T>,
@@ -372,12 +392,6 @@ pub fn stage3_gradients<T: Real>(
         sample.feature_size.1 as usize,
     );
     let c = setup.lifter.out_channels();
-    if sample.align_target.dim() != (1, c, fh, fw) {
-        return Err(TrainError::Shape(format!(
-            "alignment target is {:?}, expected [1, {c}, {fh}, {fw}]",
-            sample.align_target.shape()
-        )));
-    }
     let win = sample.window;
     if win.width == 0 || win.height == 0 || win.x + win.width > fw || win.y + win.height > fh {
         return Err(TrainError::Shape(format!(
@@ -385,6 +399,27 @@ pub fn stage3_gradients<T: Real>(
             win.width, win.height, win.x, win.y
         )));
     }
+    let target = if sample.align_target.dim() == (1, c, fh, fw) {
+        sample
+            .align_target
+            .slice(s![
+                ..,
+                ..,
+                win.y..win.y + win.height,
+                win.x..win.x + win.width
+            ])
+            .to_owned()
+    } else if sample.align_target.dim() == (1, c, win.height, win.width) {
+        sample.align_target.clone()
+    } else {
+        return Err(TrainError::Shape(format!(
+            "alignment target is {:?}, expected [1, {c}, {fh}, {fw}] (the view) or \
+             [1, {c}, {}, {}] (the window)",
+            sample.align_target.shape(),
+            win.height,
+            win.width
+        )));
+    };
     let cam = sample
         .camera
         .resized(sample.feature_size.0, sample.feature_size.1);
@@ -394,15 +429,6 @@ pub fn stage3_gradients<T: Real>(
     let r = Array4::from_shape_fn((1, f, win.height, win.width), |(_, ch, y, x)| {
         img[((win.y + y) * fw + win.x + x) * f + ch]
     });
-    let target = sample
-        .align_target
-        .slice(s![
-            ..,
-            ..,
-            win.y..win.y + win.height,
-            win.x..win.x + win.width
-        ])
-        .to_owned();
     let w = setup.weights;
     let (terms, grad_r, grad_lifter, grad_decoder) =
         if w.lambda_content == 0.0 && w.lambda_style == 0.0 {
@@ -792,6 +818,21 @@ pub struct FeatureEvaluation {
     pub loss: f64,
 }
 
+impl FeatureEvaluation {
+    /// The evaluation as event metrics.
+    pub fn metrics(&self) -> Vec<Metric> {
+        [
+            ("loss", self.loss),
+            ("align", self.loss_align),
+            ("content", self.loss_content),
+            ("style", self.loss_style),
+            ("pairs", self.pairs as f64),
+        ]
+        .map(|(name, value)| Metric { name, value })
+        .to_vec()
+    }
+}
+
 /// The result of [`FeatureTrainer::train`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct FeatureTrainSummary {
@@ -800,6 +841,68 @@ pub struct FeatureTrainSummary {
     pub run: RunOutcome,
     /// Running averages of the total, align, content and style losses at the end.
     pub running_losses: Option<[f64; 4]>,
+    /// The evaluations of this call ([`FeatureTrainer::evaluate_fixed`]), in order: before the
+    /// first iteration of a fresh run, every `eval_interval` iterations and at the end.
+    pub evaluations: Vec<FeatureEvaluation>,
+}
+
+/// A fixed evaluation sample: a view's camera and feature-map size, the centred window and the
+/// view's alignment target on it, and a style's statistics.
+#[derive(Clone, Debug)]
+struct EvalSample {
+    camera: Camera,
+    feature_size: (u32, u32),
+    window: CropWindow,
+    target: Array4<f32>,
+    style: StyleFeatureStats<f32>,
+}
+
+/// The centred window of at most `crop x crop` pixels of a `w x h` map.
+fn centred_window(w: usize, h: usize, crop: usize) -> CropWindow {
+    let (cw, ch) = (w.min(crop), h.min(crop));
+    CropWindow {
+        x: (w - cw) / 2,
+        y: (h - ch) / 2,
+        width: cw,
+        height: ch,
+    }
+}
+
+impl EvalSample {
+    /// The sample of a view whose whole alignment target is `target` (`[1, C, h, w]`).
+    fn new(
+        camera: Camera,
+        target: &Array4<f32>,
+        style: StyleFeatureStats<f32>,
+        crop: usize,
+    ) -> EvalSample {
+        let (_, _, h, w) = target.dim();
+        let window = centred_window(w, h, crop);
+        let target = target
+            .slice(s![
+                ..,
+                ..,
+                window.y..window.y + window.height,
+                window.x..window.x + window.width
+            ])
+            .to_owned();
+        EvalSample {
+            camera,
+            feature_size: (w as u32, h as u32),
+            window,
+            target,
+            style,
+        }
+    }
+}
+
+/// The (view, style) index pairs of the evaluation: `pairs` draws from the seed's evaluation
+/// stream, a view then a style each.
+fn eval_indices(seed: u64, pairs: usize, views: usize, styles: usize) -> Vec<(usize, usize)> {
+    let mut rng = StdRng::seed_from_u64(mix(seed, EVAL_STREAM, 0));
+    (0..pairs)
+        .map(|_| (rng.random_range(0..views), rng.random_range(0..styles)))
+        .collect()
 }
 
 /// A feature training run.
@@ -822,6 +925,8 @@ pub struct FeatureTrainer {
     cameras: Vec<CameraRecord>,
     background: [f32; 3],
     geometry_fingerprint: String,
+    eval: Vec<EvalSample>,
+    evaluations: Vec<FeatureEvaluation>,
 }
 
 /// Checks that the encoder takes RGB and the decoder its deepest width; returns that width.
@@ -1024,6 +1129,19 @@ impl FeatureTrainer {
             tally.advance(1, "encode styles");
         }
         drop(style_images);
+        let crop = config.crop_side() as usize;
+        let eval = eval_indices(
+            config.seed,
+            config.eval_pairs,
+            cached.len(),
+            style_stats.len(),
+        )
+        .into_iter()
+        .map(|(v, st)| {
+            let view = &cached[v];
+            EvalSample::new(view.camera, &view.target, style_stats[st].clone(), crop)
+        })
+        .collect();
         let mut summary = format!(
             "{} views and {} style images encoded in {:.1} s",
             cached.len(),
@@ -1078,7 +1196,154 @@ impl FeatureTrainer {
             cameras,
             background,
             geometry_fingerprint,
+            eval,
+            evaluations: Vec::new(),
         })
+    }
+
+    /// Draws the evaluation samples from held-out views and styles instead of the training
+    /// ones (see "Evaluation" in the module documentation): `eval_pairs` (view, style) pairs
+    /// from the seed, only the views drawn are encoded, reported to `sink` as
+    /// [`Stage::Prepare`] progress. Views must have the training views' kind (RGB images at
+    /// the resolution to train at); their feature maps follow [`feature_size`].
+    pub fn with_held_out(
+        mut self,
+        views: &[View],
+        styles: &ImageSet,
+        sink: &dyn Sink,
+    ) -> Result<Self, TrainError> {
+        if self.config.eval_pairs == 0 {
+            return Ok(self);
+        }
+        if views.is_empty() || styles.is_empty() {
+            return Err(TrainError::Dataset(format!(
+                "held-out evaluation needs views and styles ({} views, {} styles)",
+                views.len(),
+                styles.len()
+            )));
+        }
+        let deepest = self.lifter.out_channels();
+        let pairs = eval_indices(
+            self.config.seed,
+            self.config.eval_pairs,
+            views.len(),
+            styles.len(),
+        );
+        let mut view_ids: Vec<usize> = pairs.iter().map(|p| p.0).collect();
+        let mut style_ids: Vec<usize> = pairs.iter().map(|p| p.1).collect();
+        view_ids.sort_unstable();
+        view_ids.dedup();
+        style_ids.sort_unstable();
+        style_ids.dedup();
+        let mut tally = Tally::start(Stage::Prepare, view_ids.len() + style_ids.len(), sink);
+        let mut targets = Vec::with_capacity(view_ids.len());
+        for &v in &view_ids {
+            let view = &views[v];
+            let k = view.camera.intrinsics;
+            if k.width == 0
+                || k.height == 0
+                || view.image.len() != 3 * (k.width * k.height) as usize
+            {
+                return Err(TrainError::Dataset(format!(
+                    "held-out view `{}`: image has {} values, its {}x{} camera needs {}",
+                    view.name,
+                    view.image.len(),
+                    k.width,
+                    k.height,
+                    3 * k.width as usize * k.height as usize
+                )));
+            }
+            let e = encode_view(
+                &self.encoder,
+                self.config.variant,
+                self.config.normalize,
+                view,
+                deepest,
+            )?;
+            targets.push(e.target);
+            tally.advance(1, "encode held-out views");
+        }
+        let mut stats = Vec::with_capacity(style_ids.len());
+        for &st in &style_ids {
+            let img = styles.load_resized(st, self.config.style_size)?;
+            stats.push(encode_style(&self.encoder, &to_tensor(&img)).map_err(style_err)?);
+            tally.advance(1, "encode held-out styles");
+        }
+        tally.finish();
+        let crop = self.config.crop_side() as usize;
+        let at = |ids: &[usize], i: usize| ids.binary_search(&i).expect("drawn above");
+        self.eval = pairs
+            .iter()
+            .map(|&(v, st)| {
+                EvalSample::new(
+                    views[v].camera,
+                    &targets[at(&view_ids, v)],
+                    stats[at(&style_ids, st)].clone(),
+                    crop,
+                )
+            })
+            .collect();
+        Ok(self)
+    }
+
+    /// The mean loss over the fixed evaluation samples (see "Evaluation" in the module
+    /// documentation) with the full loss weights of the configuration; `None` without samples
+    /// (`eval_pairs = 0`).
+    pub fn evaluate_fixed(&self) -> Result<Option<FeatureEvaluation>, TrainError> {
+        if self.eval.is_empty() {
+            return Ok(None);
+        }
+        let bg = vec![0.0f32; self.config.feature_dim];
+        let setup = Stage3Setup {
+            lifter: &self.lifter,
+            decoder: &self.decoder,
+            encoder: &self.encoder,
+            feature_background: &bg,
+            weights: Stage3Weights {
+                train_decoder: false,
+                ..self.config.weights()
+            },
+            normalize: self.config.normalize,
+        };
+        let mut sum = [0.0f64; 4];
+        for e in &self.eval {
+            let sample = Stage3Sample {
+                camera: &e.camera,
+                feature_size: e.feature_size,
+                align_target: &e.target,
+                style: &e.style,
+                window: e.window,
+            };
+            let g = stage3_gradients(&self.scene, &setup, &sample)?;
+            for (acc, x) in sum
+                .iter_mut()
+                .zip([g.loss_align, g.loss_content, g.loss_style, g.loss])
+            {
+                *acc += x;
+            }
+        }
+        let n = self.eval.len() as f64;
+        Ok(Some(FeatureEvaluation {
+            step: self.step,
+            pairs: self.eval.len(),
+            loss_align: sum[0] / n,
+            loss_content: sum[1] / n,
+            loss_style: sum[2] / n,
+            loss: sum[3] / n,
+        }))
+    }
+
+    /// Runs [`FeatureTrainer::evaluate_fixed`], reports it and keeps it for the summary.
+    fn evaluate_and_report(&mut self, sink: &dyn Sink) -> Result<(), TrainError> {
+        if let Some(e) = self.evaluate_fixed()? {
+            sink.emit(Event::Evaluation {
+                stage: Stage::Features,
+                step: e.step,
+                metrics: e.metrics(),
+            });
+            self.evaluations.push(e);
+        }
+        Ok(())
     }
 
     /// Continues a run from a checkpoint written by [`FeatureTrainer::save_checkpoint`], with
@@ -1476,10 +1741,12 @@ impl FeatureTrainer {
             checkpoint_interval: self.config.checkpoint_interval,
             log_interval: self.config.log_interval,
         };
+        self.evaluations.clear();
         let run = drive(self, cadence, run)?;
         Ok(FeatureTrainSummary {
             run,
             running_losses: self.ema,
+            evaluations: std::mem::take(&mut self.evaluations),
         })
     }
 }
@@ -1509,6 +1776,21 @@ impl TrainingLoop for FeatureTrainer {
 
     fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
         FeatureTrainer::save_checkpoint(self, path)
+    }
+
+    fn start(&mut self, sink: &dyn Sink) -> Result<(), TrainError> {
+        if self.step == 0 && self.config.iterations > 0 {
+            self.evaluate_and_report(sink)?;
+        }
+        Ok(())
+    }
+
+    fn after_step(&mut self, _out_dir: Option<&Path>, sink: &dyn Sink) -> Result<(), TrainError> {
+        let (it, k) = (self.step, self.config.eval_interval);
+        if (k > 0 && it.is_multiple_of(k)) || it == self.config.iterations {
+            self.evaluate_and_report(sink)?;
+        }
+        Ok(())
     }
 
     fn finish(&mut self, out_dir: &Path) -> Result<Option<(&'static str, PathBuf)>, TrainError> {

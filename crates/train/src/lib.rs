@@ -122,7 +122,7 @@ pub use density::{DensifyConfig, DensifyReport};
 pub use driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 pub use error::TrainError;
 pub use event::{Event, Metric, Quiet, Sink, Stage};
-pub use features::{FeatureInputs, FeatureTrainConfig, FeatureTrainer};
+pub use features::{FeatureEvaluation, FeatureInputs, FeatureTrainConfig, FeatureTrainer};
 pub use geometry::{Evaluation, GeometryConfig, GeometryTrainer, StepReport, TrainSummary, View};
 pub use image_folder::ImageSet;
 pub use init::{gaussians_from_points, random_points_in_box, PointCloud};

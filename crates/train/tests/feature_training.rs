@@ -576,3 +576,82 @@ fn the_configuration_reads_from_toml_with_defaults_for_the_rest() {
     assert_eq!(FeatureTrainConfig::default().crop_side(), 32);
     assert!(toml::from_str::<FeatureTrainConfig>("variant = \"huge\"").is_err());
 }
+
+/// The fixed evaluation: reported before the first iteration, every `eval_interval` iterations
+/// and at the end; it changes nothing in training; drawn from held-out views and styles by
+/// `with_held_out`, which given the training views and styles draws the default samples; a run
+/// resumed halfway reports the straight run's later evaluations.
+#[test]
+fn evaluations_follow_the_schedule_and_leave_training_alone() {
+    let mut cfg = config(Variant::Fullres);
+    cfg.iterations = 5;
+    cfg.eval_pairs = 3;
+    cfg.eval_interval = 2;
+    cfg.align_warmup = 1;
+    let mut plain_cfg = cfg.clone();
+    plain_cfg.eval_pairs = 0;
+    let mut plain = FeatureTrainer::new(plain_cfg, inputs()).unwrap();
+    let none = plain.train(&Run::in_memory()).unwrap();
+    assert!(none.evaluations.is_empty());
+    assert!(plain.evaluate_fixed().unwrap().is_none());
+
+    let mut t = FeatureTrainer::new(cfg.clone(), inputs()).unwrap();
+    let s = t.train(&Run::in_memory()).unwrap();
+    let steps: Vec<u64> = s.evaluations.iter().map(|e| e.step).collect();
+    assert_eq!(steps, [0, 2, 4, 5]);
+    assert_eq!(bits(&t.scene().features), bits(&plain.scene().features));
+    assert_eq!(lifter_bits(&t), lifter_bits(&plain));
+    for e in &s.evaluations {
+        assert_eq!(e.pairs, 3);
+        assert!(e.loss_align > 0.0 && e.loss_content > 0.0 && e.loss_style > 0.0);
+        // The full loss weights, also at step 0 (before the warm-up's alignment-only step).
+        // Each sample's total is its f64 sum rounded once to f32 (relative error at most
+        // 2^-24, about 6e-8) and the terms are positive, so the mean keeps that bound.
+        let want =
+            e.loss_align + cfg.lambda_content * e.loss_content + cfg.lambda_style * e.loss_style;
+        assert!((e.loss - want).abs() <= 1e-7 * want, "{e:?}");
+    }
+    assert_ne!(s.evaluations[0].loss, s.evaluations[3].loss);
+
+    // Held-out samples given as the training views and styles are the default samples.
+    let (train_views, _) = views();
+    let same = FeatureTrainer::new(cfg.clone(), inputs())
+        .unwrap()
+        .with_held_out(&train_views, &styles(), &train::Quiet)
+        .unwrap();
+    let fresh = FeatureTrainer::new(cfg.clone(), inputs()).unwrap();
+    assert_eq!(
+        same.evaluate_fixed().unwrap(),
+        fresh.evaluate_fixed().unwrap()
+    );
+    assert_eq!(fresh.evaluate_fixed().unwrap(), Some(s.evaluations[0]));
+    // The held-out view (the fourth) gives other values.
+    let all = render_views(&geometry(), &sphere_cameras(4, 4.0, 32, 36.0), [0.0; 3]);
+    let held = FeatureTrainer::new(cfg.clone(), inputs())
+        .unwrap()
+        .with_held_out(&all[3..], &styles(), &train::Quiet)
+        .unwrap();
+    let h = held.evaluate_fixed().unwrap().unwrap();
+    assert_eq!(h.pairs, 3);
+    assert_ne!(h.loss_align, s.evaluations[0].loss_align);
+    let msg = FeatureTrainer::new(cfg.clone(), inputs())
+        .unwrap()
+        .with_held_out(&[], &styles(), &train::Quiet)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(msg.contains("held-out evaluation needs views"), "{msg}");
+
+    // Stopped after iteration 3 and resumed: the evaluations at 4 and 5 are the straight run's.
+    let dir = scratch_dir("feattrain", "eval-resume");
+    let mut first_cfg = cfg.clone();
+    first_cfg.iterations = 3;
+    let mut first = FeatureTrainer::new(first_cfg, inputs()).unwrap();
+    first.train(&Run::in_memory()).unwrap();
+    let ck = dir.join("ck.safetensors");
+    first.save_checkpoint(&ck).unwrap();
+    let mut resumed = FeatureTrainer::resume(&ck, cfg, inputs()).unwrap();
+    let r = resumed.train(&Run::in_memory()).unwrap();
+    assert_eq!(r.evaluations, s.evaluations[2..]);
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -90,6 +90,9 @@ pub use backward::{
 pub use error::RasterError;
 pub use forward::{rasterize, rasterize_binned, rasterize_binned_with, Rasterized, Splats};
 pub use kernels::{Isa, Kernel};
-pub use render::{render, render_backward, Channels, Render, RenderOptions, SceneGrads};
+pub use render::{
+    render, render_backward, render_window, Channels, PixelWindow, Render, RenderOptions,
+    SceneGrads,
+};
 pub use stats::{ndc_grad_norms, screen_radii, DensificationStats};
 pub use tiles::{tile_grid, tile_rect, TileBins, TileRect};

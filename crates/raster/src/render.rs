@@ -93,9 +93,75 @@ impl<T: Real> RenderOptions<T> {
     }
 }
 
+/// A rectangle of a camera's image, in pixels: columns `x .. x + width`, rows `y .. y + height`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PixelWindow {
+    /// First column.
+    pub x: u32,
+    /// First row.
+    pub y: u32,
+    /// Columns.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+}
+
+impl PixelWindow {
+    /// The whole image of `camera`.
+    pub fn full(camera: &Camera) -> PixelWindow {
+        PixelWindow {
+            x: 0,
+            y: 0,
+            width: camera.intrinsics.width,
+            height: camera.intrinsics.height,
+        }
+    }
+
+    /// Whether the window is the whole image of `camera`.
+    pub fn is_full(&self, camera: &Camera) -> bool {
+        *self == PixelWindow::full(camera)
+    }
+
+    /// `Ok` when the window has pixels and lies inside the image of `camera`.
+    fn check(&self, camera: &Camera) -> Result<(), RasterError> {
+        let k = &camera.intrinsics;
+        let inside = self.width > 0
+            && self.height > 0
+            && self.x as u64 + self.width as u64 <= k.width as u64
+            && self.y as u64 + self.height as u64 <= k.height as u64;
+        if inside {
+            Ok(())
+        } else {
+            Err(scene_err(format!(
+                "window {}x{} at ({}, {}) does not fit the camera's {}x{} image",
+                self.width, self.height, self.x, self.y, k.width, k.height
+            )))
+        }
+    }
+
+    /// The 2D means in the window's pixel coordinates: borrowed for the whole image, shifted by
+    /// `(-x, -y)` otherwise.
+    fn means2d<'a, T: Real>(&self, camera: &Camera, means2d: &'a [[T; 2]]) -> Cow<'a, [[T; 2]]> {
+        if self.is_full(camera) {
+            return Cow::Borrowed(means2d);
+        }
+        let (ox, oy) = (T::lit(self.x as f64), T::lit(self.y as f64));
+        Cow::Owned(
+            means2d
+                .par_iter()
+                .with_min_len(MIN_CHUNK)
+                .map(|m| [m[0] - ox, m[1] - oy])
+                .collect(),
+        )
+    }
+}
+
 /// A rendered view and what its backward pass needs.
 #[derive(Clone, Debug)]
 pub struct Render<T> {
+    /// The part of the camera's image rendered (the whole image for [`render`]); the raster
+    /// images are `window.width x window.height`.
+    pub window: PixelWindow,
     /// The projected Gaussians (radii `[0, 0]` for culled ones).
     pub projected: Projected<T>,
     /// `sigmoid(opacity_logits)`.
@@ -213,6 +279,21 @@ pub fn render<T: Real>(
     scene: &FeatureGaussians<T>,
     opts: &RenderOptions<T>,
 ) -> Result<Render<T>, RasterError> {
+    render_window(camera, scene, opts, PixelWindow::full(camera))
+}
+
+/// Renders the part `window` of the image of `scene` seen from `camera`: the Gaussians are
+/// projected (and culled) for the whole camera, as [`render`] does, and only the window's pixels
+/// are rasterized, with the 2D means moved into the window's pixel coordinates. Each pixel
+/// blends the same Gaussians in the same order as in the whole image; its value equals the
+/// whole image's up to the rounding of that move (bit for bit for the whole image).
+pub fn render_window<T: Real>(
+    camera: &Camera,
+    scene: &FeatureGaussians<T>,
+    opts: &RenderOptions<T>,
+    window: PixelWindow,
+) -> Result<Render<T>, RasterError> {
+    window.check(camera)?;
     let d = validate(scene, opts)?;
     let projected = project(
         camera,
@@ -237,8 +318,9 @@ pub fn render<T: Real>(
         )
     });
     let rows = channel_rows(opts.channels, scene, colors.as_deref().unwrap_or(&[]));
+    let means2d = window.means2d(camera, &projected.means2d);
     let splats = Splats {
-        means2d: &projected.means2d,
+        means2d: &means2d,
         conics: &projected.conics,
         depths: &projected.depths,
         radii: &projected.radii,
@@ -246,10 +328,11 @@ pub fn render<T: Real>(
         channels: &rows,
         channel_count: d,
     };
-    let k = &camera.intrinsics;
-    let raster = rasterize(&splats, k.width, k.height, &opts.background)?;
+    let raster = rasterize(&splats, window.width, window.height, &opts.background)?;
     drop(rows);
+    drop(means2d);
     Ok(Render {
+        window,
         projected,
         opacities,
         colors,
@@ -258,8 +341,8 @@ pub fn render<T: Real>(
 }
 
 /// Gradients of the loss `sum v_image image + sum v_alpha alpha + sum v_depth depth` (the images
-/// of `render`, from the same camera, scene and options) with respect to the scene parameters
-/// and the background. `depth` is the accumulated depth `sum_i w_i z_i`; see
+/// of `render`, from the same camera, scene and options, [`render`] or [`render_window`]; the
+/// cotangents cover its window) with respect to the scene parameters and the background. `depth` is the accumulated depth `sum_i w_i z_i`; see
 /// [`crate::fold_normalized_depth_cotangent`] for a cotangent on the normalised depth.
 pub fn render_backward<T: Real>(
     camera: &Camera,
@@ -271,6 +354,7 @@ pub fn render_backward<T: Real>(
     v_depth: Option<&[T]>,
 ) -> Result<SceneGrads<T>, RasterError> {
     let d = validate(scene, opts)?;
+    render.window.check(camera)?;
     let n = scene.len();
     check_len("render.opacities", render.opacities.len(), n)?;
     check_len("render.projected", render.projected.means2d.len(), n)?;
@@ -288,8 +372,10 @@ pub fn render_backward<T: Real>(
         render.colors.as_deref().unwrap_or(&[]),
     );
     let p = &render.projected;
+    // The 2D means move by a constant into the window, so their gradient is unchanged.
+    let means2d = render.window.means2d(camera, &p.means2d);
     let splats = Splats {
-        means2d: &p.means2d,
+        means2d: &means2d,
         conics: &p.conics,
         depths: &p.depths,
         radii: &p.radii,
@@ -304,6 +390,7 @@ pub fn render_backward<T: Real>(
     };
     let g = rasterize_backward(&splats, &render.raster.bins, &opts.background, &cot)?;
     drop(rows);
+    drop(means2d);
 
     let opacity_logits = g
         .opacities

@@ -16,15 +16,15 @@
 //!    the content and style terms (the alignment warm-up, or the alignment-only ablation) use
 //!    the whole map instead: the window only bounds the cost of the decoder and encoder
 //!    passes, and a window drawn at random over-weights the object against the background;
-//! 2. rasterize the view's feature map `r` and cut the window out of it and out of the view's
-//!    cached alignment target;
+//! 2. rasterize the window of the view's feature map, `r` (only its pixels; the Gaussians are
+//!    projected for the whole map, [`raster::render_window`]), and cut the window out of the
+//!    view's cached alignment target;
 //! 3. evaluate the 3D stylization loss on the window ([`style::stage3_loss`]):
 //!    `L = align(l(r), target) + lambda_c content(phi_k(g(t)), t) + lambda_s style(phi(g(t)), S)`
 //!    with `t = std_s l(r) + mean_s`; with both lambdas zero (the alignment-only ablation) the
 //!    decoder and encoder are not run at all and the content and style terms are reported as 0;
-//! 4. scatter `dL/dr` of the window into an otherwise zero full-size cotangent and run the
-//!    rasterizer's backward pass ([`raster::render_backward`], feature channels) to per-Gaussian
-//!    feature gradients;
+//! 4. run the rasterizer's backward pass from `dL/dr` on the window
+//!    ([`raster::render_backward`], feature channels) to per-Gaussian feature gradients;
 //! 5. Adam steps the features and the lifter's weight and bias (nothing else changes).
 //!
 //! [`stage3_gradients`] is steps 2-4 for any precision, so the same code is checked against
@@ -84,7 +84,7 @@ use nets::{ConvGrad, Decoder, Encoder, Lifter, NetWeights};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
-use raster::{render, render_backward, Channels, RenderOptions};
+use raster::{render_backward, render_window, Channels, PixelWindow, RenderOptions};
 use serde::{Deserialize, Serialize};
 use style::{
     align_loss, align_loss_backward, channel_stats, encode_style, stage3_loss, ChannelStats,
@@ -424,10 +424,17 @@ pub fn stage3_gradients<T: Real>(
         .camera
         .resized(sample.feature_size.0, sample.feature_size.1);
     let opts = RenderOptions::new(Channels::Features, setup.feature_background.to_vec());
-    let fwd = render(&cam, scene, &opts)?;
+    // Only the window's pixels are rasterized (the Gaussians are projected for the whole map).
+    let pixels = PixelWindow {
+        x: win.x as u32,
+        y: win.y as u32,
+        width: win.width as u32,
+        height: win.height as u32,
+    };
+    let fwd = render_window(&cam, scene, &opts, pixels)?;
     let img = &fwd.raster.image;
     let r = Array4::from_shape_fn((1, f, win.height, win.width), |(_, ch, y, x)| {
-        img[((win.y + y) * fw + win.x + x) * f + ch]
+        img[(y * win.width + x) * f + ch]
     });
     let w = setup.weights;
     let (terms, grad_r, grad_lifter, grad_decoder) =
@@ -463,10 +470,10 @@ pub fn stage3_gradients<T: Real>(
                 out.grad_decoder,
             )
         };
-    // The window's cotangent inside an otherwise zero full-size (HWC) cotangent.
-    let mut v_image = vec![<T as Real>::lit(0.0); fh * fw * f];
+    // The window's cotangent, HWC.
+    let mut v_image = vec![<T as Real>::lit(0.0); win.height * win.width * f];
     for ((_, ch, y, x), &g) in grad_r.indexed_iter() {
-        v_image[((win.y + y) * fw + win.x + x) * f + ch] = g;
+        v_image[(y * win.width + x) * f + ch] = g;
     }
     let grads = render_backward(&cam, scene, &opts, &fwd, &v_image, None, None)?;
     Ok(Stage3Gradients {

@@ -88,6 +88,15 @@ fn random_case(
     (camera, s)
 }
 
+/// Colour (`mode` 0), features (1) or both (2).
+fn channels_of(mode: usize, sh_degree: usize) -> Channels {
+    match mode {
+        0 => Channels::Color { sh_degree },
+        1 => Channels::Features,
+        _ => Channels::ColorAndFeatures { sh_degree },
+    }
+}
+
 /// The rasterizer-level view of a render (geometry only), for the dense reference's margins.
 fn scene2d(r: &Render<f64>) -> Scene2d {
     Scene2d {
@@ -170,11 +179,7 @@ fn chain_case(
 ) -> Result<(), TestCaseError> {
     let mut rng = Rng(seed);
     let (camera, scene) = random_case(&mut rng, n, width, height, d, sh_degree);
-    let channels = match mode {
-        0 => Channels::Color { sh_degree },
-        1 => Channels::Features,
-        _ => Channels::ColorAndFeatures { sh_degree },
-    };
+    let channels = channels_of(mode, sh_degree);
     let dc = channels.count(d);
     let opts = RenderOptions::new(channels, rng.vec(dc, 0.0, 1.0));
     let base = render(&camera, &scene, &opts).unwrap();
@@ -374,11 +379,7 @@ proptest! {
     ) {
         let mut rng = Rng(seed);
         let (camera, scene) = random_case(&mut rng, n, width, height, d, sh_degree);
-        let channels = match mode {
-            0 => Channels::Color { sh_degree },
-            1 => Channels::Features,
-            _ => Channels::ColorAndFeatures { sh_degree },
-        };
+        let channels = channels_of(mode, sh_degree);
         let dc = channels.count(d);
         let opts = RenderOptions::new(channels, rng.vec(dc, 0.0, 1.0));
         let pick = |f: f64, n: u32| ((f * n as f64) as u32).min(n - 1);

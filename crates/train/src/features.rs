@@ -1301,17 +1301,11 @@ impl FeatureTrainer {
             return Ok(None);
         }
         let bg = vec![0.0f32; self.config.feature_dim];
-        let setup = Stage3Setup {
-            lifter: &self.lifter,
-            decoder: &self.decoder,
-            encoder: &self.encoder,
-            feature_background: &bg,
-            weights: Stage3Weights {
-                train_decoder: false,
-                ..self.config.weights()
-            },
-            normalize: self.config.normalize,
+        let weights = Stage3Weights {
+            train_decoder: false,
+            ..self.config.weights()
         };
+        let setup = self.stage3_setup(&bg, weights);
         let mut sum = [0.0f64; 4];
         for e in &self.eval {
             let sample = Stage3Sample {
@@ -1338,6 +1332,18 @@ impl FeatureTrainer {
             loss_style: sum[2] / n,
             loss: sum[3] / n,
         }))
+    }
+
+    /// The current networks with the feature background `bg` and the loss weights `weights`.
+    fn stage3_setup<'a>(&'a self, bg: &'a [f32], weights: Stage3Weights) -> Stage3Setup<'a, f32> {
+        Stage3Setup {
+            lifter: &self.lifter,
+            decoder: &self.decoder,
+            encoder: &self.encoder,
+            feature_background: bg,
+            weights,
+            normalize: self.config.normalize,
+        }
     }
 
     /// Runs [`FeatureTrainer::evaluate_fixed`], reports it and keeps it for the summary.
@@ -1546,14 +1552,7 @@ impl FeatureTrainer {
         })?;
         let (_, _, h, w) = v.target.dim();
         let bg = vec![0.0f32; self.config.feature_dim];
-        let setup = Stage3Setup {
-            lifter: &self.lifter,
-            decoder: &self.decoder,
-            encoder: &self.encoder,
-            feature_background: &bg,
-            weights: self.config.weights_at(self.step + 1),
-            normalize: self.config.normalize,
-        };
+        let setup = self.stage3_setup(&bg, self.config.weights_at(self.step + 1));
         let sample = Stage3Sample {
             camera: &v.camera,
             feature_size: (w as u32, h as u32),

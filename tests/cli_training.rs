@@ -818,6 +818,12 @@ fn fit_features_evaluates_held_out_views_and_paintings() {
         "{train:?}"
     );
     assert_ne!(held[0], train[0]);
+    let err = fails(&mut inputs.command(
+        &dir.join("no-held-out"),
+        3,
+        &["--no-eval", "--eval-style", painting.to_str().unwrap()],
+    ));
+    assert!(err.contains("for held-out views"), "{err}");
     let missing = dir.join("no-such-painting.jpg");
     let err = fails(&mut inputs.command(
         &dir.join("bad"),

@@ -26,7 +26,7 @@
 
 use std::path::PathBuf;
 
-use crate::error::{Context, Result};
+use crate::error::{Context, Error, Result};
 use gaussian::dataset::{Dataset, LoadOptions};
 use gaussian::ply::load_ply;
 use serde::{Deserialize, Serialize};
@@ -297,6 +297,18 @@ pub fn run(settings: &FitFeaturesSettings, control: &Control) -> Result<FitFeatu
     let cfg = effective_config(settings)?;
     let (inputs, held_out) = inputs(settings, &cfg, control)?;
     let (gaussians, train_views) = (inputs.geometry.len(), inputs.views.len());
+    if held_out.is_empty() && !settings.eval_styles.is_empty() {
+        return Err(Error::Message(format!(
+            "the evaluation paintings ({}) are for held-out views, and this run has none \
+             (the dataset's held-out split is off, or eval_pairs is 0)",
+            settings
+                .eval_styles
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        )));
+    }
     let eval_styles = if held_out.is_empty() {
         None
     } else if settings.eval_styles.is_empty() {

@@ -89,25 +89,51 @@ struct UploadQuery {
     name: Option<String>,
 }
 
+/// How far past the upload limit a request body is still read (and dropped) before the 413
+/// answer: a client that sends the whole body before reading the answer then gets it instead of
+/// a broken connection. Longer bodies are cut off.
+const UPLOAD_DRAIN_FACTOR: usize = 4;
+
+/// The request body, at most `limit` bytes: `Err` with the status and reason otherwise. A body
+/// over the limit is read on, and dropped, up to [`UPLOAD_DRAIN_FACTOR`] times the limit.
+async fn read_upload(body: axum::body::Body, limit: usize) -> Result<Vec<u8>, ApiError> {
+    use http_body_util::BodyExt;
+    let mut body = body;
+    let mut data = Vec::new();
+    let mut seen = 0usize;
+    while let Some(frame) = body.frame().await {
+        let frame = frame
+            .map_err(|e| ApiError(StatusCode::BAD_REQUEST, format!("reading the upload: {e}")))?;
+        let Ok(chunk) = frame.into_data() else {
+            continue;
+        };
+        seen = seen.saturating_add(chunk.len());
+        if seen <= limit {
+            data.extend_from_slice(&chunk);
+        } else if seen > limit.saturating_mul(UPLOAD_DRAIN_FACTOR) {
+            break;
+        }
+    }
+    if seen > limit {
+        return Err(ApiError(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            format!(
+                "the upload is larger than {} MiB, the upload limit",
+                limit >> 20
+            ),
+        ));
+    }
+    Ok(data)
+}
+
 async fn upload(
     Shared(s): Shared<AppState>,
     Query(q): Query<UploadQuery>,
-    data: Result<Bytes, axum::extract::rejection::BytesRejection>,
+    body: axum::body::Body,
 ) -> Response {
-    let data = match data {
+    let data = match read_upload(body, s.config.max_upload_bytes).await {
         Ok(d) => d,
-        Err(e) => {
-            let status = e.status();
-            let text = if status == StatusCode::PAYLOAD_TOO_LARGE {
-                format!(
-                    "the upload is larger than {} MiB, the upload limit",
-                    s.config.max_upload_bytes >> 20
-                )
-            } else {
-                e.body_text()
-            };
-            return ApiError(status, text).into_response();
-        }
+        Err(e) => return e.into_response(),
     };
     let name = q.name.unwrap_or_default();
     match blocking(move || s.upload(&name, &data)).await {
@@ -172,7 +198,6 @@ async fn not_found() -> Response {
 }
 
 fn router(state: AppState) -> Router {
-    let upload_limit = state.config.max_upload_bytes;
     Router::new()
         .route("/", get(index))
         .route("/assets/{name}", get(asset))
@@ -181,7 +206,8 @@ fn router(state: AppState) -> Router {
         .route("/api/styles/{id}/thumbnail.png", get(thumbnail))
         .route(
             "/api/styles",
-            post(upload).layer(DefaultBodyLimit::max(upload_limit)),
+            // The upload reads its own body (`read_upload`), with the limit.
+            post(upload).layer(DefaultBodyLimit::disable()),
         )
         .route("/api/stylize", post(stylize))
         .route("/api/bake", post(bake))

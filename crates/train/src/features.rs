@@ -1002,16 +1002,7 @@ impl FeatureTrainer {
             return Err(TrainError::Dataset("no training views".into()));
         }
         for v in &views {
-            let k = v.camera.intrinsics;
-            let (w, h) = (k.width as usize, k.height as usize);
-            if w == 0 || h == 0 || v.image.len() != w * h * 3 {
-                return Err(TrainError::Dataset(format!(
-                    "view `{}`: image has {} values, its {w}x{h} camera needs {}",
-                    v.name,
-                    v.image.len(),
-                    w * h * 3
-                )));
-            }
+            v.check()?;
         }
         let res = config.variant.resolution();
         let encoder = encoder.with_resolution(res);
@@ -1246,20 +1237,10 @@ impl FeatureTrainer {
         let mut targets = Vec::with_capacity(view_ids.len());
         for &v in &view_ids {
             let view = &views[v];
-            let k = view.camera.intrinsics;
-            if k.width == 0
-                || k.height == 0
-                || view.image.len() != 3 * (k.width * k.height) as usize
-            {
-                return Err(TrainError::Dataset(format!(
-                    "held-out view `{}`: image has {} values, its {}x{} camera needs {}",
-                    view.name,
-                    view.image.len(),
-                    k.width,
-                    k.height,
-                    3 * k.width as usize * k.height as usize
-                )));
-            }
+            view.check().map_err(|e| match e {
+                TrainError::Dataset(m) => TrainError::Dataset(format!("held-out {m}")),
+                e => e,
+            })?;
             let e = encode_view(
                 &self.encoder,
                 self.config.variant,

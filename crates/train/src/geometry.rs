@@ -207,7 +207,9 @@ impl View {
         ImageShape::new(k.width as usize, k.height as usize, 3)
     }
 
-    fn check(&self) -> Result<(), TrainError> {
+    /// Refuses an image whose length is not the camera's `width x height x 3` (or an empty
+    /// camera), naming the view.
+    pub(crate) fn check(&self) -> Result<(), TrainError> {
         let s = self.shape();
         if s.is_empty() || self.image.len() != s.len() {
             return Err(TrainError::Dataset(format!(

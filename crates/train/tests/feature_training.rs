@@ -641,6 +641,17 @@ fn evaluations_follow_the_schedule_and_leave_training_alone() {
         .unwrap()
         .to_string();
     assert!(msg.contains("held-out evaluation needs views"), "{msg}");
+    // A held-out image that does not fit its camera is refused, naming the view.
+    let mut short = all[3..].to_vec();
+    short[0].image.pop();
+    let msg = FeatureTrainer::new(cfg.clone(), inputs())
+        .unwrap()
+        .with_held_out(&short, &styles(), &train::Quiet)
+        .err()
+        .unwrap()
+        .to_string();
+    let name = format!("held-out view `{}`", short[0].name);
+    assert!(msg.contains(&name) && msg.contains("camera needs"), "{msg}");
 
     // Stopped after iteration 3 and resumed: the evaluations at 4 and 5 are the straight run's.
     let dir = scratch_dir("feattrain", "eval-resume");

@@ -91,8 +91,9 @@ fn unregister(tmp: &Path) {
     registry().in_flight.retain(|p| p != tmp);
 }
 
-/// [`write_atomic`] with the file's contents written by `write`.
-fn write_atomic_with(
+/// [`write_atomic`] with the file's contents written by `write` (for contents streamed in
+/// pieces rather than held whole in memory).
+pub fn write_atomic_with(
     path: &Path,
     write: impl FnOnce(&mut fs::File) -> io::Result<()>,
 ) -> io::Result<()> {

@@ -40,6 +40,6 @@ pub mod fs;
 pub mod hash;
 pub mod real;
 
-pub use fs::{remove_unfinished_writes, write_atomic};
+pub use fs::{remove_unfinished_writes, write_atomic, write_atomic_with};
 pub use hash::{fnv1a_hex, Fnv1a};
 pub use real::{exp_f32, Real};

@@ -560,7 +560,7 @@ impl FeatureSetup<'static> {
 }
 
 /// The start of every cache file.
-const ENCODING_MAGIC: &[u8; 8] = b"DSGSENC1";
+const ENCODING_MAGIC: &[u8; 8] = b"DSGSENC2";
 
 /// The encoding cache of one setup: the folder, the part of every key that does not depend on
 /// the image, and the files used so far.
@@ -646,7 +646,7 @@ impl<'a> EncodingCache<'a> {
             return;
         }
         let path = self.dir.join(name);
-        if let Err(e) = base::write_atomic(&path, &encode_entry(key, values)) {
+        if let Err(e) = base::write_atomic_with(&path, |f| write_entry(f, key, values)) {
             self.write_error = Some(format!("{}: {e}", path.display()));
         }
     }
@@ -668,33 +668,40 @@ impl<'a> EncodingCache<'a> {
 }
 
 /// A cache file: the magic, the key (16 hexadecimal digits), the number of values (`u64`), the
-/// values (`f32`), all little-endian, then the FNV-1a checksum of everything before it (16
-/// hexadecimal digits).
-fn encode_entry(key: &str, values: &[f32]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(8 + key.len() + 8 + 4 * values.len() + 16);
-    out.extend_from_slice(ENCODING_MAGIC);
-    out.extend_from_slice(key.as_bytes());
-    out.extend_from_slice(&(values.len() as u64).to_le_bytes());
-    for v in values {
-        out.extend_from_slice(&v.to_le_bytes());
+/// values (`f32`), all little-endian, then the CRC-32 (IEEE) checksum of everything before it
+/// (8 hexadecimal digits). A checksum that runs at memory speed, not a hash: the key already
+/// names the contents, the checksum only tells a damaged file.
+///
+/// Written to `out` in pieces, so that no second copy of the values is formed.
+fn write_entry(out: &mut impl std::io::Write, key: &str, values: &[f32]) -> std::io::Result<()> {
+    /// Values converted and written per piece (256 KiB).
+    const PIECE: usize = 1 << 16;
+    let mut crc = crc32fast::Hasher::new();
+    let mut put = |out: &mut dyn std::io::Write, bytes: &[u8]| {
+        crc.update(bytes);
+        out.write_all(bytes)
+    };
+    put(out, ENCODING_MAGIC)?;
+    put(out, key.as_bytes())?;
+    put(out, &(values.len() as u64).to_le_bytes())?;
+    let mut bytes = Vec::with_capacity(4 * PIECE.min(values.len()));
+    for piece in values.chunks(PIECE) {
+        bytes.clear();
+        bytes.extend(piece.iter().flat_map(|v| v.to_le_bytes()));
+        put(out, &bytes)?;
     }
-    let mut h = Fnv1a::new();
-    h.eat(&out);
-    out.extend_from_slice(h.hex().as_bytes());
-    out
+    out.write_all(format!("{:08x}", crc.finalize()).as_bytes())
 }
 
-/// The values of a cache file written by [`encode_entry`] for `key` with `len` values, or
+/// The values of a cache file written by [`write_entry`] for `key` with `len` values, or
 /// `None` if anything does not match.
 fn decode_entry(bytes: &[u8], key: &str, len: usize) -> Option<Vec<f32>> {
     let head = ENCODING_MAGIC.len() + key.len() + 8;
-    if bytes.len() != head + 4 * len + 16 {
+    if bytes.len() != head + 4 * len + 8 {
         return None;
     }
-    let (body, checksum) = bytes.split_at(bytes.len() - 16);
-    let mut h = Fnv1a::new();
-    h.eat(body);
-    if checksum != h.hex().as_bytes()
+    let (body, checksum) = bytes.split_at(bytes.len() - 8);
+    if checksum != format!("{:08x}", crc32fast::hash(body)).as_bytes()
         || &body[..8] != ENCODING_MAGIC
         || &body[8..8 + key.len()] != key.as_bytes()
         || body[8 + key.len()..head] != (len as u64).to_le_bytes()

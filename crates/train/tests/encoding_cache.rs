@@ -197,7 +197,7 @@ fn unsound_mismatched_and_stale_cache_files_are_never_trusted() {
     std::fs::write(&styles[0], &style0[..style0.len() - 9]).unwrap();
     // A file of another run.
     let stale = cache.join("view-0123456789abcdef.bin");
-    std::fs::write(&stale, b"DSGSENC1 of another image").unwrap();
+    std::fs::write(&stale, b"DSGSENC2 of another image").unwrap();
 
     let (t, events) = set_up(config(), inputs(), &cache);
     assert_eq!(train(t.unwrap()), reference);
@@ -262,5 +262,35 @@ fn a_style_image_that_does_not_decode_stops_the_setup_before_anything_is_encoded
         .any(|e| matches!(e, Event::Progress { status, .. } if status.starts_with("encode")));
     assert!(!encoded, "encoding started before the styles were decoded");
     assert!(!cache.exists(), "the failed setup wrote into its cache");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_cache_that_cannot_be_written_warns_once_and_trains_as_without_it() {
+    let dir = scratch_dir("enccache", "unwritable");
+    // The cache path is a file: nothing can be read from it or written under it.
+    let cache = dir.join("encodings");
+    std::fs::write(&cache, b"not a folder").unwrap();
+    let (t, events) = set_up(config(), inputs(), &cache);
+    assert_eq!(
+        train(t.unwrap()),
+        train(FeatureTrainer::new(config(), inputs()).unwrap())
+    );
+    assert_eq!(reused(&events), 0, "{}", summary(&events));
+    let warnings: Vec<&String> = events
+        .iter()
+        .filter_map(|e| match e {
+            Event::Warning(w) => Some(w),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(warnings.len(), 1, "{warnings:?}");
+    assert!(
+        warnings[0].starts_with("encodings not cached: ")
+            && warnings[0].contains(&*cache.to_string_lossy()),
+        "{}",
+        warnings[0]
+    );
+    assert_eq!(std::fs::read(&cache).unwrap(), b"not a folder");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -10,8 +10,8 @@
 //! timed alternately in the same process (best of `NETS_CONV_REPS`, default 3, runs each), and
 //! the ratio of the `gemm` time to the `matrixmultiply` time (`NETS_CONV_PASSES=fwd,dw` restricts
 //! it to some passes). With `NETS_CONV_TABLE=algorithms` it prints the same kind of table for the
-//! two 3x3 algorithms (`nets::conv::ConvAlgorithm`: direct implicit GEMM and Winograd F(4x4, 3x3)),
-//! forward and input gradient, with the default backend. Criterion then times
+//! two 3x3 algorithms (`nets::conv::ConvAlgorithm`: direct implicit GEMM and Winograd F(2x2, 3x3)),
+//! forward, input gradient and weight gradient, with the default backend. Criterion then times
 //! `conv3x3_256/{fwd,dx,dw}_{in}_{out}/{gemm,mm}`, `conv_{in}_{out}` (the forward with the default
 //! backend) and `sgemm_{in}_{out}`.
 
@@ -137,8 +137,8 @@ fn seconds<F: FnOnce()>(f: F) -> f64 {
     t.elapsed().as_secs_f64()
 }
 
-/// The table of both 3x3 algorithms (default backend) for the forward pass and the input
-/// gradient, alternating runs of the two.
+/// The table of both 3x3 algorithms (default backend) for the forward pass, the input gradient
+/// and the weight gradient, alternating runs of the two.
 fn algorithm_table(rng: &mut Lcg) {
     let reps: usize = std::env::var("NETS_CONV_REPS")
         .ok()
@@ -150,7 +150,7 @@ fn algorithm_table(rng: &mut Lcg) {
     for (ci, co) in shapes() {
         let case = Case::new(rng, ci, co);
         let flop = 2.0 * (co * ci * 9 * SIZE * SIZE) as f64 / 1e9;
-        for pass in ["fwd", "dx"] {
+        for pass in PASSES {
             let mut best = [f64::INFINITY; 2];
             for _ in 0..reps {
                 for (i, algorithm) in [ConvAlgorithm::Direct, ConvAlgorithm::Winograd]

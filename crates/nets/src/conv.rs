@@ -28,8 +28,9 @@
 //! (tile x C)` for each tap, tile by tile.
 //!
 //! For `f32` layers wide enough ([`ConvAlgorithm::default_for`]), the valid 3x3
-//! correlation of the forward pass and of the input gradient runs as Winograd F(2x2, 3x3) instead
-//! ([`crate::winograd`]: 16 multiply-adds for 36, bounded extra rounding); `f64`, the
+//! correlation of the forward pass and of the input gradient, and the weight gradient, run as
+//! Winograd F(2x2, 3x3) instead ([`crate::winograd`]: 16 multiply-adds for 36, bounded extra
+//! rounding; the weight gradient's final transform is computed in `f64`); `f64`, the
 //! precision of the oracle and gradient tests, always runs the implicit GEMM above, the reference.
 //! A forward pass that records a tape for a backward pass runs the reference too: its ReLU
 //! decisions become the masks of the gradient, which is discontinuous where they change, and the
@@ -47,7 +48,9 @@
 //! of the image height and batch size: a 256x256 fullres relu4_1 forward in `f32` uses at most
 //! 2 x 528 KiB, where a whole-image im2col of its 512-channel layer would take 2.4 GB. A weight
 //! gradient holds `DW_GROUPS` (4) accumulators of `9*O*C` elements (4 x 4.7 MB for 256->512 in
-//! `f32`) and, for 3x3, one copy of the output gradient widened by two columns. Besides scratch,
+//! `f32`) and, for 3x3, one copy of the output gradient widened by two columns (the Winograd
+//! weight gradient instead holds `16*O*C` elements per group and one job's scratch per running
+//! group, see [`crate::winograd`]). Besides scratch,
 //! a convolution allocates its output and one padded copy of its input (or output gradient).
 //!
 //! # Parallelism and determinism
@@ -84,8 +87,8 @@ const DW_GROUPS: usize = 4;
 pub enum ConvAlgorithm {
     /// The implicit GEMM of nine taps described above: the reference, in any precision.
     Direct,
-    /// Winograd F(4x4, 3x3) ([`crate::winograd`]): a quarter of the multiply-adds, a slightly
-    /// larger rounding error.
+    /// Winograd F(2x2, 3x3) ([`crate::winograd`]): 16 multiply-adds for 36, a slightly larger
+    /// rounding error in the forward pass and the input gradient.
     Winograd,
 }
 
@@ -120,8 +123,8 @@ impl ConvAlgorithm {
     }
 }
 
-/// Runs `f` with every 3x3 convolution it starts on this thread (forward and input gradient)
-/// computed by `algorithm`, whatever the precision and channel counts (restoring the previous
+/// Runs `f` with every 3x3 convolution it starts on this thread (forward, input gradient and
+/// weight gradient) computed by `algorithm`, whatever the precision and channel counts (restoring the previous
 /// choice afterwards, also on panic). Convolutions started on other threads keep their own.
 pub fn with_algorithm<R>(algorithm: ConvAlgorithm, f: impl FnOnce() -> R) -> R {
     struct Restore(Option<ConvAlgorithm>);
@@ -350,7 +353,11 @@ pub(crate) fn conv_valid_param_grads<T: Real>(
     let xs = xp.as_slice().expect("standard layout");
     let dys = dy.as_slice().expect("standard layout");
     let db = bias_grad(dys, n, o, h_out * w_out);
-    let dw = weight_grad_implicit(xs, [n, c, hp, wp], dys, o, k, backend);
+    let dw = if k == 3 && algorithm_for::<T>(c, o) == ConvAlgorithm::Winograd {
+        crate::winograd::conv3x3_valid_weight_grad(xs, [n, c, hp, wp], dys, o, DW_GROUPS, backend)
+    } else {
+        weight_grad_implicit(xs, [n, c, hp, wp], dys, o, k, backend)
+    };
     (Array4::from_shape_vec((o, c, k, k), dw).expect("shape"), db)
 }
 

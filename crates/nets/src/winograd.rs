@@ -1,6 +1,6 @@
-//! Winograd F(2x2, 3x3): the fast algorithm of the valid 3x3 cross-correlation, used by the
-//! convolution engine ([`crate::conv`]) for `f32` layers that are wide enough (see
-//! [`crate::conv::ConvAlgorithm`]).
+//! Winograd F(2x2, 3x3): the fast algorithm of the valid 3x3 cross-correlation and of its
+//! weight gradient, used by the convolution engine ([`crate::conv`]) for `f32` layers that are
+//! wide enough (see [`crate::conv::ConvAlgorithm`]).
 //!
 //! Convention (Lavin and Gray, "Fast Algorithms for Convolutional Neural Networks", 2016,
 //! interpolation points 0, 1, -1 and infinity): the 2x2 block of outputs
@@ -46,6 +46,13 @@
 //! extent depends only on the shapes, so results are bitwise identical for any thread count.
 //! Scratch memory is at most [`JOB_BUDGET_BYTES`] per running job (more only when 32 tiles
 //! exceed it), and the transformed kernels take `16 x O x C` elements.
+//!
+//! # Weight gradient
+//! The adjoint of the same algebra ([`conv3x3_valid_weight_grad`]): the transformed output
+//! gradients `A dY Aᵀ` of a job's tiles times its transformed input patches, summed over the
+//! tiles into `dU` (`16 x O x C`), then `dw = Gᵀ dU G`. The jobs are the forward pass's, run in
+//! fixed contiguous groups, each with its own `dU`, summed in group order, so the result is
+//! bitwise identical for any thread count as well.
 
 use std::sync::Mutex;
 
@@ -232,6 +239,223 @@ pub(crate) fn conv3x3_valid<T: Real>(
         }
     });
     out
+}
+
+/// The weight gradient `[O, C, 3, 3]` (flat) of [`conv3x3_valid`] given its padded input
+/// `xs [N,C,Hp,Wp]` and the output gradient `dys [N,O,Hp-2,Wp-2]` (flat, standard layout): the
+/// same result as the direct implicit GEMM of [`crate::conv`] up to rounding.
+///
+/// Differentiating `Y = Aᵀ [U ⊙ V] A`: the gradient of the transformed kernel is
+/// `dU[e] (O x C) = sum over tiles of (A dY Aᵀ)[e] (O x tiles) * V[e]ᵀ (tiles x C)`, 16 products
+/// with the transformed input patches `V` of the forward pass, and `dw = Gᵀ dU G`, computed in
+/// `f64` and rounded once. Jobs are the forward pass's; they are split into `groups` fixed
+/// contiguous groups run in parallel, each accumulating its jobs in order into its own `dU`; the
+/// groups' sums are added in group order. Neither depends on the thread count, and every product
+/// has [`tiles_per_job`] columns (the spare ones zero), so results are bitwise identical for any
+/// thread count. Output positions past the image edge (partial tiles) have a zero gradient and
+/// input positions past it read as zero, so they add nothing.
+pub(crate) fn conv3x3_valid_weight_grad<T: Real>(
+    xs: &[T],
+    dims: [usize; 4],
+    dys: &[T],
+    o: usize,
+    groups: usize,
+    backend: GemmBackend,
+) -> Vec<T> {
+    let [n, c, hp, wp] = dims;
+    let (h_out, w_out) = (hp - 2, wp - 2);
+    let (th, tw) = (h_out.div_ceil(M), w_out.div_ceil(M));
+    let tiles = th * tw;
+    let per_job = tiles_per_job::<T>(c, o);
+    let jobs: Vec<(usize, usize, usize)> = (0..n)
+        .flat_map(|img| {
+            (0..tiles)
+                .step_by(per_job)
+                .map(move |t0| (img, t0, (t0 + per_job).min(tiles)))
+        })
+        .collect();
+    let groups = groups.clamp(1, jobs.len().max(1));
+    let plane_in = hp * wp;
+    let plane_out = h_out * w_out;
+    let arch = pulp::Arch::new();
+    let partials: Vec<Vec<T>> = (0..groups)
+        .into_par_iter()
+        .map(|g| {
+            let nt = per_job;
+            let mut du = vec![T::zero(); E * o * c];
+            let mut v = vec![T::zero(); E * c * nt];
+            let mut dm = vec![T::zero(); E * o * nt];
+            let mut rows = vec![T::zero(); 4 * A * (tw + 1)];
+            let (lo, hi) = (g * jobs.len() / groups, (g + 1) * jobs.len() / groups);
+            for &(img, t0, t1) in &jobs[lo..hi] {
+                let runs = runs(t0, t1, tw);
+                if t1 - t0 < nt {
+                    // Columns past the job's tiles: zero in both operands, so that they add
+                    // exactly nothing (not even a NaN from a stale value).
+                    for row in v.chunks_mut(nt).chain(dm.chunks_mut(nt)) {
+                        row[t1 - t0..].fill(T::zero());
+                    }
+                }
+                arch.dispatch(InputStage {
+                    x_img: &xs[img * c * plane_in..(img + 1) * c * plane_in],
+                    dims: [c, hp, wp],
+                    nt,
+                    runs: &runs,
+                    scratch: &mut rows,
+                    v: &mut v,
+                });
+                arch.dispatch(GradientStage {
+                    dy_img: &dys[img * o * plane_out..(img + 1) * o * plane_out],
+                    o,
+                    nt,
+                    runs: &runs,
+                    out_dims: [h_out, w_out],
+                    scratch: &mut rows,
+                    dm: &mut dm,
+                });
+                for e in 0..E {
+                    // SAFETY: dM[e] is O x nt and V[e] is C x nt, row-major inside their
+                    // buffers (V[e] read transposed as nt x C); dU[e] is O x C inside this
+                    // group's own `du`, which aliases neither.
+                    unsafe {
+                        matmul(
+                            backend,
+                            o,
+                            nt,
+                            c,
+                            (dm.as_ptr().add(e * o * nt), nt as isize, 1),
+                            (v.as_ptr().add(e * c * nt), 1, nt as isize),
+                            true,
+                            (du.as_mut_ptr().add(e * o * c), c as isize, 1),
+                        );
+                    }
+                }
+            }
+            du
+        })
+        .collect();
+    // dw[o][c] = Gᵀ dU[o][c] G, with dU summed over the groups in order.
+    let mut dw = vec![T::zero(); o * c * 9];
+    dw.par_chunks_mut(c * 9).enumerate().for_each(|(oc, row)| {
+        for (ci, cell) in row.chunks_mut(9).enumerate() {
+            let du = |e: usize| {
+                let idx = (e * o + oc) * c + ci;
+                let mut s = partials[0][idx];
+                for p in &partials[1..] {
+                    s += p[idx];
+                }
+                s.to_f64_exact()
+            };
+            let h: [f64; E] = std::array::from_fn(du);
+            // Gᵀ along the rows of dU (4x4 -> 3x4), then along its columns (3x4 -> 3x3).
+            let rows: [[f64; A]; 3] = std::array::from_fn(|i| {
+                std::array::from_fn(|j| kernel_1d_transposed([0, 1, 2, 3].map(|e| h[e * A + j]))[i])
+            });
+            for (i, r) in rows.iter().enumerate() {
+                let out = kernel_1d_transposed(*r);
+                for (j, &v) in out.iter().enumerate() {
+                    cell[i * 3 + j] = T::lit(v);
+                }
+            }
+        }
+    });
+    dw
+}
+
+/// `Gᵀ h` for one column `h` of a kernel gradient (4 values to 3), in `f64`: the adjoint of
+/// [`kernel_1d`].
+#[inline(always)]
+fn kernel_1d_transposed(h: [f64; A]) -> [f64; 3] {
+    [
+        h[0] + (h[1] + h[2]) / 2.0,
+        (h[1] - h[2]) / 2.0,
+        (h[1] + h[2]) / 2.0 + h[3],
+    ]
+}
+
+/// The output-gradient transform of one job, run with the instruction set `pulp` chose: for
+/// every output channel of image `dy_img` (`out_dims = [H, W]` planes) and every run of tiles,
+/// `A dY Aᵀ` of each tile's 2x2 gradient block (zero past the image edge) into `dm`
+/// (`16 x O x nt`).
+struct GradientStage<'a, T> {
+    dy_img: &'a [T],
+    o: usize,
+    nt: usize,
+    runs: &'a [Run],
+    out_dims: [usize; 2],
+    scratch: &'a mut [T],
+    dm: &'a mut [T],
+}
+
+impl<T: Real> pulp::WithSimd for GradientStage<'_, T> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let [h_out, w_out] = self.out_dims;
+        let (o, nt) = (self.o, self.nt);
+        for oc in 0..o {
+            let plane = &self.dy_img[oc * h_out * w_out..(oc + 1) * h_out * w_out];
+            for run in self.runs {
+                let len = run.len;
+                // The block's rows a = 0, 1 as left (even) and right (odd) columns.
+                let (d, rest) = self.scratch.split_at_mut(2 * M * len);
+                let p = &mut rest[..2 * A * len];
+                let x0 = run.tx0 * M;
+                for a in 0..M {
+                    let (left, right) = d[2 * a * len..(2 * a + 2) * len].split_at_mut(len);
+                    let r = run.ty * M + a;
+                    if r >= h_out {
+                        left.fill(T::zero());
+                        right.fill(T::zero());
+                        continue;
+                    }
+                    let row = &plane[r * w_out..(r + 1) * w_out];
+                    for k in 0..len {
+                        let x = x0 + 2 * k;
+                        left[k] = row[x];
+                        right[k] = row.get(x + 1).copied().unwrap_or(T::zero());
+                    }
+                }
+                // A dY (4x2), column by column: rows dY0, dY0 + dY1, dY0 - dY1, -dY1.
+                for x in 0..M {
+                    let (y0, y1) = (&d[x * len..(x + 1) * len], &d[(2 + x) * len..(3 + x) * len]);
+                    let q = &mut p[x * A * len..(x + 1) * A * len];
+                    let (q0, rest) = q.split_at_mut(len);
+                    let (q1, rest) = rest.split_at_mut(len);
+                    let (q2, q3) = rest.split_at_mut(len);
+                    for k in 0..len {
+                        q0[k] = y0[k];
+                        q1[k] = y0[k] + y1[k];
+                        q2[k] = y0[k] - y1[k];
+                        q3[k] = -y1[k];
+                    }
+                }
+                // Then (A dY) Aᵀ along the rows: columns P0, P0 + P1, P0 - P1, -P1.
+                for i in 0..A {
+                    let (p0, p1) = (
+                        &p[i * len..(i + 1) * len],
+                        &p[(A + i) * len..(A + i + 1) * len],
+                    );
+                    let at = |j: usize| ((i * A + j) * o + oc) * nt + run.off;
+                    let out = &mut self.dm[at(0)..at(0) + len];
+                    out.copy_from_slice(p0);
+                    let out = &mut self.dm[at(1)..at(1) + len];
+                    for k in 0..len {
+                        out[k] = p0[k] + p1[k];
+                    }
+                    let out = &mut self.dm[at(2)..at(2) + len];
+                    for k in 0..len {
+                        out[k] = p0[k] - p1[k];
+                    }
+                    let out = &mut self.dm[at(3)..at(3) + len];
+                    for k in 0..len {
+                        out[k] = -p1[k];
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// `Bᵀ d B` of the patches of one run of tiles of one channel `plane` (`hp x wp`), written as
@@ -504,6 +728,69 @@ mod tests {
             }
         }
         y
+    }
+
+    /// The direct weight gradient `[O, C, 3, 3]` of a valid correlation.
+    fn direct_weight_grad(
+        xs: &[f64],
+        [n, c, hp, wp]: [usize; 4],
+        dys: &[f64],
+        o: usize,
+    ) -> Vec<f64> {
+        let (h, w) = (hp - 2, wp - 2);
+        let mut dw = vec![0.0; o * c * 9];
+        for img in 0..n {
+            for oc in 0..o {
+                for ci in 0..c {
+                    for i in 0..3 {
+                        for j in 0..3 {
+                            let mut s = 0.0;
+                            for r in 0..h {
+                                for x in 0..w {
+                                    s += dys[((img * o + oc) * h + r) * w + x]
+                                        * xs[((img * c + ci) * hp + r + i) * wp + x + j];
+                                }
+                            }
+                            dw[((oc * c + ci) * 3 + i) * 3 + j] += s;
+                        }
+                    }
+                }
+            }
+        }
+        dw
+    }
+
+    /// The weight gradient's algebra, as for the forward pass: in `f64` it returns the direct
+    /// sum to within the accumulated rounding, with partial edge tiles, several images and
+    /// group counts from one to more than the jobs (the groups change only the order of the
+    /// sums).
+    #[test]
+    fn winograd_weight_gradient_equals_the_direct_one_in_f64() {
+        for (n, c, o, hp, wp, seed) in [
+            (1, 3, 2, 7, 9, 1),
+            (2, 5, 4, 11, 6, 2),
+            (1, 8, 3, 13, 17, 3),
+        ] {
+            let xs = values(seed, n * c * hp * wp);
+            let dys = values(seed + 100, n * o * (hp - 2) * (wp - 2));
+            let want = direct_weight_grad(&xs, [n, c, hp, wp], &dys, o);
+            // Each weight's gradient sums one product per output pixel and image.
+            let scale = (n * (hp - 2) * (wp - 2)) as f64;
+            for groups in [1, 2, 7] {
+                let got = conv3x3_valid_weight_grad(
+                    &xs,
+                    [n, c, hp, wp],
+                    &dys,
+                    o,
+                    groups,
+                    GemmBackend::Gemm,
+                );
+                assert_eq!(got.len(), want.len());
+                for (g, w) in got.iter().zip(&want) {
+                    assert!((g - w).abs() <= 1e-13 * scale, "{g} vs {w}");
+                }
+            }
+        }
     }
 
     /// The algebra: in `f64` the transform returns the direct correlation to within the

@@ -75,7 +75,8 @@ fn check_multi_tile_convolution() {
 
 /// Winograd F(2x2, 3x3), forced in `f64`, on odd sizes (partial edge tiles) and enough channels
 /// that an image splits into several jobs, one of them starting inside a tile row: the forward
-/// pass (with bias and ReLU) equals the direct convolution, and the input gradient is its adjoint.
+/// pass (with bias and ReLU) equals the direct convolution, the input gradient is its adjoint,
+/// and so is the weight gradient (and it equals the direct implicit GEMM's).
 /// The transforms only add up to four terms per axis and the kernel transform is rounded once,
 /// so in `f64` an output carries a few more roundings of its partial sums than the direct
 /// sum's; 1e-13 of the largest output bounds that with a margin of about 70 at these sizes
@@ -103,6 +104,17 @@ fn winograd_matches_the_direct_convolution() {
                     &dy,
                 );
                 assert!((lin - dot(&dx, &x)).abs() <= 1e-11 * lin.abs().max(1.0));
+                let (dw, db) = conv3x3_reflect_backward_params(x.view(), dy.view());
+                let (dw_direct, db_direct) = with_algorithm(ConvAlgorithm::Direct, || {
+                    conv3x3_reflect_backward_params(x.view(), dy.view())
+                });
+                assert!((lin - dot(&dw, &w)).abs() <= 1e-11 * lin.abs().max(1.0));
+                let err = dsgs_testkit::max_rel_err(&to_f64(&dw), &to_f64(&dw_direct));
+                assert!(
+                    err <= 1e-13,
+                    "{backend:?}: winograd weight gradient error {err:.2e}"
+                );
+                assert_eq!(db, db_direct);
             })
         });
     }

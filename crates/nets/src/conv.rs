@@ -98,11 +98,12 @@ pub enum ConvAlgorithm {
 pub const WINOGRAD_MIN_CHANNELS: usize = 16;
 
 /// Smallest sum of the input and output channel counts for which [`ConvAlgorithm::Winograd`] is
-/// the default. Measured at 256x256 on the development machine (`NETS_CONV_TABLE=algorithms
-/// cargo bench -p dsgs-nets --bench conv`, see `docs/performance.md`): Winograd took 0.79 to 0.90
-/// of the direct time from 64->128 and 128->64 upwards, and down to 0.57 on the widest layers,
-/// but 1.03 to 1.19 at 64->64.
-pub const WINOGRAD_MIN_CHANNEL_SUM: usize = 192;
+/// the default, in the forward pass, the input gradient and the weight gradient. Measured at
+/// 256x256 on two threads of an otherwise idle machine (`NETS_CONV_TABLE=algorithms cargo bench
+/// -p dsgs-nets --bench conv`, see `docs/performance.md`): Winograd takes 0.5 to 0.7 of the direct
+/// time on every layer from 64->64 up, in all three passes (0.76 for the 64->64 weight gradient);
+/// on the layers with 3 channels on one side it is slower.
+pub const WINOGRAD_MIN_CHANNEL_SUM: usize = 128;
 
 thread_local! {
     static ALGORITHM: std::cell::Cell<Option<ConvAlgorithm>> = const { std::cell::Cell::new(None) };

@@ -50,7 +50,7 @@
 //! # Weight gradient
 //! The adjoint of the same algebra ([`conv3x3_valid_weight_grad`]): the transformed output
 //! gradients `A dY Aᵀ` of a job's tiles times its transformed input patches, summed over the
-//! tiles into `dU` (`16 x O x C`), then `dw = Gᵀ dU G`. The jobs are the forward pass's, run in
+//! tiles into `dU` (`16 x O x C`), then `dw = Gᵀ dU G`. The jobs are shorter runs of tiles than the forward pass's, run in
 //! fixed contiguous groups, each with its own `dU`, summed in group order, so the result is
 //! bitwise identical for any thread count as well.
 
@@ -75,11 +75,31 @@ const E: usize = A * A;
 /// enough that each of its 16 products is a wide GEMM.
 pub const JOB_BUDGET_BYTES: usize = 8 << 20;
 
+/// Upper bound on the scratch of one weight-gradient job (`V` and the transformed output
+/// gradients): smaller than [`JOB_BUDGET_BYTES`], because there the 16 products accumulate into
+/// one `O x C` block per position over the job's tiles, and shorter products whose operands stay
+/// in the core's own L2 cache ran faster. Measured at 256x256 (`NETS_CONV_TABLE=algorithms cargo
+/// bench -p dsgs-nets --bench conv`, two threads, Winograd over direct time): with 8 MiB the
+/// weight gradient took 0.58 to 0.70 of the direct time from 64->128 up but 0.86 at 128->128 and
+/// 1.33 at 64->64; with 2 MiB 0.56 to 0.63, and 0.76 at 64->64; with 16 MiB or more, up to 1.07.
+const DW_JOB_BUDGET_BYTES: usize = 2 << 20;
+
+/// Fewest tiles of a weight-gradient job, whatever [`DW_JOB_BUDGET_BYTES`] allows: the length of
+/// its products' sums. With the 32 tiles that 2 MiB leave for 256->512 and 512->256, the weight
+/// gradient took 0.69 to 0.74 of the direct time, against 0.60 to 0.62 with 160 tiles (8 MiB).
+const DW_MIN_TILES: usize = 128;
+
 /// Tiles per job for `c` input and `o` output channels of `T`: as many as fit
 /// [`JOB_BUDGET_BYTES`], between 32 and 4096, a multiple of 32.
 pub fn tiles_per_job<T>(c: usize, o: usize) -> usize {
+    tiles_within::<T>(c, o, JOB_BUDGET_BYTES, 32)
+}
+
+/// Tiles per job for `c` input and `o` output channels of `T`: as many as fit `budget` bytes,
+/// between `min` and 4096, a multiple of 32 (`min` is one too).
+fn tiles_within<T>(c: usize, o: usize, budget: usize, min: usize) -> usize {
     let per_tile = E * (c + o) * std::mem::size_of::<T>();
-    (JOB_BUDGET_BYTES / per_tile.max(1)).clamp(32, 4096) / 32 * 32
+    (budget / per_tile.max(1)).clamp(min, 4096) / 32 * 32
 }
 
 /// `G g` for one column `g` of a kernel (3 values to 4), in `f64`.
@@ -248,10 +268,11 @@ pub(crate) fn conv3x3_valid<T: Real>(
 /// Differentiating `Y = Aᵀ [U ⊙ V] A`: the gradient of the transformed kernel is
 /// `dU[e] (O x C) = sum over tiles of (A dY Aᵀ)[e] (O x tiles) * V[e]ᵀ (tiles x C)`, 16 products
 /// with the transformed input patches `V` of the forward pass, and `dw = Gᵀ dU G`, computed in
-/// `f64` and rounded once. Jobs are the forward pass's; they are split into `groups` fixed
+/// `f64` and rounded once. Jobs are runs of tiles as in the forward pass, of at most
+/// [`DW_JOB_BUDGET_BYTES`] of scratch; they are split into `groups` fixed
 /// contiguous groups run in parallel, each accumulating its jobs in order into its own `dU`; the
 /// groups' sums are added in group order. Neither depends on the thread count, and every product
-/// has [`tiles_per_job`] columns (the spare ones zero), so results are bitwise identical for any
+/// has the same number of columns (the spare ones zero), so results are bitwise identical for any
 /// thread count. Output positions past the image edge (partial tiles) have a zero gradient and
 /// input positions past it read as zero, so they add nothing.
 pub(crate) fn conv3x3_valid_weight_grad<T: Real>(
@@ -266,7 +287,7 @@ pub(crate) fn conv3x3_valid_weight_grad<T: Real>(
     let (h_out, w_out) = (hp - 2, wp - 2);
     let (th, tw) = (h_out.div_ceil(M), w_out.div_ceil(M));
     let tiles = th * tw;
-    let per_job = tiles_per_job::<T>(c, o);
+    let per_job = tiles_within::<T>(c, o, DW_JOB_BUDGET_BYTES, DW_MIN_TILES);
     let jobs: Vec<(usize, usize, usize)> = (0..n)
         .flat_map(|img| {
             (0..tiles)

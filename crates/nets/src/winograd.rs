@@ -152,6 +152,18 @@ struct Run {
     off: usize,
 }
 
+/// The jobs of `n` images of `tiles` tiles each: `(image, first tile, end tile)`, at most
+/// `per_job` tiles each, in image and tile order.
+fn jobs(n: usize, tiles: usize, per_job: usize) -> Vec<(usize, usize, usize)> {
+    (0..n)
+        .flat_map(|img| {
+            (0..tiles)
+                .step_by(per_job)
+                .map(move |t0| (img, t0, (t0 + per_job).min(tiles)))
+        })
+        .collect()
+}
+
 /// The runs of tiles `t0..t1` of an image `tw` tiles wide.
 fn runs(t0: usize, t1: usize, tw: usize) -> Vec<Run> {
     let mut v = Vec::new();
@@ -187,13 +199,7 @@ pub(crate) fn conv3x3_valid<T: Real>(
     let (th, tw) = (h_out.div_ceil(M), w_out.div_ceil(M));
     let tiles = th * tw;
     let per_job = tiles_per_job::<T>(c, o);
-    let jobs: Vec<(usize, usize, usize)> = (0..n)
-        .flat_map(|img| {
-            (0..tiles)
-                .step_by(per_job)
-                .map(move |t0| (img, t0, (t0 + per_job).min(tiles)))
-        })
-        .collect();
+    let jobs = jobs(n, tiles, per_job);
     let u = transform_kernels(ws, o, c);
     let mut out = Array4::<T>::zeros((n, o, h_out, w_out));
     let out_ptr = SyncPtr(out.as_mut_ptr());
@@ -288,13 +294,7 @@ pub(crate) fn conv3x3_valid_weight_grad<T: Real>(
     let (th, tw) = (h_out.div_ceil(M), w_out.div_ceil(M));
     let tiles = th * tw;
     let per_job = tiles_within::<T>(c, o, DW_JOB_BUDGET_BYTES, DW_MIN_TILES);
-    let jobs: Vec<(usize, usize, usize)> = (0..n)
-        .flat_map(|img| {
-            (0..tiles)
-                .step_by(per_job)
-                .map(move |t0| (img, t0, (t0 + per_job).min(tiles)))
-        })
-        .collect();
+    let jobs = jobs(n, tiles, per_job);
     let groups = groups.clamp(1, jobs.len().max(1));
     let plane_in = hp * wp;
     let plane_out = h_out * w_out;

@@ -48,7 +48,7 @@
 //! exceed it), and the transformed kernels take `16 x O x C` elements.
 //!
 //! # Weight gradient
-//! The adjoint of the same algebra ([`conv3x3_valid_weight_grad`]): the transformed output
+//! The adjoint of the same algebra (`conv3x3_valid_weight_grad`): the transformed output
 //! gradients `A dY Aᵀ` of a job's tiles times its transformed input patches, summed over the
 //! tiles into `dU` (`16 x O x C`), then `dw = Gᵀ dU G`. The jobs are shorter runs of tiles than the forward pass's, run in
 //! fixed contiguous groups, each with its own `dU`, summed in group order, so the result is

@@ -290,7 +290,8 @@ pub fn encodes_whole(encoder: &Encoder<f32>, hw: (usize, usize), tile_budget: u6
 ///
 /// The images are encoded whole when the encoder's working memory fits `tile_budget`
 /// ([`encodes_whole`]), else each level tile by tile (`Encoder::forward_region`, the same
-/// features bit for bit), summing the same per-position terms in another order.
+/// features bit for bit), summing the same per-position terms in the same order per row
+/// (`LevelSum`), so both give the same bits.
 pub fn perceptual_distance(
     encoder: &Encoder<f32>,
     a: &RgbImage,
@@ -349,10 +350,13 @@ pub fn perceptual_distance(
     Ok((!levels.is_empty()).then(|| levels.iter().sum::<f64>() / levels.len() as f64))
 }
 
-/// The perceptual distance's sum over the valid positions of one level.
+/// The perceptual distance's sum over the valid positions of one level: one sum per level row,
+/// each taking its positions in ascending column order, then the rows in order. Tiles of
+/// [`nets::tiled::grid`] come band by band, left to right, so a row's positions arrive in the
+/// same order whether the level is encoded whole or tile by tile, and both give the same bits.
 #[derive(Default)]
 struct LevelSum {
-    sum: f64,
+    rows: Vec<f64>,
     n: usize,
 }
 
@@ -368,6 +372,9 @@ impl LevelSum {
         at: (usize, usize),
     ) {
         let (_, c, th, tw) = a.dim();
+        if self.rows.len() < at.0 + th {
+            self.rows.resize(at.0 + th, 0.0);
+        }
         for y in 0..th {
             for x in 0..tw {
                 if !valid[(at.0 + y) * wl + at.1 + x] {
@@ -383,7 +390,7 @@ impl LevelSum {
                     .sum::<f64>()
                     .sqrt()
                     + 1e-10;
-                self.sum += (0..c)
+                self.rows[at.0 + y] += (0..c)
                     .map(|k| (a[[0, k, y, x]] as f64 / na - b[[0, k, y, x]] as f64 / nb).powi(2))
                     .sum::<f64>();
                 self.n += 1;
@@ -393,7 +400,7 @@ impl LevelSum {
 
     /// The mean over the positions added, `None` when there were none.
     fn mean(&self) -> Option<f64> {
-        (self.n > 0).then(|| self.sum / self.n as f64)
+        (self.n > 0).then(|| self.rows.iter().sum::<f64>() / self.n as f64)
     }
 }
 

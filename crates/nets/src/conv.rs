@@ -125,8 +125,9 @@ impl ConvAlgorithm {
 }
 
 /// Runs `f` with every 3x3 convolution it starts on this thread (forward, input gradient and
-/// weight gradient) computed by `algorithm`, whatever the precision and channel counts (restoring the previous
-/// choice afterwards, also on panic). Convolutions started on other threads keep their own.
+/// weight gradient) computed by `algorithm`, whatever the precision and channel counts
+/// (restoring the previous choice afterwards, also on panic). Convolutions started on other
+/// threads keep their own.
 pub fn with_algorithm<R>(algorithm: ConvAlgorithm, f: impl FnOnce() -> R) -> R {
     struct Restore(Option<ConvAlgorithm>);
     impl Drop for Restore {
@@ -378,6 +379,29 @@ fn bias_grad<T: Real>(dys: &[T], n: usize, o: usize, plane_out: usize) -> Array1
     Array1::from_vec(db)
 }
 
+/// Runs `jobs` split into `groups` fixed contiguous groups, the groups in parallel, `run` taking
+/// one group's jobs in order; returns the groups' results in group order. The split depends only
+/// on the job and group counts, never on the thread count.
+pub(crate) fn in_fixed_groups<J: Sync, R: Send>(
+    jobs: &[J],
+    groups: usize,
+    run: impl Fn(&[J]) -> R + Sync + Send,
+) -> Vec<R> {
+    (0..groups)
+        .into_par_iter()
+        .map(|g| run(&jobs[g * jobs.len() / groups..(g + 1) * jobs.len() / groups]))
+        .collect()
+}
+
+/// Element `idx` of the groups' partial sums ([`in_fixed_groups`]), added in group order.
+pub(crate) fn sum_in_order<T: Real>(partials: &[Vec<T>], idx: usize) -> T {
+    let mut s = partials[0][idx];
+    for p in &partials[1..] {
+        s += p[idx];
+    }
+    s
+}
+
 /// Weight gradient `[O, C, K, K]` (flat) of a valid `K x K` cross-correlation, by implicit GEMM:
 /// with `dY` widened to the padded width (`K-1` zero columns per row, `dyp`; `dY` itself for `K = 1`),
 /// tap `(i, j)` is `dW[:, :, i, j] += dyp_tile (O x np) * X_ij^T (np x C)`, where `X_ij` is the
@@ -416,39 +440,35 @@ fn weight_grad_implicit<T: Real>(
     let jobs = tiles(n, h_out, rows);
     let groups = DW_GROUPS.min(jobs.len());
     let taps = k * k;
-    let partials: Vec<Vec<T>> = (0..groups)
-        .into_par_iter()
-        .map(|g| {
-            let mut acc = vec![T::zero(); taps * o * c];
-            let (lo, hi) = (g * jobs.len() / groups, (g + 1) * jobs.len() / groups);
-            for &(img, r0, r1) in &jobs[lo..hi] {
-                let np = (r1 - r0) * wp - (k - 1);
-                let x_img = &xs[img * c * plane_in..(img + 1) * c * plane_in];
-                let dy_tile = &dyp[img * o * plane_dyp + r0 * wp..];
-                for i in 0..k {
-                    for j in 0..k {
-                        // SAFETY: `dy_tile` holds rows r0..r1 of all O channels of image `img`
-                        // (largest index (o-1)*plane_dyp + np - 1 < its length); the shifted
-                        // input reads stay inside the padded plane as shown in `conv_valid`;
-                        // `acc` is this group's own buffer, of O x C per tap.
-                        unsafe {
-                            matmul(
-                                backend,
-                                o,
-                                np,
-                                c,
-                                (dy_tile.as_ptr(), plane_dyp as isize, 1),
-                                (x_img.as_ptr().add((r0 + i) * wp + j), 1, plane_in as isize),
-                                true,
-                                (acc.as_mut_ptr().add((i * k + j) * o * c), c as isize, 1),
-                            );
-                        }
+    let partials: Vec<Vec<T>> = in_fixed_groups(&jobs, groups, |group| {
+        let mut acc = vec![T::zero(); taps * o * c];
+        for &(img, r0, r1) in group {
+            let np = (r1 - r0) * wp - (k - 1);
+            let x_img = &xs[img * c * plane_in..(img + 1) * c * plane_in];
+            let dy_tile = &dyp[img * o * plane_dyp + r0 * wp..];
+            for i in 0..k {
+                for j in 0..k {
+                    // SAFETY: `dy_tile` holds rows r0..r1 of all O channels of image `img`
+                    // (largest index (o-1)*plane_dyp + np - 1 < its length); the shifted
+                    // input reads stay inside the padded plane as shown in `conv_valid`;
+                    // `acc` is this group's own buffer, of O x C per tap.
+                    unsafe {
+                        matmul(
+                            backend,
+                            o,
+                            np,
+                            c,
+                            (dy_tile.as_ptr(), plane_dyp as isize, 1),
+                            (x_img.as_ptr().add((r0 + i) * wp + j), 1, plane_in as isize),
+                            true,
+                            (acc.as_mut_ptr().add((i * k + j) * o * c), c as isize, 1),
+                        );
                     }
                 }
             }
-            acc
-        })
-        .collect();
+        }
+        acc
+    });
     // dw[o][c][tap] = sum over groups, in order, of partial[tap][o][c].
     let mut dw = vec![T::zero(); o * c * taps];
     dw.par_chunks_mut(c * taps)
@@ -456,12 +476,7 @@ fn weight_grad_implicit<T: Real>(
         .for_each(|(oc, row)| {
             for (ci, cell) in row.chunks_mut(taps).enumerate() {
                 for (tap, v) in cell.iter_mut().enumerate() {
-                    let idx = (tap * o + oc) * c + ci;
-                    let mut s = partials[0][idx];
-                    for p in &partials[1..] {
-                        s += p[idx];
-                    }
-                    *v = s;
+                    *v = sum_in_order(&partials, (tap * o + oc) * c + ci);
                 }
             }
         });

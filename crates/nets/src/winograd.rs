@@ -50,9 +50,9 @@
 //! # Weight gradient
 //! The adjoint of the same algebra (`conv3x3_valid_weight_grad`): the transformed output
 //! gradients `A dY Aᵀ` of a job's tiles times its transformed input patches, summed over the
-//! tiles into `dU` (`16 x O x C`), then `dw = Gᵀ dU G`. The jobs are shorter runs of tiles than the forward pass's, run in
-//! fixed contiguous groups, each with its own `dU`, summed in group order, so the result is
-//! bitwise identical for any thread count as well.
+//! tiles into `dU` (`16 x O x C`), then `dw = Gᵀ dU G`. The jobs are shorter runs of tiles than
+//! the forward pass's, run in fixed contiguous groups, each with its own `dU`, summed in group
+//! order, so the result is bitwise identical for any thread count as well.
 
 use std::sync::Mutex;
 
@@ -60,7 +60,7 @@ use base::Real;
 use ndarray::Array4;
 use rayon::prelude::*;
 
-use crate::conv::{bias_relu, SyncPtr};
+use crate::conv::{bias_relu, in_fixed_groups, sum_in_order, SyncPtr};
 use crate::matmul::{matmul, GemmBackend};
 
 /// Outputs per tile side (`m` of F(m x m, 3 x 3)).
@@ -299,74 +299,63 @@ pub(crate) fn conv3x3_valid_weight_grad<T: Real>(
     let plane_in = hp * wp;
     let plane_out = h_out * w_out;
     let arch = pulp::Arch::new();
-    let partials: Vec<Vec<T>> = (0..groups)
-        .into_par_iter()
-        .map(|g| {
-            let nt = per_job;
-            let mut du = vec![T::zero(); E * o * c];
-            let mut v = vec![T::zero(); E * c * nt];
-            let mut dm = vec![T::zero(); E * o * nt];
-            let mut rows = vec![T::zero(); 4 * A * (tw + 1)];
-            let (lo, hi) = (g * jobs.len() / groups, (g + 1) * jobs.len() / groups);
-            for &(img, t0, t1) in &jobs[lo..hi] {
-                let runs = runs(t0, t1, tw);
-                if t1 - t0 < nt {
-                    // Columns past the job's tiles: zero in both operands, so that they add
-                    // exactly nothing (not even a NaN from a stale value).
-                    for row in v.chunks_mut(nt).chain(dm.chunks_mut(nt)) {
-                        row[t1 - t0..].fill(T::zero());
-                    }
-                }
-                arch.dispatch(InputStage {
-                    x_img: &xs[img * c * plane_in..(img + 1) * c * plane_in],
-                    dims: [c, hp, wp],
-                    nt,
-                    runs: &runs,
-                    scratch: &mut rows,
-                    v: &mut v,
-                });
-                arch.dispatch(GradientStage {
-                    dy_img: &dys[img * o * plane_out..(img + 1) * o * plane_out],
-                    o,
-                    nt,
-                    runs: &runs,
-                    out_dims: [h_out, w_out],
-                    scratch: &mut rows,
-                    dm: &mut dm,
-                });
-                for e in 0..E {
-                    // SAFETY: dM[e] is O x nt and V[e] is C x nt, row-major inside their
-                    // buffers (V[e] read transposed as nt x C); dU[e] is O x C inside this
-                    // group's own `du`, which aliases neither.
-                    unsafe {
-                        matmul(
-                            backend,
-                            o,
-                            nt,
-                            c,
-                            (dm.as_ptr().add(e * o * nt), nt as isize, 1),
-                            (v.as_ptr().add(e * c * nt), 1, nt as isize),
-                            true,
-                            (du.as_mut_ptr().add(e * o * c), c as isize, 1),
-                        );
-                    }
+    let partials: Vec<Vec<T>> = in_fixed_groups(&jobs, groups, |group| {
+        let nt = per_job;
+        let mut du = vec![T::zero(); E * o * c];
+        let mut v = vec![T::zero(); E * c * nt];
+        let mut dm = vec![T::zero(); E * o * nt];
+        let mut rows = vec![T::zero(); 4 * A * (tw + 1)];
+        for &(img, t0, t1) in group {
+            let runs = runs(t0, t1, tw);
+            if t1 - t0 < nt {
+                // Columns past the job's tiles: zero in both operands, so that they add
+                // exactly nothing (not even a NaN from a stale value).
+                for row in v.chunks_mut(nt).chain(dm.chunks_mut(nt)) {
+                    row[t1 - t0..].fill(T::zero());
                 }
             }
-            du
-        })
-        .collect();
+            arch.dispatch(InputStage {
+                x_img: &xs[img * c * plane_in..(img + 1) * c * plane_in],
+                dims: [c, hp, wp],
+                nt,
+                runs: &runs,
+                scratch: &mut rows,
+                v: &mut v,
+            });
+            arch.dispatch(GradientStage {
+                dy_img: &dys[img * o * plane_out..(img + 1) * o * plane_out],
+                o,
+                nt,
+                runs: &runs,
+                out_dims: [h_out, w_out],
+                scratch: &mut rows,
+                dm: &mut dm,
+            });
+            for e in 0..E {
+                // SAFETY: dM[e] is O x nt and V[e] is C x nt, row-major inside their
+                // buffers (V[e] read transposed as nt x C); dU[e] is O x C inside this
+                // group's own `du`, which aliases neither.
+                unsafe {
+                    matmul(
+                        backend,
+                        o,
+                        nt,
+                        c,
+                        (dm.as_ptr().add(e * o * nt), nt as isize, 1),
+                        (v.as_ptr().add(e * c * nt), 1, nt as isize),
+                        true,
+                        (du.as_mut_ptr().add(e * o * c), c as isize, 1),
+                    );
+                }
+            }
+        }
+        du
+    });
     // dw[o][c] = Gᵀ dU[o][c] G, with dU summed over the groups in order.
     let mut dw = vec![T::zero(); o * c * 9];
     dw.par_chunks_mut(c * 9).enumerate().for_each(|(oc, row)| {
         for (ci, cell) in row.chunks_mut(9).enumerate() {
-            let du = |e: usize| {
-                let idx = (e * o + oc) * c + ci;
-                let mut s = partials[0][idx];
-                for p in &partials[1..] {
-                    s += p[idx];
-                }
-                s.to_f64_exact()
-            };
+            let du = |e: usize| sum_in_order(&partials, (e * o + oc) * c + ci).to_f64_exact();
             let h: [f64; E] = std::array::from_fn(du);
             // Gᵀ along the rows of dU (4x4 -> 3x4), then along its columns (3x4 -> 3x3).
             let rows: [[f64; A]; 3] = std::array::from_fn(|i| {

@@ -32,13 +32,11 @@
 //! Winograd F(2x2, 3x3) instead ([`crate::winograd`]: 16 multiply-adds for 36, bounded extra
 //! rounding; the weight gradient's final transform is computed in `f64`); `f64`, the
 //! precision of the oracle and gradient tests, always runs the implicit GEMM above, the reference.
-//! A forward pass that records a tape for a backward pass runs the reference too: its ReLU
-//! decisions become the masks of the gradient, which is discontinuous where they change, and the
-//! direct sum's smaller rounding flips fewer of the decisions that sit within rounding of zero
-//! (measured: one Winograd forward of the fullres relu4_1 encoder on the oracle fixture flipped
-//! one of 65,536 relu4_1 decisions, an element 1e-5 from zero, and moved a gradient by 1e-4 of
-//! its largest element). [`with_algorithm`] forces either for the convolutions started on the
-//! calling thread, taped or not.
+//! A forward pass that records a tape for a backward pass ([`conv3x3_reflect_exact_relu`]) makes
+//! its ReLU decisions, the masks of the gradient, as the exact sum would: under Winograd, the
+//! pre-activations within the algorithm's rounding-error bound of zero are recomputed by the
+//! direct sum in `f64` ("ReLU decisions" in [`crate::winograd`]). [`with_algorithm`] forces
+//! either algorithm for the convolutions started on the calling thread, taped or not.
 //!
 //! # Memory bound
 //! Forward (and input-gradient) tiles are whole output rows of one image, with an accumulator of
@@ -139,16 +137,6 @@ pub fn with_algorithm<R>(algorithm: ConvAlgorithm, f: impl FnOnce() -> R) -> R {
     f()
 }
 
-/// Runs `f` like [`with_algorithm`] unless a choice is already in force on this thread, which
-/// then stays.
-pub(crate) fn with_default_algorithm<R>(algorithm: ConvAlgorithm, f: impl FnOnce() -> R) -> R {
-    if ALGORITHM.with(|a| a.get()).is_some() {
-        f()
-    } else {
-        with_algorithm(algorithm, f)
-    }
-}
-
 /// The algorithm a 3x3 convolution of `c` to `o` channels started on this thread uses.
 pub fn algorithm_for<T: Real>(c: usize, o: usize) -> ConvAlgorithm {
     ALGORITHM
@@ -206,6 +194,7 @@ pub(crate) fn conv_valid<T: Real>(
     w: ArrayView4<T>,
     bias: Option<ArrayView1<T>>,
     relu: bool,
+    guard: bool,
     backend: GemmBackend,
 ) -> Array4<T> {
     let (n, c, hp, wp) = xp.dim();
@@ -238,6 +227,7 @@ pub(crate) fn conv_valid<T: Real>(
             o,
             bias.as_deref(),
             relu,
+            guard,
             backend,
         );
     }
@@ -582,12 +572,37 @@ pub fn conv3x3_reflect<T: Real>(
     b: ArrayView1<T>,
     relu: bool,
 ) -> Array4<T> {
+    conv3x3_reflect_with(x, w, b, relu, false)
+}
+
+/// [`conv3x3_reflect`] followed by a ReLU that decides as the exact sum would: under
+/// [`ConvAlgorithm::Winograd`], every pre-activation within the algorithm's rounding-error bound
+/// of zero is recomputed by the direct sum in `f64` (see "ReLU decisions" in
+/// [`crate::winograd`]). The direct algorithm decides on its own rounded sum. Forward passes
+/// that record a tape for a backward pass use it: their ReLU decisions are the gradient's masks.
+pub fn conv3x3_reflect_exact_relu<T: Real>(
+    x: ArrayView4<T>,
+    w: ArrayView4<T>,
+    b: ArrayView1<T>,
+) -> Array4<T> {
+    conv3x3_reflect_with(x, w, b, true, true)
+}
+
+/// [`conv3x3_reflect`], with the guard of [`conv3x3_reflect_exact_relu`] when `guard`.
+pub(crate) fn conv3x3_reflect_with<T: Real>(
+    x: ArrayView4<T>,
+    w: ArrayView4<T>,
+    b: ArrayView1<T>,
+    relu: bool,
+    guard: bool,
+) -> Array4<T> {
     check_3x3(&w);
     conv_valid(
         pad_reflect1(x).view(),
         w,
         Some(b),
         relu,
+        guard,
         backend_for(Pass::Forward),
     )
 }
@@ -604,6 +619,7 @@ pub fn conv3x3_reflect_backward_input<T: Real>(dy: ArrayView4<T>, w: ArrayView4<
         pad_zero(dy, 2).view(),
         flip_transpose(w).view(),
         None,
+        false,
         false,
         backend_for(Pass::InputGrad),
     );
@@ -628,7 +644,7 @@ pub fn conv1x1<T: Real>(
     relu: bool,
 ) -> Array4<T> {
     check_1x1(&w);
-    conv_valid(x, w, Some(b), relu, backend_for(Pass::Forward))
+    conv_valid(x, w, Some(b), relu, false, backend_for(Pass::Forward))
 }
 
 /// Input gradient of [`conv1x1`] (without ReLU).
@@ -638,6 +654,7 @@ pub fn conv1x1_backward_input<T: Real>(dy: ArrayView4<T>, w: ArrayView4<T>) -> A
         dy,
         flip_transpose(w).view(),
         None,
+        false,
         false,
         backend_for(Pass::InputGrad),
     )

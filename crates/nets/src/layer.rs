@@ -48,12 +48,14 @@ impl<T: Real> ConvLayer<T> {
         }
     }
 
-    /// Forward, optionally followed by ReLU.
-    pub(crate) fn forward(&self, x: ArrayView4<T>, relu: bool) -> Array4<T> {
+    /// Forward, optionally followed by ReLU; with `exact_relu`, a 3x3 layer's ReLU decides as
+    /// the exact sum would ([`conv::conv3x3_reflect_exact_relu`]).
+    pub(crate) fn forward(&self, x: ArrayView4<T>, relu: bool, exact_relu: bool) -> Array4<T> {
         if self.kernel() == 1 {
             conv::conv1x1(x, self.weight.view(), self.bias.view(), relu)
         } else {
-            conv::conv3x3_reflect(x, self.weight.view(), self.bias.view(), relu)
+            let (w, b) = (self.weight.view(), self.bias.view());
+            conv::conv3x3_reflect_with(x, w, b, relu, exact_relu)
         }
     }
 

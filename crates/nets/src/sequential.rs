@@ -5,7 +5,6 @@
 use base::Real;
 use ndarray::{Array4, ArrayView4};
 
-use crate::conv;
 use crate::error::NetError;
 use crate::layer::{ConvGrad, ConvLayer};
 use crate::mask::ReluMask;
@@ -110,15 +109,9 @@ pub(crate) fn forward<T: Real>(
         let view = cur.as_ref().map_or(x.view(), |a| a.view());
         match step {
             Step::Conv { layer, relu } => {
-                // A taped forward runs the reference algorithm (see `crate::conv`): its ReLU
-                // decisions are the masks of the backward pass.
-                let y = if tape {
-                    conv::with_default_algorithm(conv::ConvAlgorithm::Direct, || {
-                        layer.forward(view, *relu)
-                    })
-                } else {
-                    layer.forward(view, *relu)
-                };
+                // A taped forward's ReLU decisions are the masks of the backward pass: they are
+                // made as the exact sum would make them (see `crate::winograd`).
+                let y = layer.forward(view, *relu, tape);
                 if tape {
                     let input = keep_conv_inputs.then(|| view.to_owned());
                     let mask = relu.then(|| ReluMask::of_output(y.as_slice().expect("fresh")));

@@ -241,7 +241,7 @@ pub(crate) fn run_regions<T: Real>(
         let (y, covers) = match step {
             Step::Conv { layer, relu } => {
                 check_channels(layer, view.dim().1, what)?;
-                (layer.forward(view, *relu), rin)
+                (layer.forward(view, *relu, false), rin)
             }
             Step::Pool(r) => (
                 max_pool2x2(view, *r).0,

@@ -113,7 +113,9 @@ pub(crate) fn forward<T: Real>(
                 // made as the exact sum would make them (see `crate::winograd`).
                 let y = layer.forward(view, *relu, tape);
                 if tape {
-                    let input = keep_conv_inputs.then(|| view.to_owned());
+                    // The input is kept by moving the previous step's activation, not copying it.
+                    let input =
+                        keep_conv_inputs.then(|| cur.take().unwrap_or_else(|| x.to_owned()));
                     let mask = relu.then(|| ReluMask::of_output(y.as_slice().expect("fresh")));
                     saved.push(Saved::Conv { input, mask });
                 }

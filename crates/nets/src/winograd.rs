@@ -49,7 +49,10 @@
 //!   adds at most `4 u sum_e |M[e]| <= 4 u |U_o| |V_t|` to first order;
 //! - adding the bias and rounding never changes the sign of a sum.
 //!
-//! `C + 11.25` plus second-order terms is below `(C + 16)(1 + 2^-6)`, the factor used. A
+//! `C + 11.25` plus second-order terms is below `(C + 16)(1 + 2^-6)`, the factor used (divided
+//! by `sqrt(1 - γ_16C)`, because `|V_t|²` is summed in `f32`, as a vector loop, and may fall
+//! short by that relative amount; summed in `f64` as a scalar loop, it cost as much as the
+//! products saved). A
 //! pre-activation whose computed magnitude exceeds the bound has the sign of the exact one; the
 //! others are recomputed as the direct sum in `f64` (products of `f32` values are exact in
 //! `f64`, so only the `f64` additions round, about 2^29 times finer), with the bias, rounded once
@@ -172,7 +175,7 @@ fn transform_kernels<T: Real>(ws: &[T], o: usize, c: usize) -> Vec<T> {
 
 /// The scratch of one job: transformed inputs, transformed outputs, the rows of one run, and
 /// the guard's.
-type Scratch<T> = (Vec<T>, Vec<T>, Vec<T>, GuardScratch);
+type Scratch<T> = (Vec<T>, Vec<T>, Vec<T>, GuardScratch<T>);
 
 /// A run of tiles within one tile row: tile row `ty`, tile columns `tx0..tx0 + len`, the first
 /// of which is tile `off` of its job.
@@ -283,7 +286,16 @@ pub(crate) fn conv3x3_valid<T: Real>(
             v: &mut v,
         });
         if guard {
-            tile_norms(&v, nt, t1 - t0, &mut guard_scratch.norms);
+            let len = t1 - t0;
+            guard_scratch.sums.resize(len, T::zero());
+            arch.dispatch(NormStage {
+                v: &v,
+                nt,
+                sums: &mut guard_scratch.sums,
+            });
+            guard_scratch.norms.clear();
+            let norms = guard_scratch.sums.iter().map(|s| s.to_f64_exact().sqrt());
+            guard_scratch.norms.extend(norms);
             guard_scratch.suspects.clear();
         }
         for e in 0..E {
@@ -342,14 +354,21 @@ pub(crate) fn conv3x3_valid<T: Real>(
     out
 }
 
-/// `(C + 16) u (1 + 2^-6)`, with `u` the unit roundoff of `T`: times `|U_o| |V_t|` (the `f64`
-/// Euclidean norms of output channel `o`'s transformed kernels over all 16 positions and input
-/// channels, and of tile `t`'s transformed input patches), a bound on the rounding error of
-/// every pre-activation of output channel `o` in tile `t`. See "ReLU decisions" in the module
-/// documentation.
+/// `(C + 16) u (1 + 2^-6) / sqrt(1 - γ_16C)`, with `u` the unit roundoff of `T` and
+/// `γ_n = n u / (1 - n u)`: times `|U_o|` (the Euclidean norm of output channel `o`'s
+/// transformed kernels over all 16 positions and input channels, in `f64`) and `|V_t|~` (that of
+/// tile `t`'s transformed input patches, its square summed in `T`, which errs by at most
+/// `γ_16C`), a bound on the rounding error of every pre-activation of output channel `o` in tile
+/// `t`. See "ReLU decisions" in the module documentation.
 pub(crate) fn band_factor<T: Real>(c: usize) -> f64 {
     let unit_roundoff = T::epsilon().to_f64_exact() / 2.0;
-    (c as f64 + 16.0) * unit_roundoff * (1.0 + 1.0 / 64.0)
+    let n = (E * c) as f64 * unit_roundoff;
+    let gamma = n / (1.0 - n);
+    if !(0.0..1.0).contains(&gamma) {
+        // Too many channels for the bound: recompute every pre-activation.
+        return f64::INFINITY;
+    }
+    (c as f64 + 16.0) * unit_roundoff * (1.0 + 1.0 / 64.0) / (1.0 - gamma).sqrt()
 }
 
 /// The Euclidean norm of `values`, summed in `f64` in their order.
@@ -364,28 +383,38 @@ fn norm_f64<'a, T: Real + 'a>(values: impl IntoIterator<Item = &'a T>) -> f64 {
         .sqrt()
 }
 
-/// The guard's scratch of one job: the norms of its tiles' transformed patches, and the
-/// pre-activations to recompute, as `(output channel, row, column)`.
+/// The guard's scratch of one job: the norms of its tiles' transformed patches (and their
+/// squares), and the pre-activations to recompute, as `(output channel, row, column)`.
 #[derive(Default)]
-struct GuardScratch {
+struct GuardScratch<T> {
+    sums: Vec<T>,
     norms: Vec<f64>,
     suspects: Vec<(u32, u32, u32)>,
     patch: Vec<f64>,
 }
 
-/// The Euclidean norms `|V_t|` of the transformed patches of a job's first `len` tiles, over
-/// all 16 positions and input channels, from `v` (`16 x C x nt`), summed in `f64` row by row.
-fn tile_norms<T: Real>(v: &[T], nt: usize, len: usize, norms: &mut Vec<f64>) {
-    norms.clear();
-    norms.resize(len, 0.0);
-    for row in v.chunks_exact(nt) {
-        for (s, x) in norms.iter_mut().zip(&row[..len]) {
-            let x = x.to_f64_exact();
-            *s += x * x;
+/// The sums of squares of the transformed patches of a job's tiles (`|V_t|²`, over all 16
+/// positions and input channels), in `T`, row by row of `v` (`16 x C x nt`), run with the
+/// instruction set `pulp` chose (separate multiplications and additions, so the same bits with
+/// any of them).
+struct NormStage<'a, T> {
+    v: &'a [T],
+    nt: usize,
+    sums: &'a mut [T],
+}
+
+impl<T: Real> pulp::WithSimd for NormStage<'_, T> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _simd: S) {
+        let len = self.sums.len();
+        self.sums.fill(T::zero());
+        for row in self.v.chunks_exact(self.nt) {
+            for (s, &x) in self.sums.iter_mut().zip(&row[..len]) {
+                *s += x * x;
+            }
         }
-    }
-    for s in norms.iter_mut() {
-        *s = s.sqrt();
     }
 }
 
@@ -406,7 +435,7 @@ fn recompute<T: Real>(
     [c, hp, wp]: [usize; 3],
     w64: &[f64],
     bias: Option<&[T]>,
-    scratch: &mut GuardScratch,
+    scratch: &mut GuardScratch<T>,
     at: impl Fn(usize, usize, usize) -> *mut T,
 ) {
     let plane = hp * wp;

@@ -14,7 +14,10 @@
 //! order, the same skip and stop decisions) and keeps them in a per-thread list; a second sweep
 //! runs back to front over that list, accumulating `S` (a convex combination, hence stable).
 //! There is no `T_i = T_{i+1} / (1 - alpha_i)` recovery, which loses precision when
-//! `alpha_i` is close to 1.
+//! `alpha_i` is close to 1. The lane kernels' forward pass keeps, in its bins, which tile rows
+//! of which Gaussians it blended; given those bins and the same Gaussians, the first sweep
+//! evaluates only those rows, with the same operations, instead of walking every Gaussian of
+//! the tile again (the same values either way).
 //!
 //! Through `alpha = min(0.999, opacity exp(-sigma))`: when the clamp is active the gradient is zero
 //! (as `torch.clamp_max`); otherwise `dalpha/dopacity = exp(-sigma)`, `dalpha/dsigma = -alpha`,
@@ -33,7 +36,9 @@
 //! for the scalar loops its packed Gaussians (7 reals each), its row lists (8 bytes per Gaussian
 //! and row it reaches, see [`crate::rows`]) and one pixel's blend list (4 reals and 2 words per
 //! blended Gaussian); for the lane kernels every (Gaussian, tile row) it blends in (140 bytes
-//! each) and the tile's image cotangents (`256 D` reals).
+//! each) and the tile's image cotangents (`256 D` reals). The bins of a lane forward pass hold
+//! its packed Gaussians (40 bytes each) and its blended rows (8 bytes each, while they fit
+//! [`crate::tiles::ROW_LIST_BUDGET_BYTES`]; tiles beyond it are walked again).
 
 use gaussian::Real;
 use rayon::prelude::*;
@@ -185,9 +190,18 @@ pub fn rasterize_backward_with<T: Real>(
         (Some(token), Some(s), Some(b), Some(c)) => Some((token, s, b, c)),
         _ => None,
     };
-    let packed32 = lanes_in
-        .map(|(_, s, _, _)| lanes::pack(s, height))
-        .unwrap_or_default();
+    // The lane forward pass's packed Gaussians and blended rows, when it kept them in the bins
+    // for these same Gaussians (checked: bins passed along with other Gaussians are walked
+    // again, so the result never depends on what was kept).
+    let kept = match (lanes_in, bins.kept_lanes()) {
+        (Some((_, s, _, _)), Some(k)) if k.matches(s) => Some(k),
+        _ => None,
+    };
+    let packed_fresh = match (lanes_in, kept) {
+        (Some((_, s, _, _)), None) => lanes::pack(s, height),
+        _ => Vec::new(),
+    };
+    let packed32 = kept.map_or(&packed_fresh[..], |k| &k.packed[..]);
     let packed = if lanes_in.is_some() {
         Vec::new()
     } else {
@@ -230,7 +244,7 @@ pub fn rasterize_backward_with<T: Real>(
                     (Some((token, splats, background, cot)), Some((rec, bg_grad))) => {
                         token.run(lanes::BackwardTile {
                             splats,
-                            packed: &packed32,
+                            packed: packed32,
                             bins,
                             background,
                             cot,
@@ -238,6 +252,7 @@ pub fn rasterize_backward_with<T: Real>(
                             scratch: lane_scratch,
                             rec,
                             bg_grad,
+                            kept: kept.and_then(|k| k.blends[t].as_deref()),
                         })
                     }
                     _ => scalar::backward_tile(

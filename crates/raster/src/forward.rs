@@ -186,9 +186,11 @@ pub fn rasterize_binned_with<T: Real>(
     splats.validate()?;
     let (width, height) = (bins.width(), bins.height());
     bins.check(splats.len())?;
-    // Row lists kept from another pass may belong to other Gaussians: build them anew.
+    // Row lists and blended rows kept from another pass may belong to other Gaussians: build
+    // them anew.
     let mut bins = bins;
     bins.keep_rows(None);
+    bins.keep_lanes(None);
     let d = splats.channel_count;
     check_len("background", background.len(), d)?;
 
@@ -213,6 +215,9 @@ pub fn rasterize_binned_with<T: Real>(
     let mut t_count = vec![0u32; tiles * TILE_PIXELS];
     // The row lists each tile builds, kept for the backward pass while they fit the budget.
     let mut kept: Vec<RowLists> = (0..tiles).map(|_| RowLists::default()).collect();
+    // The rows each tile's lane kernel blends, kept for the backward pass while they fit the
+    // same budget (tile by tile: a tile without them is walked again).
+    let mut kept_blends: Vec<Option<Vec<lanes::RowRef>>> = (0..tiles).map(|_| None).collect();
     let kept_bytes = AtomicUsize::new(0);
     // Tiles in an order that keeps neighbours together (each tile's results do not depend on it).
     let mut work: Vec<_> = t_image
@@ -220,13 +225,14 @@ pub fn rasterize_binned_with<T: Real>(
         .zip(t_alpha.par_chunks_mut(TILE_PIXELS))
         .zip(t_depth.par_chunks_mut(TILE_PIXELS))
         .zip(t_count.par_chunks_mut(TILE_PIXELS))
-        .zip(kept.par_iter_mut())
+        .zip(kept.par_iter_mut().zip(kept_blends.par_iter_mut()))
         .enumerate()
         .collect();
     work.sort_unstable_by_key(|&(t, _)| bins.locality_key(t));
     work.into_par_iter().for_each_init(
         <(scalar::Scratch<T>, lanes::Scratch)>::default,
-        |(scalar_scratch, lane_scratch), (t, ((((image, alpha), depth), count), keep))| {
+        |(scalar_scratch, lane_scratch),
+         (t, ((((image, alpha), depth), count), (keep, keep_blends)))| {
             let mut out = TileOut {
                 image,
                 alpha,
@@ -235,7 +241,8 @@ pub fn rasterize_binned_with<T: Real>(
             };
             match (token, &lanes_in, out.as_f32()) {
                 (Some(token), Some((splats, background)), Some(out)) => {
-                    // The lane kernels build no row lists.
+                    // The lane kernels build no row lists; they keep the rows they blend.
+                    let mut rows = Vec::new();
                     token.run(lanes::ForwardTile {
                         splats,
                         packed: &packed32,
@@ -244,7 +251,14 @@ pub fn rasterize_binned_with<T: Real>(
                         t,
                         scratch: lane_scratch,
                         out,
+                        keep: Some(&mut rows),
                     });
+                    let bytes = std::mem::size_of_val(rows.as_slice());
+                    if kept_bytes.fetch_add(bytes, Ordering::Relaxed) + bytes
+                        <= ROW_LIST_BUDGET_BYTES
+                    {
+                        *keep_blends = Some(rows);
+                    }
                 }
                 _ => {
                     scalar::forward_tile(
@@ -271,6 +285,12 @@ pub fn rasterize_binned_with<T: Real>(
     // Keep the scalar loops' row lists only if all of them fit.
     let all_fit = lanes_in.is_none() && kept_bytes.into_inner() <= ROW_LIST_BUDGET_BYTES;
     bins.keep_rows(all_fit.then_some(kept));
+    if lanes_in.is_some() {
+        bins.keep_lanes(Some(lanes::Kept {
+            packed: packed32,
+            blends: kept_blends,
+        }));
+    }
 
     // Tile-major staging to row-major images.
     let w = width as usize;

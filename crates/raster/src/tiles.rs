@@ -19,6 +19,7 @@ use std::sync::Arc;
 
 use crate::blend::TILE_SIZE;
 use crate::error::{check_len, RasterError};
+use crate::kernels::lanes::Kept;
 use crate::rows::RowLists;
 
 /// The per-tile, depth-sorted lists of Gaussian indices for one image.
@@ -41,13 +42,16 @@ pub struct TileBins {
     gaussian_ids: Vec<u32>,
     /// The forward pass's row lists, one per tile.
     row_lists: Option<Arc<Vec<RowLists>>>,
+    /// What a lane forward pass kept: its packed Gaussians and the rows each tile blended.
+    lanes_kept: Option<Arc<Kept>>,
 }
 
 /// Parts of the depth order binned in parallel (any number gives the same bins).
 const BIN_PARTS: usize = 16;
 
-/// At most this many bytes of row lists are kept in the bins from the forward pass for the
-/// backward pass; beyond it the backward pass builds them again (same values either way).
+/// At most this many bytes of row lists (scalar loops), or of blended rows (lane kernels, tile
+/// by tile), are kept in the bins from the forward pass for the backward pass; beyond it the
+/// backward pass builds them again (same values either way).
 pub const ROW_LIST_BUDGET_BYTES: usize = 64 << 20;
 
 impl PartialEq for TileBins {
@@ -228,6 +232,7 @@ impl TileBins {
             offsets,
             gaussian_ids,
             row_lists: None,
+            lanes_kept: None,
         })
     }
 
@@ -309,8 +314,9 @@ impl TileBins {
         )
     }
 
-    /// Bytes held by the binning itself (not counting kept row lists, at most
-    /// [`ROW_LIST_BUDGET_BYTES`]).
+    /// Bytes held by the binning itself (not counting what a forward pass kept for the
+    /// backward pass: row lists or blended rows, at most [`ROW_LIST_BUDGET_BYTES`], and the
+    /// lane kernels' packed Gaussians, 40 bytes each).
     pub fn memory_bytes(&self) -> usize {
         self.offsets.len() * std::mem::size_of::<usize>()
             + self.gaussian_ids.len() * std::mem::size_of::<u32>()
@@ -324,6 +330,21 @@ impl TileBins {
     /// Keeps the forward pass's row lists (one per tile), or drops any when `None`.
     pub(crate) fn keep_rows(&mut self, rows: Option<Vec<RowLists>>) {
         self.row_lists = rows.filter(|r| r.len() == self.tile_count()).map(Arc::new);
+    }
+
+    /// What the lane forward pass kept, if it ran last on these bins.
+    pub(crate) fn kept_lanes(&self) -> Option<&Kept> {
+        self.lanes_kept.as_deref()
+    }
+
+    /// Keeps what a lane forward pass kept (its packed Gaussians and, per tile, the rows it
+    /// blended), or drops it when `None`.
+    pub(crate) fn keep_lanes(&mut self, kept: Option<Kept>) {
+        self.lanes_kept = kept
+            .filter(|k| {
+                k.packed.len() == self.gaussian_count && k.blends.len() == self.tile_count()
+            })
+            .map(Arc::new);
     }
 
     /// `Ok` when the bins were built for `count` Gaussians.

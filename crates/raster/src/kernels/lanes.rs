@@ -19,7 +19,11 @@
 //! Backward, a first front-to-back walk keeps, for every row a Gaussian blends in, its lanes,
 //! transmittances and falloffs; a second walk takes the Gaussians back to front (the rows of one
 //! Gaussian in ascending order), computing every pixel's gradient terms at once across the row
-//! and adding them to the Gaussian's record lane by lane in ascending pixel order.
+//! and adding them to the Gaussian's record lane by lane in ascending pixel order. The forward
+//! pass keeps the (Gaussian, row, lanes) it blends ([`RowRef`], in the bins); when the backward
+//! pass gets them for the same Gaussians, its first walk becomes a replay of those rows
+//! ([`replay`]): the same evaluations and transmittance products, skipping the Gaussians and
+//! rows that blend nowhere.
 //!
 //! Each lane performs exactly the operations of the scalar loops ([`super::scalar`]) in the
 //! same order, with the same constants and the same exponential ([`gaussian::exp_f32`]); a
@@ -306,6 +310,46 @@ struct RowBlend {
     falloff: [f32; LANES],
 }
 
+/// A (Gaussian, tile row) the forward pass blended: its position in the tile list, the row and
+/// the lanes that blend it, in the walk's order. Kept for the backward pass ([`Kept`]), which
+/// then replays these rows instead of walking the tile again.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct RowRef {
+    k: u32,
+    row: u16,
+    blend: u16,
+}
+
+/// What a lane forward pass keeps in its bins for the backward pass of the same Gaussians:
+/// every Gaussian packed, and per tile the rows it blended ([`RowRef`]), for the tiles whose
+/// lists fit the budget.
+#[derive(Debug, Default)]
+pub(crate) struct Kept {
+    pub packed: Vec<LaneSplat>,
+    pub blends: Vec<Option<Vec<RowRef>>>,
+}
+
+impl Kept {
+    /// Whether these were kept for `splats`: the same count and, bit for bit, the same means,
+    /// conics, opacities and depths, which are all that packing and the blend decisions read
+    /// (with the image height, fixed by the bins).
+    pub fn matches(&self, splats: &Splats<f32>) -> bool {
+        let same = |a: f32, b: f32| a.to_bits() == b.to_bits();
+        self.packed.len() == splats.len()
+            && self.packed.par_iter().enumerate().all(|(g, ls)| {
+                let ([mx, my], [a, b, c]) = (splats.means2d[g], splats.conics[g]);
+                let s = &ls.s;
+                same(s.mx, mx)
+                    && same(s.my, my)
+                    && same(s.a, a)
+                    && same(s.b, b)
+                    && same(s.c, c)
+                    && same(s.opacity, splats.opacities[g])
+                    && same(ls.depth, splats.depths[g])
+            })
+    }
+}
+
 /// Per-thread working memory.
 #[derive(Default)]
 pub(crate) struct Scratch {
@@ -364,7 +408,11 @@ fn evaluate_row<const EVERY_ROW: bool, I: LaneIsa>(
     if !EVERY_ROW && hit == 0 {
         return 0;
     }
-    *falloff = std::array::from_fn(|l| exp_f32(-sigma[l]));
+    // A plain loop: `array::from_fn` with this body is not always inlined, and out of line it
+    // runs without the instruction set's features.
+    for l in 0..LANES {
+        falloff[l] = exp_f32(-sigma[l]);
+    }
     (*alpha, _) = alphas(isa, s.opacity, falloff);
     hit & isa.le(&[ALPHA_MIN as f32; LANES], alpha)
 }
@@ -521,6 +569,55 @@ impl Walk {
     }
 }
 
+/// Replays the rows a forward pass kept for a tile (first pixel `(x0, y0)`, Gaussian ids `ids`):
+/// pushes each row's [`RowBlend`] onto `blended` and returns every pixel's final transmittance.
+///
+/// Each row is evaluated as [`evaluate_row`] evaluates it in the walk, and the transmittance of
+/// its blending lanes moves as [`advance`] moves it, in the walk's order; the lanes that do not
+/// blend keep theirs. So the transmittances, falloffs and lanes are the walk's, bit for bit,
+/// without evaluating the rows and Gaussians that blend nowhere.
+#[inline(always)]
+fn replay<I: LaneIsa>(
+    isa: I,
+    packed: &[LaneSplat],
+    ids: &[u32],
+    x0: u32,
+    y0: u32,
+    rows: &[RowRef],
+    blended: &mut Vec<RowBlend>,
+) -> [[f32; LANES]; LANES] {
+    let cx: [f32; LANES] = std::array::from_fn(|l| pixel_centre::<f32>(x0 + l as u32));
+    let mut trans = [[1f32; LANES]; LANES];
+    let mut falloff = [0f32; LANES];
+    let mut alpha = [0f32; LANES];
+    for (i, rr) in rows.iter().enumerate() {
+        if let Some(ahead) = rows.get(i + PREFETCH_AHEAD) {
+            prefetch(std::slice::from_ref(
+                &packed[ids[ahead.k as usize] as usize],
+            ));
+        }
+        let r = rr.row as usize;
+        let s = &packed[ids[rr.k as usize] as usize].s;
+        let cy = pixel_centre::<f32>(y0 + r as u32);
+        evaluate_row::<true, I>(isa, s, 0, &cx, cy, &mut falloff, &mut alpha);
+        let blend = rr.blend as Mask;
+        let front = trans[r];
+        let mut next = [0f32; LANES];
+        for l in 0..LANES {
+            next[l] = front[l] * (1.0 - alpha[l]);
+        }
+        trans[r] = isa.select(blend, &next, &front);
+        blended.push(RowBlend {
+            k: rr.k,
+            row: r as u32,
+            blend,
+            trans: front,
+            falloff,
+        });
+    }
+    trans
+}
+
 /// `D` rounded up to a whole number of chunks (at least one).
 fn padded(d: usize) -> usize {
     d.div_ceil(CHUNK).max(1) * CHUNK
@@ -543,6 +640,8 @@ pub(crate) struct ForwardTile<'a, 'b> {
     pub t: usize,
     pub scratch: &'b mut Scratch,
     pub out: TileOut<'b, f32>,
+    /// Receives the rows the tile blends, for the backward pass (when given).
+    pub keep: Option<&'b mut Vec<RowRef>>,
 }
 
 impl LaneOp for ForwardTile<'_, '_> {
@@ -567,6 +666,7 @@ impl ForwardTile<'_, '_> {
             t,
             scratch,
             out,
+            mut keep,
         } = self;
         let d = wd.d();
         let dp = padded(d);
@@ -586,7 +686,15 @@ impl ForwardTile<'_, '_> {
             d,
             bins,
             t,
-            |_, g, r, lanes, alpha, _, front| {
+            |k, g, r, lanes, alpha, _, front| {
+                if let Some(keep) = keep.as_deref_mut() {
+                    // k < 2^32 (bins hold u32 ids), r < 16 and lanes < 2^16.
+                    keep.push(RowRef {
+                        k: k as u32,
+                        row: r as u16,
+                        blend: lanes as u16,
+                    });
+                }
                 let depth = packed[g].depth;
                 let col = splats.channels_of(g);
                 let w: [f32; LANES] = std::array::from_fn(|l| alpha[l] * front[l]);
@@ -644,6 +752,8 @@ pub(crate) struct BackwardTile<'a, 'b> {
     pub scratch: &'b mut Scratch,
     pub rec: &'b mut [f32],
     pub bg_grad: &'b mut [f32],
+    /// The rows the forward pass of the same Gaussians blended in this tile, when it kept them.
+    pub kept: Option<&'a [RowRef]>,
 }
 
 impl LaneOp for BackwardTile<'_, '_> {
@@ -671,6 +781,7 @@ impl BackwardTile<'_, '_> {
             scratch,
             rec,
             bg_grad,
+            kept,
         } = self;
         let d = wd.d();
         let stride = GEOMETRY + d;
@@ -683,26 +794,33 @@ impl BackwardTile<'_, '_> {
         let image_width = bins.width() as usize;
         let pixel = |r: usize, l: usize| (y0 as usize + r) * image_width + x0 as usize + l;
 
-        // Front to back: the forward pass's decisions and transmittances.
+        // Front to back: the forward pass's decisions and transmittances, replayed from the
+        // rows it kept, or found by walking the tile again.
         blended.clear();
-        let mut walk = Walk::new(width, height);
-        walk.run::<false, I>(
-            isa,
-            packed,
-            splats.channels,
-            d,
-            bins,
-            t,
-            |k, _, r, lanes, _, falloff, front| {
-                blended.push(RowBlend {
-                    k: k as u32,
-                    row: r as u32,
-                    blend: lanes,
-                    trans: *front,
-                    falloff: *falloff,
-                })
-            },
-        );
+        let final_trans = match kept {
+            Some(rows) => replay(isa, packed, ids, x0, y0, rows, blended),
+            None => {
+                let mut walk = Walk::new(width, height);
+                walk.run::<false, I>(
+                    isa,
+                    packed,
+                    splats.channels,
+                    d,
+                    bins,
+                    t,
+                    |k, _, r, lanes, _, falloff, front| {
+                        blended.push(RowBlend {
+                            k: k as u32,
+                            row: r as u32,
+                            blend: lanes,
+                            trans: *front,
+                            falloff: *falloff,
+                        })
+                    },
+                );
+                walk.trans
+            }
+        };
 
         // The tile's cotangents, and what each pixel shows behind its last Gaussian.
         v_image_t.clear();
@@ -719,7 +837,7 @@ impl BackwardTile<'_, '_> {
                 }
                 v_alpha[r][l] = cot.alpha.map_or(0.0, |a| a[p]);
                 v_depth[r][l] = cot.depth.map_or(0.0, |z| z[p]);
-                let trans = walk.trans[r][l];
+                let trans = final_trans[r][l];
                 for (b, &vc) in bg_grad.iter_mut().zip(v) {
                     *b += trans * vc;
                 }

@@ -860,55 +860,52 @@ impl BackwardTile<'_, '_> {
             let s = &packed[g].s;
             let z = packed[g].depth;
             let col = &splats.channels_of(g)[..d];
-            // `v_image . c` of every pixel of the Gaussian's rows, two rows at a time (each lane
-            // sums its channels in order).
-            let mut own = [[0f32; LANES]; LANES];
             let block = |bl: &RowBlend| {
                 let at = bl.row as usize * d * LANES;
                 &v_image_t[at..at + d * LANES]
             };
-            for (own, pair) in own.chunks_mut(2).zip(rows.chunks(2)) {
-                // A single last row is paired with itself.
-                let sums = wd.dots(block(&pair[0]), block(&pair[pair.len() - 1]), col);
-                own[..pair.len()].copy_from_slice(&sums[..pair.len()]);
-            }
             let mut grads = wd.zeros();
             let mut sums = [0f32; GEOMETRY];
-            for (bl, own) in rows.iter().zip(&own) {
-                let r = bl.row as usize;
-                let cy = pixel_centre::<f32>(y0 + bl.row);
-                let (alpha, clamped) = alphas(isa, s.opacity, &bl.falloff);
-                let dy = s.my - cy;
-                let mut w = [0f32; LANES];
-                let mut next = [0f32; LANES];
-                let mut geo = [[0f32; LANES]; GEOMETRY];
-                for l in 0..LANES {
-                    let (alpha, front) = (alpha[l], bl.trans[l]);
-                    let dx = s.mx - cx[l];
-                    let own_l = own[l] + v_depth[r][l] * z + v_alpha[r][l];
-                    w[l] = alpha * front;
-                    geo[DEPTH][l] = w[l] * v_depth[r][l];
-                    let v_a = front * (own_l - behind[r][l]);
-                    next[l] = alpha * own_l + (1.0 - alpha) * behind[r][l];
-                    geo[OPACITY][l] = v_a * bl.falloff[l];
-                    let v_sigma = -(v_a * alpha);
-                    geo[CONIC_A][l] = v_sigma * 0.5 * dx * dx;
-                    geo[CONIC_B][l] = v_sigma * dx * dy;
-                    geo[CONIC_C][l] = v_sigma * 0.5 * dy * dy;
-                    geo[MEAN_X][l] = v_sigma * (s.a * dx + s.b * dy);
-                    geo[MEAN_Y][l] = v_sigma * (s.b * dx + s.c * dy);
-                }
-                behind[r] = isa.select(bl.blend, &next, &behind[r]);
-                for_each_bit(bl.blend, |l| {
-                    let p = pixel(r, l);
-                    wd.axpy(grads.as_mut(), w[l], &cot.image[p * d..(p + 1) * d]);
-                    sums[DEPTH] += geo[DEPTH][l];
-                    if !has(clamped, l) {
-                        for j in [OPACITY, CONIC_A, CONIC_B, CONIC_C, MEAN_X, MEAN_Y] {
-                            sums[j] += geo[j][l];
-                        }
+            // The rows two at a time, for `v_image . c` of their pixels: two independent sums
+            // (each lane sums its channels in order); a single last row is paired with itself.
+            for pair in rows.chunks(2) {
+                let owns = wd.dots(block(&pair[0]), block(&pair[pair.len() - 1]), col);
+                for (bl, own) in pair.iter().zip(&owns) {
+                    let r = bl.row as usize;
+                    let cy = pixel_centre::<f32>(y0 + bl.row);
+                    let (alpha, clamped) = alphas(isa, s.opacity, &bl.falloff);
+                    let dy = s.my - cy;
+                    let mut w = [0f32; LANES];
+                    let mut next = [0f32; LANES];
+                    let mut geo = [[0f32; LANES]; GEOMETRY];
+                    for l in 0..LANES {
+                        let (alpha, front) = (alpha[l], bl.trans[l]);
+                        let dx = s.mx - cx[l];
+                        let own_l = own[l] + v_depth[r][l] * z + v_alpha[r][l];
+                        w[l] = alpha * front;
+                        geo[DEPTH][l] = w[l] * v_depth[r][l];
+                        let v_a = front * (own_l - behind[r][l]);
+                        next[l] = alpha * own_l + (1.0 - alpha) * behind[r][l];
+                        geo[OPACITY][l] = v_a * bl.falloff[l];
+                        let v_sigma = -(v_a * alpha);
+                        geo[CONIC_A][l] = v_sigma * 0.5 * dx * dx;
+                        geo[CONIC_B][l] = v_sigma * dx * dy;
+                        geo[CONIC_C][l] = v_sigma * 0.5 * dy * dy;
+                        geo[MEAN_X][l] = v_sigma * (s.a * dx + s.b * dy);
+                        geo[MEAN_Y][l] = v_sigma * (s.b * dx + s.c * dy);
                     }
-                });
+                    behind[r] = isa.select(bl.blend, &next, &behind[r]);
+                    for_each_bit(bl.blend, |l| {
+                        let p = pixel(r, l);
+                        wd.axpy(grads.as_mut(), w[l], &cot.image[p * d..(p + 1) * d]);
+                        sums[DEPTH] += geo[DEPTH][l];
+                        if !has(clamped, l) {
+                            for j in [OPACITY, CONIC_A, CONIC_B, CONIC_C, MEAN_X, MEAN_Y] {
+                                sums[j] += geo[j][l];
+                            }
+                        }
+                    });
+                }
             }
             // The records start at zero and each Gaussian's sums are complete: storing them
             // equals adding them.

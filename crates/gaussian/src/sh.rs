@@ -343,6 +343,69 @@ mod fast {
 
     pub(super) const LANES: usize = 16;
 
+    /// The stages [`color_one`] and [`backward_one`] share, for the block of [`LANES`]
+    /// Gaussians starting at `i0`, each stage on lane arrays: the view directions `u` (with the
+    /// norm `denom` they were divided by and whether it was `clamped`), the `NB` bases `b`, the
+    /// gathered coefficients `coef[basis][channel]` and the colours before the offset and clamp.
+    struct Block<const NB: usize> {
+        u: [[f32; LANES]; 3],
+        denom: [f32; LANES],
+        clamped: [bool; LANES],
+        b: [[f32; LANES]; NB],
+        coef: [[[f32; LANES]; 3]; NB],
+        raw: [[f32; LANES]; 3],
+    }
+
+    impl<const NB: usize> Block<NB> {
+        #[inline(always)]
+        fn new(k: usize, sh: &[[f32; 3]], means: &[[f32; 3]], center: [f32; 3], i0: usize) -> Self {
+            let mut u = [[0.0f32; LANES]; 3];
+            let mut denom = [0.0f32; LANES];
+            let mut clamped = [false; LANES];
+            for l in 0..LANES {
+                let m = &means[i0 + l];
+                let (ul, dl, cl) = normalize_dir(v3(|a| m[a] - center[a]));
+                for a in 0..3 {
+                    u[a][l] = ul[a];
+                }
+                denom[l] = dl;
+                clamped[l] = cl;
+            }
+            let mut b = [[0.0f32; LANES]; NB];
+            for l in 0..LANES {
+                let bl = eval_bases(NB, [u[0][l], u[1][l], u[2][l]]);
+                for kk in 0..NB {
+                    b[kk][l] = bl[kk];
+                }
+            }
+            let mut coef = [[[0.0f32; LANES]; 3]; NB];
+            for l in 0..LANES {
+                let row = &sh[(i0 + l) * k..(i0 + l) * k + NB];
+                for kk in 0..NB {
+                    for c in 0..3 {
+                        coef[kk][c][l] = row[kk][c];
+                    }
+                }
+            }
+            let mut raw = [[0.0f32; LANES]; 3];
+            for kk in 0..NB {
+                for c in 0..3 {
+                    for l in 0..LANES {
+                        raw[c][l] += b[kk][l] * coef[kk][c][l];
+                    }
+                }
+            }
+            Block {
+                u,
+                denom,
+                clamped,
+                b,
+                coef,
+                raw,
+            }
+        }
+    }
+
     /// The colours of one work item when `T` is `f32` (returns `false`, doing nothing,
     /// otherwise).
     pub(super) fn colors<T: Real>(
@@ -405,38 +468,7 @@ mod fast {
                 let i0 = blk * LANES;
                 // color_one across lanes, stage by stage on lane arrays
                 let half = 0.5f32;
-                let mut u = [[0.0f32; LANES]; 3];
-                for l in 0..LANES {
-                    let m = &means[i0 + l];
-                    let (ul, _, _) = normalize_dir(v3(|a| m[a] - center[a]));
-                    for a in 0..3 {
-                        u[a][l] = ul[a];
-                    }
-                }
-                let mut b = [[0.0f32; LANES]; NB];
-                for l in 0..LANES {
-                    let bl = eval_bases(NB, [u[0][l], u[1][l], u[2][l]]);
-                    for kk in 0..NB {
-                        b[kk][l] = bl[kk];
-                    }
-                }
-                let mut coef = [[[0.0f32; LANES]; 3]; NB];
-                for l in 0..LANES {
-                    let row = &sh[(i0 + l) * k..(i0 + l) * k + NB];
-                    for kk in 0..NB {
-                        for c in 0..3 {
-                            coef[kk][c][l] = row[kk][c];
-                        }
-                    }
-                }
-                let mut raw = [[0.0f32; LANES]; 3];
-                for kk in 0..NB {
-                    for c in 0..3 {
-                        for l in 0..LANES {
-                            raw[c][l] += b[kk][l] * coef[kk][c][l];
-                        }
-                    }
-                }
+                let Block { raw, .. } = Block::<NB>::new(k, sh, means, center, i0);
                 for l in 0..LANES {
                     out[i0 + l] = v3(|c| (raw[c][l] + half).max(0.0));
                 }
@@ -528,42 +560,14 @@ mod fast {
                     continue;
                 }
                 // backward_one across lanes, stage by stage on lane arrays.
-                let mut u = [[0.0f32; LANES]; 3];
-                let mut denom = [0.0f32; LANES];
-                let mut clamped = [false; LANES];
-                for l in 0..LANES {
-                    let m = &means[i0 + l];
-                    let (ul, dl, cl) = normalize_dir(v3(|a| m[a] - center[a]));
-                    for a in 0..3 {
-                        u[a][l] = ul[a];
-                    }
-                    denom[l] = dl;
-                    clamped[l] = cl;
-                }
-                let mut b = [[0.0f32; LANES]; NB];
-                for l in 0..LANES {
-                    let bl = eval_bases(NB, [u[0][l], u[1][l], u[2][l]]);
-                    for kk in 0..NB {
-                        b[kk][l] = bl[kk];
-                    }
-                }
-                let mut coef = [[[0.0f32; LANES]; 3]; NB];
-                for l in 0..LANES {
-                    let row = &sh[(i0 + l) * k..(i0 + l) * k + NB];
-                    for kk in 0..NB {
-                        for c in 0..3 {
-                            coef[kk][c][l] = row[kk][c];
-                        }
-                    }
-                }
-                let mut raw = [[0.0f32; LANES]; 3];
-                for kk in 0..NB {
-                    for c in 0..3 {
-                        for l in 0..LANES {
-                            raw[c][l] += b[kk][l] * coef[kk][c][l];
-                        }
-                    }
-                }
+                let Block {
+                    u,
+                    denom,
+                    clamped,
+                    b,
+                    coef,
+                    raw,
+                } = Block::<NB>::new(k, sh, means, center, i0);
                 // The colour cotangent where the clamp at 0 passes it.
                 let mut v = [[0.0f32; LANES]; 3];
                 for c in 0..3 {

@@ -604,8 +604,8 @@ mod fast {
     }
 
     /// The rows of one work item of `step_side_by_side` in the layouts worth a vector path:
-    /// rows of `W` = 12, 27 or 48 columns (SH degree 1, 2 or 3: DC then the rest). Returns
-    /// `false`, having done nothing, for any other row width.
+    /// two tensors of widths 3 and `W - 3` with `W` = 12, 27 or 48 (SH degree 1, 2 or 3: DC
+    /// then the rest). Returns `false`, having done nothing, for any other layout.
     pub(super) fn side_by_side<'b>(
         c: &Shared<f32>,
         sizes: &[StepSize<f32>],
@@ -614,50 +614,35 @@ mod fast {
         g: &[f32],
         mv: &mut [(&'b mut [f32], &'b mut [f32])],
     ) -> bool {
-        let stride: usize = widths.iter().sum();
+        let ([s_a, s_b], [(m_a, v_a), (m_b, v_b)]) = (sizes, mv) else {
+            return false;
+        };
+        let (sizes, mv) = (
+            [*s_a, *s_b],
+            [(&mut **m_a, &mut **v_a), (&mut **m_b, &mut **v_b)],
+        );
         let arch = pulp::Arch::new();
-        match stride {
-            48 => arch.dispatch(Rows::<48> {
-                c,
-                sizes,
-                widths,
-                p,
-                g,
-                mv,
-            }),
-            27 => arch.dispatch(Rows::<27> {
-                c,
-                sizes,
-                widths,
-                p,
-                g,
-                mv,
-            }),
-            12 => arch.dispatch(Rows::<12> {
-                c,
-                sizes,
-                widths,
-                p,
-                g,
-                mv,
-            }),
+        match widths {
+            [3, 45] => arch.dispatch(Rows::<48, 3> { c, sizes, p, g, mv }),
+            [3, 24] => arch.dispatch(Rows::<27, 3> { c, sizes, p, g, mv }),
+            [3, 9] => arch.dispatch(Rows::<12, 3> { c, sizes, p, g, mv }),
             _ => return false,
         }
         true
     }
 
-    /// Rows of `W` columns: each row's moments are gathered from the tensors into `W`-lane
-    /// arrays, updated with per-column constants, and scattered back.
-    struct Rows<'a, 'b, const W: usize> {
+    /// Rows of `W` columns, the first `A` of one tensor and the rest of another: each row's
+    /// moments are gathered from the two tensors into `W`-lane arrays (fixed-size copies),
+    /// updated with per-column constants, and scattered back.
+    struct Rows<'a, 'b, const W: usize, const A: usize> {
         c: &'a Shared<f32>,
-        sizes: &'a [StepSize<f32>],
-        widths: &'a [usize],
+        sizes: [StepSize<f32>; 2],
         p: &'a mut [f32],
         g: &'a [f32],
-        mv: &'a mut [(&'b mut [f32], &'b mut [f32])],
+        mv: [(&'b mut [f32], &'b mut [f32]); 2],
     }
 
-    impl<const W: usize> pulp::WithSimd for Rows<'_, '_, W> {
+    impl<const W: usize, const A: usize> pulp::WithSimd for Rows<'_, '_, W, A> {
         type Output = ();
 
         #[inline(always)]
@@ -665,39 +650,40 @@ mod fast {
             let Rows {
                 c,
                 sizes,
-                widths,
                 p,
                 g,
-                mv,
+                mv: [(m_a, v_a), (m_b, v_b)],
             } = self;
             let mut bc2 = [0.0f32; W];
             let mut nss = [0.0f32; W];
-            let mut col = 0;
-            for (&w, s) in widths.iter().zip(sizes) {
-                bc2[col..col + w].fill(s.bc2_sqrt);
-                nss[col..col + w].fill(s.neg_step_size);
-                col += w;
-            }
-            for (r, (p, g)) in p.chunks_exact_mut(W).zip(g.chunks_exact(W)).enumerate() {
-                let p: &mut [f32; W] = p.try_into().expect("row of W");
-                let g: &[f32; W] = g.try_into().expect("row of W");
+            bc2[..A].fill(sizes[0].bc2_sqrt);
+            nss[..A].fill(sizes[0].neg_step_size);
+            bc2[A..].fill(sizes[1].bc2_sqrt);
+            nss[A..].fill(sizes[1].neg_step_size);
+            let rows = p.len() / W;
+            let (p, g) = (p.as_chunks_mut::<W>().0, g.as_chunks::<W>().0);
+            let (m_a, v_a) = (
+                &mut m_a.as_chunks_mut::<A>().0[..rows],
+                &mut v_a.as_chunks_mut::<A>().0[..rows],
+            );
+            let (m_b, v_b) = (&mut m_b[..rows * (W - A)], &mut v_b[..rows * (W - A)]);
+            for r in 0..rows {
+                let (p, g) = (&mut p[r], &g[r]);
+                let mb = &mut m_b[r * (W - A)..(r + 1) * (W - A)];
+                let vb = &mut v_b[r * (W - A)..(r + 1) * (W - A)];
                 let mut m = [0.0f32; W];
                 let mut v = [0.0f32; W];
-                let mut col = 0;
-                for (&w, (ms, vs)) in widths.iter().zip(mv.iter()) {
-                    m[col..col + w].copy_from_slice(&ms[r * w..(r + 1) * w]);
-                    v[col..col + w].copy_from_slice(&vs[r * w..(r + 1) * w]);
-                    col += w;
-                }
+                m[..A].copy_from_slice(&m_a[r]);
+                v[..A].copy_from_slice(&v_a[r]);
+                m[A..].copy_from_slice(mb);
+                v[A..].copy_from_slice(vb);
                 for l in 0..W {
                     update_one(c, bc2[l], nss[l], &mut p[l], g[l], &mut m[l], &mut v[l]);
                 }
-                let mut col = 0;
-                for (&w, (ms, vs)) in widths.iter().zip(mv.iter_mut()) {
-                    ms[r * w..(r + 1) * w].copy_from_slice(&m[col..col + w]);
-                    vs[r * w..(r + 1) * w].copy_from_slice(&v[col..col + w]);
-                    col += w;
-                }
+                m_a[r].copy_from_slice(&m[..A]);
+                v_a[r].copy_from_slice(&v[..A]);
+                mb.copy_from_slice(&m[A..]);
+                vb.copy_from_slice(&v[A..]);
             }
         }
     }
@@ -714,7 +700,8 @@ mod tests {
     }
 
     /// An optimiser with the given group widths over `rows` rows, moments filled by a few
-    /// steps on random gradients so that they are not zero.
+    /// steps on random gradients so that they are not zero. Group `k` takes `3 + k` steps and
+    /// has its own learning rate, so no two groups share a step size.
     fn warmed_up(widths: &[usize], rows: usize, seed: u64) -> (Adam<f32>, Vec<f32>) {
         let mut rng = StdRng::seed_from_u64(seed);
         let mut adam = Adam::new(AdamConfig::default());
@@ -723,12 +710,14 @@ mod tests {
         }
         let stride: usize = widths.iter().sum();
         let mut params = random(&mut rng, rows * stride, 1.0);
-        for _ in 0..3 {
+        for step in 0..3 + widths.len() {
             let grads = random(&mut rng, rows * stride, 0.1);
             let mut offset = 0;
             for (k, &w) in widths.iter().enumerate() {
-                adam.step_strided(k, &mut params, &grads, stride, offset)
-                    .unwrap();
+                if step < 3 + k {
+                    adam.step_strided(k, &mut params, &grads, stride, offset)
+                        .unwrap();
+                }
                 offset += w;
             }
         }
@@ -819,6 +808,6 @@ mod tests {
         assert!(a.step_side_by_side(&[], &mut p, &g).is_err());
         assert!(a.step_side_by_side(&[0], &mut p, &g).is_err());
         let steps: Vec<u64> = a.params().iter().map(|s| s.step_count()).collect();
-        assert_eq!(steps, [3, 3], "a refused step counts nothing");
+        assert_eq!(steps, [3, 4], "a refused step counts nothing");
     }
 }

@@ -97,6 +97,29 @@ pub fn write_atomic_with(
     path: &Path,
     write: impl FnOnce(&mut fs::File) -> io::Result<()>,
 ) -> io::Result<()> {
+    write_atomic_impl(path, true, write)
+}
+
+/// [`write_atomic_with`] without its two syncs, for files whose readers verify them (a
+/// checksum) and rebuild them when they do not verify, such as caches. A reader still never
+/// sees a partly written file while the system runs; after a system crash the file may be
+/// missing, old, or (on file systems that let the rename reach the disk before the data) empty
+/// or partial, which the reader's check must catch. Syncing is what makes a write of tens of
+/// megabytes wait for the disk.
+pub fn write_atomic_unsynced_with(
+    path: &Path,
+    write: impl FnOnce(&mut fs::File) -> io::Result<()>,
+) -> io::Result<()> {
+    write_atomic_impl(path, false, write)
+}
+
+/// The write of [`write_atomic_with`]; `sync` syncs the file before the rename and the
+/// directory after it.
+fn write_atomic_impl(
+    path: &Path,
+    sync: bool,
+    write: impl FnOnce(&mut fs::File) -> io::Result<()>,
+) -> io::Result<()> {
     static COUNTER: AtomicU64 = AtomicU64::new(0);
     let name = path
         .file_name()
@@ -118,10 +141,15 @@ pub fn write_atomic_with(
     let mut f = create_registered(&tmp)?;
     let result = (|| {
         write(&mut f)?;
-        f.sync_all()?;
+        if sync {
+            f.sync_all()?;
+        }
         drop(f);
         fs::rename(&tmp, path)?;
-        sync_dir(&dir)
+        if sync {
+            sync_dir(&dir)?;
+        }
+        Ok(())
     })();
     if result.is_err() {
         let _ = fs::remove_file(&tmp);
@@ -223,6 +251,25 @@ mod tests {
         write_atomic(&p, b"second").unwrap();
         assert_eq!(fs::read(&p).unwrap(), b"second");
         assert_eq!(names(&d), ["out.bin"]);
+        fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn the_unsynced_write_replaces_the_file_and_a_failed_one_keeps_it() {
+        let _w = writing();
+        let d = scratch("unsynced");
+        let p = d.join("a/out.bin");
+        write_atomic_unsynced_with(&p, |f| f.write_all(b"first")).unwrap();
+        write_atomic_unsynced_with(&p, |f| f.write_all(b"second")).unwrap();
+        assert_eq!(fs::read(&p).unwrap(), b"second");
+        let failing = write_atomic_unsynced_with(&p, |f| {
+            f.write_all(b"partial")?;
+            Err(io::Error::other("the writer failed"))
+        });
+        assert!(failing.is_err());
+        assert_eq!(fs::read(&p).unwrap(), b"second");
+        assert_eq!(names(&d.join("a")), ["out.bin"]);
+        assert!(registered_in(&d).is_empty());
         fs::remove_dir_all(&d).unwrap();
     }
 

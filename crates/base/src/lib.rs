@@ -40,6 +40,8 @@ pub mod fs;
 pub mod hash;
 pub mod real;
 
-pub use fs::{remove_unfinished_writes, write_atomic, write_atomic_with};
+pub use fs::{
+    remove_unfinished_writes, write_atomic, write_atomic_unsynced_with, write_atomic_with,
+};
 pub use hash::{fnv1a_hex, Fnv1a};
 pub use real::{exp_f32, Real};

@@ -49,7 +49,10 @@
 //! rerun or resume with the same inputs reads them back instead of encoding: the values are the
 //! ones the encoder gives, bit for bit, so training continues exactly as without the cache. A
 //! file is used only if its format, key, length and checksum all match; anything else is
-//! encoded afresh and rewritten, and files no longer used by the run are removed.
+//! encoded afresh and rewritten, and files no longer used by the run are removed. The files are
+//! written atomically but not synced to disk ([`base::write_atomic_unsynced_with`]): a file
+//! that a system crash left empty or partial fails its checksum and is rebuilt, and a run does
+//! not wait for the disk after each view.
 //!
 //! Ablations (the paper's Fig. 4 and 5), chosen by [`FeatureTrainConfig::decoder_mode`] and
 //! [`FeatureTrainConfig::normalize`] and recorded in the bundle:
@@ -646,7 +649,7 @@ impl<'a> EncodingCache<'a> {
             return;
         }
         let path = self.dir.join(name);
-        if let Err(e) = base::write_atomic_with(&path, |f| write_entry(f, key, values)) {
+        if let Err(e) = base::write_atomic_unsynced_with(&path, |f| write_entry(f, key, values)) {
             self.write_error = Some(format!("{}: {e}", path.display()));
         }
     }

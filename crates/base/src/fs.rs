@@ -1,6 +1,9 @@
 //! The one atomic file write of the workspace: every output file (scenes, checkpoints, weights,
 //! images, reports) is written through [`write_atomic`], so a reader never sees a partly
-//! written file and an interrupted write leaves the previous file intact.
+//! written file and an interrupted write leaves the previous file intact. The file and its
+//! directory are synced to disk, except through [`write_atomic_unsynced_with`]: the same write
+//! without the syncs, for files whose readers check them and rebuild them when the check
+//! fails (the encoding cache).
 //!
 //! While a write is in flight its temporary file (`.NAME.tmp-PID-N`, beside the target) is
 //! recorded in a process-wide registry, and removed from it once the write has finished or

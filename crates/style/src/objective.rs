@@ -36,7 +36,8 @@ use ndarray::{Array4, ArrayView4};
 use nets::{ConvGrad, Decoder, Encoder, Lifter};
 
 use crate::adain::{
-    instance_normalize, instance_normalize_backward, style_transform, style_transform_backward,
+    instance_normalize, instance_normalize_backward, normalize, style_transform,
+    style_transform_backward,
 };
 use crate::cache::StyleFeatureStats;
 use crate::error::{Result, StyleError};
@@ -44,6 +45,7 @@ use crate::loss::{
     align_loss, align_loss_backward, content_loss, mse_backward, style_loss, style_loss_backward,
     AlignLoss,
 };
+use crate::stats::ChannelStats;
 
 /// The result of [`decoder_training_loss`].
 #[derive(Clone, Debug)]
@@ -185,6 +187,20 @@ impl FeatureNorm {
         match self {
             FeatureNorm::BeforeRaster => instance_normalize(deepest),
             FeatureNorm::AfterRaster => Ok(deepest.clone()),
+        }
+    }
+
+    /// [`FeatureNorm::align_target`] of `deepest` when its channel statistics are already
+    /// known (`stats`, from [`crate::channel_stats`] of `deepest`): the same values, without
+    /// computing the statistics again or copying `deepest`.
+    pub fn align_target_with_stats<T: Real>(
+        self,
+        deepest: Array4<T>,
+        stats: &ChannelStats<T>,
+    ) -> Result<Array4<T>> {
+        match self {
+            FeatureNorm::BeforeRaster => normalize(&deepest, stats),
+            FeatureNorm::AfterRaster => Ok(deepest),
         }
     }
 }

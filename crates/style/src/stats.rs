@@ -15,8 +15,9 @@
 //! dL/dx_i = g_mean / m + g_std * (x_i - mean) / ((m - 1) * std)     (i inside the mask, else 0)
 //! ```
 //!
-//! Both passes treat the `N*C` planes independently and in parallel; each plane is reduced
-//! sequentially in `f64`, so the result does not depend on the thread count.
+//! Both passes treat the `N*C` planes independently and in parallel. Each plane is reduced in
+//! `f64` in one fixed order ([`sum_f64`]: eight interleaved partial sums, combined pairwise), so
+//! the result does not depend on the thread count.
 
 use base::Real;
 use ndarray::{Array2, Array4, ArrayView2};
@@ -115,26 +116,64 @@ fn flat_mask(mask: ArrayView2<bool>, h: usize, w: usize) -> Result<Vec<bool>> {
     Ok(mask.iter().copied().collect())
 }
 
+/// Partial sums of [`sum_f64`]: independent additions that overlap in the pipeline (and fill a
+/// vector register of `f64`), where a single running sum waits on every addition.
+const SUMS: usize = 8;
+
+/// `sum_i f(x_i)` in `f64` over the elements of `plane` inside `mask` (all when `None`):
+/// element `i` is added to partial sum `i % SUMS`, and the partial sums are combined pairwise,
+/// `((s0 + s1) + (s2 + s3)) + ((s4 + s5) + (s6 + s7))`. One fixed order for every plane length,
+/// mask and thread count.
+#[inline]
+pub(crate) fn sum_f64<T: Real>(plane: &[T], mask: Option<&[bool]>, f: impl Fn(f64) -> f64) -> f64 {
+    let mut acc = [0.0f64; SUMS];
+    let (chunks, tail) = plane.as_chunks::<SUMS>();
+    match mask {
+        None => {
+            for c in chunks {
+                for l in 0..SUMS {
+                    acc[l] += f(c[l].to_f64_exact());
+                }
+            }
+            for (a, v) in acc.iter_mut().zip(tail) {
+                *a += f(v.to_f64_exact());
+            }
+        }
+        Some(m) => {
+            let (m_chunks, m_tail) = m[..plane.len()].as_chunks::<SUMS>();
+            for (c, mc) in chunks.iter().zip(m_chunks) {
+                for l in 0..SUMS {
+                    acc[l] += if mc[l] { f(c[l].to_f64_exact()) } else { 0.0 };
+                }
+            }
+            for ((a, v), &inside) in acc.iter_mut().zip(tail).zip(m_tail) {
+                if inside {
+                    *a += f(v.to_f64_exact());
+                }
+            }
+        }
+    }
+    ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]))
+}
+
+/// `(m, mean, M2)` of one plane in `f64` over the `m` pixels inside `mask` (all when `None`):
+/// the mean, then the sum of squared deviations from it (two passes of [`sum_f64`]).
+pub(crate) fn plane_moments<T: Real>(plane: &[T], mask: Option<&[bool]>) -> (usize, f64, f64) {
+    let m = mask.map_or(plane.len(), |mk| {
+        mk[..plane.len()].iter().filter(|&&b| b).count()
+    });
+    let mean = sum_f64(plane, mask, |v| v) / m as f64;
+    let m2 = sum_f64(plane, mask, |v| {
+        let d = v - mean;
+        d * d
+    });
+    (m, mean, m2)
+}
+
 /// `(mean, std)` of one plane in `f64`, over the masked pixels (all when `mask` is `None`).
 pub(crate) fn plane_mean_std<T: Real>(plane: &[T], mask: Option<&[bool]>) -> (f64, f64) {
-    let inside = |i: usize| mask.is_none_or(|m| m[i]);
-    let mut sum = 0.0f64;
-    let mut m = 0usize;
-    for (i, &v) in plane.iter().enumerate() {
-        if inside(i) {
-            sum += v.to_f64_exact();
-            m += 1;
-        }
-    }
-    let mean = sum / m as f64;
-    let mut ss = 0.0f64;
-    for (i, &v) in plane.iter().enumerate() {
-        if inside(i) {
-            let d = v.to_f64_exact() - mean;
-            ss += d * d;
-        }
-    }
-    let var = ss / (m as f64 - 1.0);
+    let (m, mean, m2) = plane_moments(plane, mask);
+    let var = m2 / (m as f64 - 1.0);
     (mean, (var + STATS_EPS).sqrt())
 }
 
@@ -200,11 +239,7 @@ impl ChannelMoments {
         let (na, nb) = (self.count as f64, k as f64);
         let total = na + nb;
         for (i, plane) in data.chunks(k).enumerate() {
-            let mean_b = plane.iter().map(|v| v.to_f64_exact()).sum::<f64>() / nb;
-            let m2_b: f64 = plane
-                .iter()
-                .map(|v| (v.to_f64_exact() - mean_b).powi(2))
-                .sum();
+            let (_, mean_b, m2_b) = plane_moments(plane, None);
             let d = mean_b - self.mean[i];
             self.mean[i] += d * nb / total;
             self.m2[i] += m2_b + d * d * na * nb / total;

@@ -765,8 +765,8 @@ fn encode_view(
     let k = v.camera.intrinsics;
     let (w, h) = (k.width as usize, k.height as usize);
     let x = Array4::from_shape_fn((1, 3, h, w), |(_, c, y, x)| v.image[(y * w + x) * 3 + c]);
-    let feats = encoder.forward(x.view()).map_err(net_err)?;
-    let deep = feats.last().expect("encoder depth >= 1");
+    let mut feats = encoder.forward(x.view()).map_err(net_err)?;
+    let deep = feats.pop().expect("encoder depth >= 1");
     let (fw, fh) = feature_size(encoder, variant, k.width, k.height);
     if deep.dim() != (1, deepest, fh as usize, fw as usize) {
         return Err(TrainError::Shape(format!(
@@ -775,13 +775,16 @@ fn encode_view(
             deep.shape()
         )));
     }
-    let stats = channel_stats(deep).map_err(style_err)?;
+    let stats = channel_stats(&deep).map_err(style_err)?;
+    let target = normalize
+        .align_target_with_stats(deep, &stats)
+        .map_err(style_err)?;
     Ok(ViewEncoding {
-        target: normalize
-            .align_target(deep)
-            .map_err(style_err)?
-            .as_standard_layout()
-            .into_owned(),
+        target: if target.is_standard_layout() {
+            target
+        } else {
+            target.as_standard_layout().into_owned()
+        },
         mean: stats.mean.iter().copied().collect(),
         std: stats.std.iter().copied().collect(),
     })

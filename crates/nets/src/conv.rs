@@ -544,11 +544,20 @@ fn fold_reflect1<T: Real>(gp: Array4<T>) -> Array4<T> {
 }
 
 /// The kernel of the input gradient: `wt[c,o,i,j] = w[o,c,K-1-i,K-1-j]`.
+/// Flipping both kernel axes reverses each `K x K` block of taps: tap `(K-1-i, K-1-j)` is
+/// `K*K - 1 - (i K + j)` in the block.
 fn flip_transpose<T: Real>(w: ArrayView4<T>) -> Array4<T> {
     let (o, c, k, _) = w.dim();
-    Array4::from_shape_fn((c, o, k, k), |(ci, oi, i, j)| {
-        w[[oi, ci, k - 1 - i, k - 1 - j]]
-    })
+    let kk = k * k;
+    let w = w.as_standard_layout();
+    let src = w.as_slice().expect("a standard-layout array is contiguous");
+    let mut out = Vec::with_capacity(c * o * kk);
+    for ci in 0..c {
+        for oi in 0..o {
+            out.extend(src[(oi * c + ci) * kk..][..kk].iter().rev());
+        }
+    }
+    Array4::from_shape_vec((c, o, k, k), out).expect("length is c*o*k*k")
 }
 
 fn check_3x3(w: &ArrayView4<impl Real>) {
@@ -666,4 +675,28 @@ pub fn conv1x1_backward_params<T: Real>(
     dy: ArrayView4<T>,
 ) -> (Array4<T>, Array1<T>) {
     conv_valid_param_grads(x, dy, 1, backend_for(Pass::WeightGrad))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn flip_transpose_follows_its_index_rule_for_any_layout() {
+        for (o, c, k) in [(3, 2, 3), (1, 4, 1), (2, 5, 3)] {
+            let w = Array4::from_shape_fn((o, c, k, k), |(a, b, i, j)| {
+                (((a * 7 + b) * 5 + i) * 3 + j) as f64
+            });
+            // The same values through a transposed (non-standard) view.
+            let wt = w.clone().permuted_axes([1, 0, 2, 3]);
+            let swapped = wt.view().permuted_axes([1, 0, 2, 3]);
+            for view in [w.view(), swapped] {
+                let f = flip_transpose(view);
+                assert_eq!(f.dim(), (c, o, k, k));
+                for ((ci, oi, i, j), &v) in f.indexed_iter() {
+                    assert_eq!(v, w[[oi, ci, k - 1 - i, k - 1 - j]]);
+                }
+            }
+        }
+    }
 }

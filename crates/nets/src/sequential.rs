@@ -105,7 +105,7 @@ pub(crate) fn forward<T: Real>(
     let mut saved = Vec::with_capacity(if tape { steps.len() } else { 0 });
     let mut outputs = Vec::new();
     let mut cur: Option<Array4<T>> = None; // None means "still the input view"
-    for step in steps {
+    for (i, step) in steps.iter().enumerate() {
         let view = cur.as_ref().map_or(x.view(), |a| a.view());
         match step {
             Step::Conv { layer, relu } => {
@@ -136,7 +136,18 @@ pub(crate) fn forward<T: Real>(
                 cur = Some(y);
             }
             Step::Output => {
-                outputs.push(view.to_owned());
+                // The last step's output is the activation itself, moved rather than copied.
+                outputs.push(match cur.take() {
+                    Some(a) if i + 1 == steps.len() => a,
+                    other => {
+                        let copy = match &other {
+                            Some(a) => a.to_owned(),
+                            None => x.to_owned(),
+                        };
+                        cur = other;
+                        copy
+                    }
+                });
                 if tape {
                     saved.push(Saved::Output);
                 }

@@ -12,13 +12,18 @@
 //! where `l` runs over the encoder levels relu1_1 .. relu_k_1 and the statistics are those of
 //! [`crate::stats`] (`[N, C]`, i.e. PyTorch's `[N, C, 1, 1]` tensors, so `K = N*C`). Style
 //! statistics with `N = 1` broadcast over a batch, and `K` then counts the broadcast elements,
-//! as PyTorch does. Sums run sequentially in `f64`.
+//! as PyTorch does. Sums run in `f64` in a fixed order: over feature maps (`mse`, `l1`) each
+//! plane as [`crate::stats`] sums it and the plane sums in plane order, the rest sequentially.
 
 use base::Real;
 use ndarray::{Array2, Array4};
 
 use crate::error::{check_shape, Result, StyleError};
-use crate::stats::{channel_stats, channel_stats_backward, dims, map_planes, planes, ChannelStats};
+use rayon::prelude::*;
+
+use crate::stats::{
+    channel_stats, channel_stats_backward, dims, interleaved_sum, map_planes, planes, ChannelStats,
+};
 
 /// Which penalty the alignment loss uses.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -30,18 +35,28 @@ pub enum AlignLoss {
     L1,
 }
 
-fn zip_sum<T: Real>(a: &[T], b: &[T], f: impl Fn(f64) -> f64) -> f64 {
-    a.iter()
-        .zip(b)
-        .map(|(&x, &y)| f(x.to_f64_exact() - y.to_f64_exact()))
-        .fold(0.0, |s, v| s + v)
+/// `sum_i f(a_i - b_i)` in `f64` over two maps of one shape: each `(n, c)` plane is summed in
+/// the order of [`interleaved_sum`], the planes in parallel, and the plane sums are added in
+/// plane order, so the result does not depend on the thread count.
+fn zip_sum<T: Real>(a: &Array4<T>, b: &Array4<T>, f: impl Fn(f64) -> f64 + Sync) -> f64 {
+    let (_, _, h, w) = dims(a);
+    let hw = (h * w).max(1);
+    let (a, b) = (planes(a), planes(b));
+    let sums: Vec<f64> = a
+        .par_chunks(hw)
+        .zip(b.par_chunks(hw))
+        .map(|(pa, pb)| {
+            interleaved_sum(pa.len(), |i| f(pa[i].to_f64_exact() - pb[i].to_f64_exact()))
+        })
+        .collect();
+    sums.iter().fold(0.0, |s, v| s + v)
 }
 
 /// Mean squared error over all elements.
 pub fn mse<T: Real>(a: &Array4<T>, b: &Array4<T>) -> Result<T> {
     check_shape("mse operands", b.shape(), a.shape())?;
     let k = a.len() as f64;
-    Ok(T::lit(zip_sum(&planes(a), &planes(b), |d| d * d) / k))
+    Ok(T::lit(zip_sum(a, b, |d| d * d) / k))
 }
 
 /// Gradient of `g * mse(a, b)` w.r.t. `a` (the gradient w.r.t. `b` is its negative).
@@ -55,7 +70,7 @@ pub fn mse_backward<T: Real>(a: &Array4<T>, b: &Array4<T>, g: T) -> Result<Array
 pub fn l1<T: Real>(a: &Array4<T>, b: &Array4<T>) -> Result<T> {
     check_shape("l1 operands", b.shape(), a.shape())?;
     let k = a.len() as f64;
-    Ok(T::lit(zip_sum(&planes(a), &planes(b), f64::abs) / k))
+    Ok(T::lit(zip_sum(a, b, f64::abs) / k))
 }
 
 /// Gradient of `g * l1(a, b)` w.r.t. `a` (the gradient w.r.t. `b` is its negative). Where

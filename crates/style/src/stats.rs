@@ -16,7 +16,7 @@
 //! ```
 //!
 //! Both passes treat the `N*C` planes independently and in parallel. Each plane is reduced in
-//! `f64` in one fixed order ([`sum_f64`]: eight interleaved partial sums, combined pairwise), so
+//! `f64` in one fixed order ([`interleaved_sum`]: eight partial sums, combined pairwise), so
 //! the result does not depend on the thread count.
 
 use base::Real;
@@ -120,40 +120,41 @@ fn flat_mask(mask: ArrayView2<bool>, h: usize, w: usize) -> Result<Vec<bool>> {
 /// vector register of `f64`), where a single running sum waits on every addition.
 const SUMS: usize = 8;
 
-/// `sum_i f(x_i)` in `f64` over the elements of `plane` inside `mask` (all when `None`):
-/// element `i` is added to partial sum `i % SUMS`, and the partial sums are combined pairwise,
-/// `((s0 + s1) + (s2 + s3)) + ((s4 + s5) + (s6 + s7))`. One fixed order for every plane length,
-/// mask and thread count.
+/// `sum_{i < n} term(i)` in `f64`: term `i` is added to partial sum `i % SUMS`, and the partial
+/// sums are combined pairwise, `((s0 + s1) + (s2 + s3)) + ((s4 + s5) + (s6 + s7))`. One fixed
+/// order for every `n` and thread count.
 #[inline]
-pub(crate) fn sum_f64<T: Real>(plane: &[T], mask: Option<&[bool]>, f: impl Fn(f64) -> f64) -> f64 {
+pub(crate) fn interleaved_sum(n: usize, term: impl Fn(usize) -> f64) -> f64 {
     let mut acc = [0.0f64; SUMS];
-    let (chunks, tail) = plane.as_chunks::<SUMS>();
-    match mask {
-        None => {
-            for c in chunks {
-                for l in 0..SUMS {
-                    acc[l] += f(c[l].to_f64_exact());
-                }
-            }
-            for (a, v) in acc.iter_mut().zip(tail) {
-                *a += f(v.to_f64_exact());
-            }
-        }
-        Some(m) => {
-            let (m_chunks, m_tail) = m[..plane.len()].as_chunks::<SUMS>();
-            for (c, mc) in chunks.iter().zip(m_chunks) {
-                for l in 0..SUMS {
-                    acc[l] += if mc[l] { f(c[l].to_f64_exact()) } else { 0.0 };
-                }
-            }
-            for ((a, v), &inside) in acc.iter_mut().zip(tail).zip(m_tail) {
-                if inside {
-                    *a += f(v.to_f64_exact());
-                }
-            }
+    let whole = n / SUMS * SUMS;
+    for base in (0..whole).step_by(SUMS) {
+        for (l, a) in acc.iter_mut().enumerate() {
+            *a += term(base + l);
         }
     }
+    for (a, i) in acc.iter_mut().zip(whole..n) {
+        *a += term(i);
+    }
     ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]))
+}
+
+/// `sum_i f(x_i)` in `f64` over the elements of `plane` inside `mask` (all when `None`), in the
+/// order of [`interleaved_sum`] (an element outside the mask adds zero to its partial sum).
+#[inline]
+pub(crate) fn sum_f64<T: Real>(plane: &[T], mask: Option<&[bool]>, f: impl Fn(f64) -> f64) -> f64 {
+    match mask {
+        None => interleaved_sum(plane.len(), |i| f(plane[i].to_f64_exact())),
+        Some(m) => {
+            let m = &m[..plane.len()];
+            interleaved_sum(plane.len(), |i| {
+                if m[i] {
+                    f(plane[i].to_f64_exact())
+                } else {
+                    0.0
+                }
+            })
+        }
+    }
 }
 
 /// `(m, mean, M2)` of one plane in `f64` over the `m` pixels inside `mask` (all when `None`):

@@ -1,6 +1,6 @@
-//! Channel statistics (`channel_stats`, `masked_channel_stats`) against a sequential two-pass
-//! reference written here, and the alignment target from known statistics against the one that
-//! computes them.
+//! Channel statistics (`channel_stats`, `masked_channel_stats`) and the mean squared and
+//! absolute errors (`mse`, `l1`) against sequential references written here, and the alignment
+//! target from known statistics against the one that computes them.
 //!
 //! Tolerance 1e-12 relative in `f64`: the library sums the same values in `f64` in another
 //! fixed order (interleaved partial sums), a rounding of order 1e-16 per addition over at most
@@ -8,7 +8,7 @@
 
 use ndarray::{Array2, Array4};
 use proptest::prelude::*;
-use style::{channel_stats, masked_channel_stats, FeatureNorm, STATS_EPS};
+use style::{channel_stats, l1, masked_channel_stats, mse, FeatureNorm, STATS_EPS};
 
 const TOL: f64 = 1e-12;
 
@@ -79,6 +79,24 @@ proptest! {
                 prop_assert!(close(masked.std[[i, j]], std, 1.0));
             }
         }
+    }
+
+    #[test]
+    fn mean_errors_match_a_sequential_reference(
+        n in 1usize..3, c in 1usize..4, h in 1usize..20, w in 1usize..20,
+        seed in any::<u64>(), offset in -5.0f64..5.0,
+    ) {
+        let a = random_map(n, c, h, w, seed, offset);
+        let b = random_map(n, c, h, w, seed ^ 0x9e37_79b9_7f4a_7c15, 0.0);
+        let (mut sq, mut abs) = (0.0, 0.0);
+        for (x, y) in a.iter().zip(b.iter()) {
+            sq += (x - y) * (x - y);
+            abs += (x - y).abs();
+        }
+        let k = a.len() as f64;
+        let scale = (offset.abs() + 1.0).powi(2);
+        prop_assert!(close(mse(&a, &b).unwrap(), sq / k, scale));
+        prop_assert!(close(l1(&a, &b).unwrap(), abs / k, scale));
     }
 
     #[test]

@@ -642,14 +642,14 @@ impl<'a> EncodingCache<'a> {
         values
     }
 
-    /// Stores `values` under `name` for `key`; a failure is remembered (and reported once) and
-    /// ends the writing, not the run.
-    fn write(&mut self, name: &str, key: &str, values: &[f32]) {
+    /// Stores the concatenation of `parts` under `name` for `key`; a failure is remembered (and
+    /// reported once) and ends the writing, not the run.
+    fn write(&mut self, name: &str, key: &str, parts: &[&[f32]]) {
         if self.write_error.is_some() {
             return;
         }
         let path = self.dir.join(name);
-        if let Err(e) = base::write_atomic_unsynced_with(&path, |f| write_entry(f, key, values)) {
+        if let Err(e) = base::write_atomic_unsynced_with(&path, |f| write_entry(f, key, parts)) {
             self.write_error = Some(format!("{}: {e}", path.display()));
         }
     }
@@ -675,8 +675,9 @@ impl<'a> EncodingCache<'a> {
 /// (8 hexadecimal digits). A checksum that runs at memory speed, not a hash: the key already
 /// names the contents, the checksum only tells a damaged file.
 ///
-/// Written to `out` in pieces, so that no second copy of the values is formed.
-fn write_entry(out: &mut impl std::io::Write, key: &str, values: &[f32]) -> std::io::Result<()> {
+/// The values are the concatenation of `parts`, written to `out` in pieces, so that no second
+/// copy of them is formed.
+fn write_entry(out: &mut impl std::io::Write, key: &str, parts: &[&[f32]]) -> std::io::Result<()> {
     /// Values converted and written per piece (256 KiB).
     const PIECE: usize = 1 << 16;
     let mut crc = crc32fast::Hasher::new();
@@ -684,14 +685,20 @@ fn write_entry(out: &mut impl std::io::Write, key: &str, values: &[f32]) -> std:
         crc.update(bytes);
         out.write_all(bytes)
     };
+    let len: usize = parts.iter().map(|p| p.len()).sum();
     put(out, ENCODING_MAGIC)?;
     put(out, key.as_bytes())?;
-    put(out, &(values.len() as u64).to_le_bytes())?;
-    let mut bytes = Vec::with_capacity(4 * PIECE.min(values.len()));
-    for piece in values.chunks(PIECE) {
-        bytes.clear();
-        bytes.extend(piece.iter().flat_map(|v| v.to_le_bytes()));
-        put(out, &bytes)?;
+    put(out, &(len as u64).to_le_bytes())?;
+    let mut bytes = Vec::with_capacity(4 * PIECE.min(len));
+    for piece in parts.iter().flat_map(|p| p.chunks(PIECE)) {
+        if cfg!(target_endian = "little") {
+            // The values' own bytes are already little-endian.
+            put(out, bytemuck::cast_slice(piece))?;
+        } else {
+            bytes.clear();
+            bytes.extend(piece.iter().flat_map(|v| v.to_le_bytes()));
+            put(out, &bytes)?;
+        }
     }
     out.write_all(format!("{:08x}", crc.finalize()).as_bytes())
 }
@@ -711,12 +718,15 @@ fn decode_entry(bytes: &[u8], key: &str, len: usize) -> Option<Vec<f32>> {
     {
         return None;
     }
-    Some(
+    Some(if cfg!(target_endian = "little") {
+        // Little-endian bytes are the values' own (copied, as `bytes` may be unaligned).
+        bytemuck::pod_collect_to_vec(&body[head..])
+    } else {
         body[head..]
             .chunks_exact(4)
             .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-            .collect(),
-    )
+            .collect()
+    })
 }
 
 /// The flat values of per-level statistics: each level's means, then its standard deviations.
@@ -1091,11 +1101,8 @@ impl FeatureTrainer {
                 None => {
                     let e = encode_view(&encoder, config.variant, config.normalize, v, deepest)?;
                     if let (Some(c), Some((name, key))) = (&mut cache, &entry) {
-                        let mut values = Vec::with_capacity(len);
-                        values.extend(e.target.iter().copied());
-                        values.extend(&e.mean);
-                        values.extend(&e.std);
-                        c.write(name, key, &values);
+                        let target = e.target.as_slice().expect("standard layout");
+                        c.write(name, key, &[target, &e.mean, &e.std]);
                     }
                     e
                 }
@@ -1131,7 +1138,7 @@ impl FeatureTrainer {
                 None => {
                     let stats = encode_style(&encoder, &to_tensor(img)).map_err(style_err)?;
                     if let (Some(c), Some((name, key))) = (&mut cache, &entry) {
-                        c.write(name, key, &stats_values(&stats));
+                        c.write(name, key, &[&stats_values(&stats)]);
                     }
                     stats
                 }

@@ -51,8 +51,9 @@
 //! file is used only if its format, key, length and checksum all match; anything else is
 //! encoded afresh and rewritten, and files no longer used by the run are removed. The files are
 //! written atomically but not synced to disk ([`base::write_atomic_unsynced_with`]): a file
-//! that a system crash left empty or partial fails its checksum and is rebuilt, and a run does
-//! not wait for the disk after each view.
+//! that a system crash left empty or partial fails its checksum and is rebuilt. They are
+//! written by a thread of their own while encoding goes on, from the same target arrays as
+//! training uses (no copy), and the setup waits for the last one before it reports.
 //!
 //! Ablations (the paper's Fig. 4 and 5), chosen by [`FeatureTrainConfig::decoder_mode`] and
 //! [`FeatureTrainConfig::normalize`] and recorded in the bundle:
@@ -78,6 +79,7 @@
 //! they name the geometry and encoder they belong to by fingerprints, which resuming checks.
 
 use std::path::{Path, PathBuf};
+use std::sync::{mpsc, Arc};
 use std::time::{Instant, UNIX_EPOCH};
 
 use gaussian::dataset::Dataset;
@@ -574,6 +576,67 @@ struct EncodingCache<'a> {
     reused: usize,
     rebuilt: usize,
     write_error: Option<String>,
+    /// The thread writing the files, started at the first write.
+    writer: Option<CacheWriter>,
+}
+
+/// Values a cache file is written from: a view's target, shared with the training data, or
+/// values of the file's own.
+enum CacheValues {
+    Shared(Arc<Array4<f32>>),
+    Own(Vec<f32>),
+}
+
+impl CacheValues {
+    fn as_slice(&self) -> &[f32] {
+        match self {
+            CacheValues::Shared(a) => a.as_slice().expect("targets are in standard layout"),
+            CacheValues::Own(v) => v,
+        }
+    }
+}
+
+/// A cache file to write: its path, its key and its values (the concatenation of the parts).
+struct CacheFile {
+    path: PathBuf,
+    key: String,
+    parts: Vec<CacheValues>,
+}
+
+/// A thread that writes cache files in the order they are sent, so that encoding never waits
+/// for the disk. It stops at the first failure and returns it.
+struct CacheWriter {
+    files: mpsc::Sender<CacheFile>,
+    thread: std::thread::JoinHandle<Option<String>>,
+}
+
+impl CacheWriter {
+    fn start() -> std::io::Result<CacheWriter> {
+        let (files, queue) = mpsc::channel::<CacheFile>();
+        let thread = std::thread::Builder::new()
+            .name("encoding-cache".into())
+            .spawn(move || {
+                for file in queue {
+                    let parts: Vec<&[f32]> = file.parts.iter().map(CacheValues::as_slice).collect();
+                    let written = base::write_atomic_unsynced_with(&file.path, |f| {
+                        write_entry(f, &file.key, &parts)
+                    });
+                    if let Err(e) = written {
+                        return Some(format!("{}: {e}", file.path.display()));
+                    }
+                }
+                None
+            })?;
+        Ok(CacheWriter { files, thread })
+    }
+
+    /// Waits for every file sent to be written; the first failure, if any.
+    fn finish(self) -> Option<String> {
+        drop(self.files);
+        self.thread
+            .join()
+            .unwrap_or_else(|_| Some("the cache writer stopped unexpectedly".into()))
+    }
 }
 
 /// What the cached values were computed by: the program's version and its executable's size
@@ -610,6 +673,7 @@ impl<'a> EncodingCache<'a> {
             reused: 0,
             rebuilt: 0,
             write_error: None,
+            writer: None,
         })
     }
 
@@ -642,15 +706,34 @@ impl<'a> EncodingCache<'a> {
         values
     }
 
-    /// Stores the concatenation of `parts` under `name` for `key`; a failure is remembered (and
-    /// reported once) and ends the writing, not the run.
-    fn write(&mut self, name: &str, key: &str, parts: &[&[f32]]) {
+    /// Stores the concatenation of `parts` under `name` for `key`, on the writer thread; a
+    /// failure ends the writing, not the run, and [`EncodingCache::finish`] reports it.
+    fn write(&mut self, name: &str, key: &str, parts: Vec<CacheValues>) {
         if self.write_error.is_some() {
             return;
         }
-        let path = self.dir.join(name);
-        if let Err(e) = base::write_atomic_unsynced_with(&path, |f| write_entry(f, key, parts)) {
-            self.write_error = Some(format!("{}: {e}", path.display()));
+        if self.writer.is_none() {
+            match CacheWriter::start() {
+                Ok(w) => self.writer = Some(w),
+                Err(e) => {
+                    self.write_error = Some(format!("could not start the cache writer: {e}"));
+                    return;
+                }
+            }
+        }
+        let file = CacheFile {
+            path: self.dir.join(name),
+            key: key.to_string(),
+            parts,
+        };
+        // A send fails only once the writer has stopped at a failure, which `finish` reports.
+        let _ = self.writer.as_ref().expect("started").files.send(file);
+    }
+
+    /// Waits for every file to be written, and keeps the first failure in `write_error`.
+    fn finish(&mut self) {
+        if let Some(e) = self.writer.take().and_then(CacheWriter::finish) {
+            self.write_error.get_or_insert(e);
         }
     }
 
@@ -667,6 +750,13 @@ impl<'a> EncodingCache<'a> {
                 let _ = std::fs::remove_file(e.path());
             }
         }
+    }
+}
+
+/// A setup that stops early (an error) still waits for the files already sent.
+impl Drop for EncodingCache<'_> {
+    fn drop(&mut self) {
+        self.finish();
     }
 }
 
@@ -804,7 +894,8 @@ fn encode_view(
 #[derive(Clone, Debug)]
 struct CachedView {
     camera: Camera,
-    target: Array4<f32>,
+    /// Shared with the encoding cache's writer while it writes the file.
+    target: Arc<Array4<f32>>,
 }
 
 /// What one iteration did.
@@ -1090,30 +1181,38 @@ impl FeatureTrainer {
                 (Some(c), Some((name, key))) => c.read(name, key, len),
                 _ => None,
             };
-            let e = match stored {
+            let (target, mean, std) = match stored {
                 Some(mut values) => {
                     let std = values.split_off(len - deepest);
                     let mean = values.split_off(len - 2 * deepest);
                     let target = Array4::from_shape_vec(shape, values)
                         .map_err(|e| TrainError::Shape(e.to_string()))?;
-                    ViewEncoding { target, mean, std }
+                    (Arc::new(target), mean, std)
                 }
                 None => {
                     let e = encode_view(&encoder, config.variant, config.normalize, v, deepest)?;
+                    let target = Arc::new(e.target);
                     if let (Some(c), Some((name, key))) = (&mut cache, &entry) {
-                        let target = e.target.as_slice().expect("standard layout");
-                        c.write(name, key, &[target, &e.mean, &e.std]);
+                        c.write(
+                            name,
+                            key,
+                            vec![
+                                CacheValues::Shared(Arc::clone(&target)),
+                                CacheValues::Own(e.mean.clone()),
+                                CacheValues::Own(e.std.clone()),
+                            ],
+                        );
                     }
-                    e
+                    (target, e.mean, e.std)
                 }
             };
             for ch in 0..deepest {
-                mean_sum[ch] += e.mean[ch] as f64;
-                std_sum[ch] += e.std[ch] as f64;
+                mean_sum[ch] += mean[ch] as f64;
+                std_sum[ch] += std[ch] as f64;
             }
             cached.push(CachedView {
                 camera: v.camera,
-                target: e.target,
+                target,
             });
             tally.advance(1, "encode views");
         }
@@ -1138,7 +1237,7 @@ impl FeatureTrainer {
                 None => {
                     let stats = encode_style(&encoder, &to_tensor(img)).map_err(style_err)?;
                     if let (Some(c), Some((name, key))) = (&mut cache, &entry) {
-                        c.write(name, key, &[&stats_values(&stats)]);
+                        c.write(name, key, vec![CacheValues::Own(stats_values(&stats))]);
                     }
                     stats
                 }
@@ -1160,6 +1259,9 @@ impl FeatureTrainer {
             EvalSample::new(view.camera, &view.target, style_stats[st].clone(), crop)
         })
         .collect();
+        if let Some(c) = &mut cache {
+            c.finish();
+        }
         let mut summary = format!(
             "{} views and {} style images encoded in {:.1} s",
             cached.len(),

@@ -16,7 +16,7 @@
 //! ```
 //!
 //! Both passes treat the `N*C` planes independently and in parallel. Each plane is reduced in
-//! `f64` in one fixed order ([`interleaved_sum`]: eight partial sums, combined pairwise), so
+//! `f64` in one fixed order (eight interleaved partial sums, combined pairwise), so
 //! the result does not depend on the thread count.
 
 use base::Real;

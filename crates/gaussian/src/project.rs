@@ -425,10 +425,12 @@ impl<T: Real> pulp::WithSimd for BackwardChunk<'_, T> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _: S) {
+        // Every Gaussian is computed and the culled ones' results are replaced by zeros
+        // (selects, not a branch around the stores), so that the loop vectorises across
+        // Gaussians; a culled Gaussian's arithmetic may overflow, and is discarded.
+        let zero = T::zero();
         for i in 0..self.means.len() {
-            if self.radii[i][0] == 0 || self.radii[i][1] == 0 {
-                continue;
-            }
+            let culled = self.radii[i][0] == 0 || self.radii[i][1] == 0;
             let (gm, gq, gs) = backward_one(
                 self.cam,
                 &self.means[i],
@@ -438,9 +440,9 @@ impl<T: Real> pulp::WithSimd for BackwardChunk<'_, T> {
                 &self.v_conics[i],
                 self.v_depths[i],
             );
-            self.g_means[i] = gm;
-            self.g_quats[i] = gq;
-            self.g_log_scales[i] = gs;
+            self.g_means[i] = gm.map(|x| if culled { zero } else { x });
+            self.g_quats[i] = gq.map(|x| if culled { zero } else { x });
+            self.g_log_scales[i] = gs.map(|x| if culled { zero } else { x });
         }
     }
 }

@@ -309,10 +309,9 @@ pub fn run(settings: &FitFeaturesSettings, control: &Control) -> Result<FitFeatu
                 .join(", ")
         )));
     }
-    let eval_styles = if held_out.is_empty() {
+    // Evaluation paintings of their own, or (None) the training paintings.
+    let eval_styles = if held_out.is_empty() || settings.eval_styles.is_empty() {
         None
-    } else if settings.eval_styles.is_empty() {
-        Some(inputs.styles.clone())
     } else {
         Some(open_images(
             &settings.eval_styles,
@@ -331,10 +330,12 @@ pub fn run(settings: &FitFeaturesSettings, control: &Control) -> Result<FitFeatu
         None => FeatureTrainer::new_with(cfg.features.clone(), inputs, &setup)
             .context("setting up feature training")?,
     };
-    if let Some(styles) = &eval_styles {
-        trainer = trainer
-            .with_held_out(&held_out, styles, control.sink)
-            .context("encoding the held-out views and styles of the evaluation")?;
+    if !held_out.is_empty() {
+        trainer = match &eval_styles {
+            Some(styles) => trainer.with_held_out(&held_out, styles, control.sink),
+            None => trainer.with_held_out_views(&held_out, control.sink),
+        }
+        .context("encoding the held-out views and styles of the evaluation")?;
     }
     config::save(&cfg, &settings.out_dir)?;
     let summary = trainer.train(&control.run_in(&settings.out_dir))?;
@@ -352,7 +353,7 @@ pub fn run(settings: &FitFeaturesSettings, control: &Control) -> Result<FitFeatu
         run: summary.run,
         running_losses: summary.running_losses,
         evaluations: summary.evaluations,
-        held_out: eval_styles.is_some(),
+        held_out: !held_out.is_empty(),
         checkpoint,
     })
 }

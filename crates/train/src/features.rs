@@ -71,7 +71,8 @@
 //! view's feature map. By default the views and styles are the training ones (a fixed
 //! yardstick of how the training loss moves); [`FeatureTrainer::with_held_out`] draws them from
 //! held-out views and styles never trained on instead, so the curve measures generalisation to
-//! new views and paintings. The run evaluates before its first iteration, every
+//! new views and paintings ([`FeatureTrainer::with_held_out_views`]: held-out views with the
+//! training paintings, whose statistics the setup already has). The run evaluates before its first iteration, every
 //! `eval_interval` iterations and at the end, and reports each as an [`Event::Evaluation`]; an
 //! evaluation changes nothing, so it does not affect training or resuming.
 //!
@@ -1327,19 +1328,38 @@ impl FeatureTrainer {
     /// [`Stage::Prepare`] progress. Views must have the training views' kind (RGB images at
     /// the resolution to train at); their feature maps follow [`feature_size`].
     pub fn with_held_out(
-        mut self,
+        self,
         views: &[View],
         styles: &ImageSet,
+        sink: &dyn Sink,
+    ) -> Result<Self, TrainError> {
+        self.held_out_samples(views, styles.len(), Some(styles), sink)
+    }
+
+    /// [`FeatureTrainer::with_held_out`] with the training paintings as the evaluation's: the
+    /// same samples as `with_held_out(views, training_styles, sink)`, bit for bit, without
+    /// encoding the paintings again (their statistics from the setup are reused).
+    pub fn with_held_out_views(self, views: &[View], sink: &dyn Sink) -> Result<Self, TrainError> {
+        let styles = self.styles.len();
+        self.held_out_samples(views, styles, None, sink)
+    }
+
+    /// The held-out samples of `views` and `style_count` paintings: those of `styles`, or the
+    /// training paintings' statistics without `styles`.
+    fn held_out_samples(
+        mut self,
+        views: &[View],
+        style_count: usize,
+        styles: Option<&ImageSet>,
         sink: &dyn Sink,
     ) -> Result<Self, TrainError> {
         if self.config.eval_pairs == 0 {
             return Ok(self);
         }
-        if views.is_empty() || styles.is_empty() {
+        if views.is_empty() || style_count == 0 {
             return Err(TrainError::Dataset(format!(
-                "held-out evaluation needs views and styles ({} views, {} styles)",
+                "held-out evaluation needs views and styles ({} views, {style_count} styles)",
                 views.len(),
-                styles.len()
             )));
         }
         let deepest = self.lifter.out_channels();
@@ -1347,7 +1367,7 @@ impl FeatureTrainer {
             self.config.seed,
             self.config.eval_pairs,
             views.len(),
-            styles.len(),
+            style_count,
         );
         let mut view_ids: Vec<usize> = pairs.iter().map(|p| p.0).collect();
         let mut style_ids: Vec<usize> = pairs.iter().map(|p| p.1).collect();
@@ -1355,7 +1375,8 @@ impl FeatureTrainer {
         view_ids.dedup();
         style_ids.sort_unstable();
         style_ids.dedup();
-        let mut tally = Tally::start(Stage::Prepare, view_ids.len() + style_ids.len(), sink);
+        let encoded_styles = if styles.is_some() { style_ids.len() } else { 0 };
+        let mut tally = Tally::start(Stage::Prepare, view_ids.len() + encoded_styles, sink);
         let mut targets = Vec::with_capacity(view_ids.len());
         for &v in &view_ids {
             let view = &views[v];
@@ -1375,9 +1396,14 @@ impl FeatureTrainer {
         }
         let mut stats = Vec::with_capacity(style_ids.len());
         for &st in &style_ids {
-            let img = styles.load_resized(st, self.config.style_size)?;
-            stats.push(encode_style(&self.encoder, &to_tensor(&img)).map_err(style_err)?);
-            tally.advance(1, "encode held-out styles");
+            match styles {
+                Some(styles) => {
+                    let img = styles.load_resized(st, self.config.style_size)?;
+                    stats.push(encode_style(&self.encoder, &to_tensor(&img)).map_err(style_err)?);
+                    tally.advance(1, "encode held-out styles");
+                }
+                None => stats.push(self.styles[st].clone()),
+            }
         }
         tally.finish();
         let crop = self.config.crop_side() as usize;

@@ -579,7 +579,8 @@ fn the_configuration_reads_from_toml_with_defaults_for_the_rest() {
 
 /// The fixed evaluation: reported before the first iteration, every `eval_interval` iterations
 /// and at the end; it changes nothing in training; drawn from held-out views and styles by
-/// `with_held_out`, which given the training views and styles draws the default samples; a run
+/// `with_held_out`, which given the training views and styles draws the default samples
+/// (`with_held_out_views` draws the same as `with_held_out` with the training styles); a run
 /// resumed halfway reports the straight run's later evaluations.
 #[test]
 fn evaluations_follow_the_schedule_and_leave_training_alone() {
@@ -634,6 +635,19 @@ fn evaluations_follow_the_schedule_and_leave_training_alone() {
     let h = held.evaluate_fixed().unwrap().unwrap();
     assert_eq!(h.pairs, 3);
     assert_ne!(h.loss_align, s.evaluations[0].loss_align);
+    // With the training paintings reused rather than encoded again: the same samples.
+    let reused = FeatureTrainer::new(cfg.clone(), inputs())
+        .unwrap()
+        .with_held_out_views(&all[3..], &train::Quiet)
+        .unwrap();
+    assert_eq!(reused.evaluate_fixed().unwrap(), Some(h));
+    let msg = FeatureTrainer::new(cfg.clone(), inputs())
+        .unwrap()
+        .with_held_out_views(&[], &train::Quiet)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(msg.contains("held-out evaluation needs views"), "{msg}");
     let msg = FeatureTrainer::new(cfg.clone(), inputs())
         .unwrap()
         .with_held_out(&[], &styles(), &train::Quiet)

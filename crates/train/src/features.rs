@@ -72,9 +72,10 @@
 //! yardstick of how the training loss moves); [`FeatureTrainer::with_held_out`] draws them from
 //! held-out views and styles never trained on instead, so the curve measures generalisation to
 //! new views and paintings ([`FeatureTrainer::with_held_out_views`]: held-out views with the
-//! training paintings, whose statistics the setup already has). The run evaluates before its first iteration, every
-//! `eval_interval` iterations and at the end, and reports each as an [`Event::Evaluation`]; an
-//! evaluation changes nothing, so it does not affect training or resuming.
+//! training paintings, whose statistics the setup already has). The run evaluates before its
+//! first iteration, every `eval_interval` iterations and at the end, and reports each as an
+//! [`Event::Evaluation`]; an evaluation changes nothing, so it does not affect training or
+//! resuming.
 //!
 //! Checkpoints hold the features, the lifter, a trained decoder, the Adam state and the step;
 //! they name the geometry and encoder they belong to by fingerprints, which resuming checks.

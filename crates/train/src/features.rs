@@ -781,7 +781,8 @@ fn write_entry(out: &mut impl std::io::Write, key: &str, parts: &[&[f32]]) -> st
     put(out, ENCODING_MAGIC)?;
     put(out, key.as_bytes())?;
     put(out, &(len as u64).to_le_bytes())?;
-    let mut bytes = Vec::with_capacity(4 * PIECE.min(len));
+    // The conversion buffer of big-endian machines (little-endian ones write the values' bytes).
+    let mut bytes = Vec::new();
     for piece in parts.iter().flat_map(|p| p.chunks(PIECE)) {
         if cfg!(target_endian = "little") {
             // The values' own bytes are already little-endian.
@@ -1334,29 +1335,28 @@ impl FeatureTrainer {
         styles: &ImageSet,
         sink: &dyn Sink,
     ) -> Result<Self, TrainError> {
-        self.held_out_samples(views, styles.len(), Some(styles), sink)
+        self.held_out_samples(views, Some(styles), sink)
     }
 
     /// [`FeatureTrainer::with_held_out`] with the training paintings as the evaluation's: the
     /// same samples as `with_held_out(views, training_styles, sink)`, bit for bit, without
     /// encoding the paintings again (their statistics from the setup are reused).
     pub fn with_held_out_views(self, views: &[View], sink: &dyn Sink) -> Result<Self, TrainError> {
-        let styles = self.styles.len();
-        self.held_out_samples(views, styles, None, sink)
+        self.held_out_samples(views, None, sink)
     }
 
-    /// The held-out samples of `views` and `style_count` paintings: those of `styles`, or the
-    /// training paintings' statistics without `styles`.
+    /// The held-out samples of `views` and the paintings of `styles`, or of the training
+    /// paintings (their statistics from the setup) without `styles`.
     fn held_out_samples(
         mut self,
         views: &[View],
-        style_count: usize,
         styles: Option<&ImageSet>,
         sink: &dyn Sink,
     ) -> Result<Self, TrainError> {
         if self.config.eval_pairs == 0 {
             return Ok(self);
         }
+        let style_count = styles.map_or(self.styles.len(), ImageSet::len);
         if views.is_empty() || style_count == 0 {
             return Err(TrainError::Dataset(format!(
                 "held-out evaluation needs views and styles ({} views, {style_count} styles)",

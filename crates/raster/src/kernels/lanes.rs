@@ -359,6 +359,8 @@ pub(crate) struct Scratch {
     acc: Vec<f32>,
     /// Backward: the rows blended, in the front-to-back walk's order.
     blended: Vec<RowBlend>,
+    /// Backward: where each Gaussian's rows start in `blended`, then `blended.len()`.
+    starts: Vec<usize>,
     /// Backward: the tile's image cotangents, channel-major per row: `[(r * D + c) * LANES + l]`.
     v_image_t: Vec<f32>,
 }
@@ -787,7 +789,10 @@ impl BackwardTile<'_, '_> {
         let stride = GEOMETRY + d;
         let ids = bins.tile(t);
         let Scratch {
-            blended, v_image_t, ..
+            blended,
+            starts,
+            v_image_t,
+            ..
         } = scratch;
         let (x0, y0, x1, y1) = bins.pixel_rect(t);
         let (width, height) = ((x1 - x0) as usize, (y1 - y0) as usize);
@@ -845,17 +850,30 @@ impl BackwardTile<'_, '_> {
             }
         }
 
+        // Where each Gaussian's rows start (a Gaussian's rows are consecutive in the walk),
+        // found without a branch on the data: each row writes its index at the current count,
+        // and only a Gaussian's first row advances the count.
+        starts.clear();
+        starts.resize(blended.len() + 1, 0);
+        let mut groups = 0;
+        let mut previous = u32::MAX;
+        for (i, b) in blended.iter().enumerate() {
+            starts[groups] = i;
+            groups += (b.k != previous) as usize;
+            previous = b.k;
+        }
+        starts[groups] = blended.len();
+
         // Back to front, one Gaussian at a time; its rows in ascending order.
         let cx: [f32; LANES] = std::array::from_fn(|l| pixel_centre::<f32>(x0 + l as u32));
-        let mut end = blended.len();
-        while end > 0 {
-            let k = blended[end - 1].k;
-            let start = blended[..end]
-                .iter()
-                .rposition(|b| b.k != k)
-                .map_or(0, |i| i + 1);
+        for group in (0..groups).rev() {
+            if let Some(ahead) = group.checked_sub(PREFETCH_AHEAD) {
+                let g = ids[blended[starts[ahead]].k as usize] as usize;
+                prefetch(&splats.channels[g * d..(g + 1) * d]);
+            }
+            let (start, end) = (starts[group], starts[group + 1]);
             let rows = &blended[start..end];
-            let k = k as usize;
+            let k = rows[0].k as usize;
             let g = ids[k] as usize;
             let s = &packed[g].s;
             let z = packed[g].depth;
@@ -912,7 +930,6 @@ impl BackwardTile<'_, '_> {
             let record = &mut rec[k * stride..(k + 1) * stride];
             record[..GEOMETRY].copy_from_slice(&sums);
             record[GEOMETRY..].copy_from_slice(grads.as_ref());
-            end = start;
         }
     }
 }

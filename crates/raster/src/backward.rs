@@ -208,9 +208,11 @@ pub fn rasterize_backward_with<T: Real>(
         splats.packed()
     };
     // Each Gaussian's intersections in ascending order, so that the sum of its records runs in
-    // intersection order in time linear in the intersections (see `GaussianLists`).
-    let lists = GaussianLists::new(bins.gaussian_ids(), n)?;
-    let mut next = lists.start[..n].to_vec();
+    // intersection order in time linear in the intersections (see `GaussianLists`). Built
+    // alongside the first batch's tile pass, which does not read them.
+    GaussianLists::check(bins.gaussian_ids())?;
+    let mut lists: Option<GaussianLists> = None;
+    let mut next = Vec::new();
 
     let mut first = 0;
     while first < tiles {
@@ -236,39 +238,52 @@ pub fn rasterize_backward_with<T: Real>(
             bg_rest = bg_tail;
         }
         slices.sort_unstable_by_key(|&(t, _, _)| bins.locality_key(t));
-        slices.into_par_iter().for_each_init(
-            <(scalar::Scratch<T>, lanes::Scratch)>::default,
-            |(scalar_scratch, lane_scratch), (t, rec, bg)| {
-                let lanes_out = T::as_f32_slice_mut(rec).zip(T::as_f32_slice_mut(bg));
-                match (&lanes_in, lanes_out) {
-                    (Some((token, splats, background, cot)), Some((rec, bg_grad))) => {
-                        token.run(lanes::BackwardTile {
+        let tile_pass = || {
+            slices.into_par_iter().for_each_init(
+                <(scalar::Scratch<T>, lanes::Scratch)>::default,
+                |(scalar_scratch, lane_scratch), (t, rec, bg)| {
+                    let lanes_out = T::as_f32_slice_mut(rec).zip(T::as_f32_slice_mut(bg));
+                    match (&lanes_in, lanes_out) {
+                        (Some((token, splats, background, cot)), Some((rec, bg_grad))) => token
+                            .run(lanes::BackwardTile {
+                                splats,
+                                packed: packed32,
+                                bins,
+                                background,
+                                cot,
+                                t,
+                                scratch: lane_scratch,
+                                rec,
+                                bg_grad,
+                                kept: kept.and_then(|k| k.blends[t].as_deref()),
+                            }),
+                        _ => scalar::backward_tile(
                             splats,
-                            packed: packed32,
+                            &packed,
                             bins,
                             background,
                             cot,
                             t,
-                            scratch: lane_scratch,
+                            scalar_scratch,
                             rec,
-                            bg_grad,
-                            kept: kept.and_then(|k| k.blends[t].as_deref()),
-                        })
+                            bg,
+                        ),
                     }
-                    _ => scalar::backward_tile(
-                        splats,
-                        &packed,
-                        bins,
-                        background,
-                        cot,
-                        t,
-                        scalar_scratch,
-                        rec,
-                        bg,
-                    ),
-                }
-            },
-        );
+                },
+            )
+        };
+        let lists = match &mut lists {
+            Some(lists) => {
+                tile_pass();
+                lists
+            }
+            None => {
+                let (built, ()) =
+                    rayon::join(|| GaussianLists::new(bins.gaussian_ids(), n), tile_pass);
+                next = built.start[..n].to_vec();
+                lists.insert(built)
+            }
+        };
 
         // Sum the records per Gaussian, in intersection order: each Gaussian takes its
         // intersections of this batch, which follow its cursor in its ascending list.
@@ -361,10 +376,16 @@ struct GaussianLists {
 }
 
 impl GaussianLists {
-    fn new(ids: &[u32], n: usize) -> Result<GaussianLists, RasterError> {
+    /// `Ok` when the intersections `ids` can be listed (their positions fit `u32`).
+    fn check(ids: &[u32]) -> Result<(), RasterError> {
         if ids.len() > u32::MAX as usize {
             return Err(RasterError::TooManyIntersections(ids.len()));
         }
+        Ok(())
+    }
+
+    /// The lists of the intersections `ids` (of Gaussians `0..n`; [`GaussianLists::check`]ed).
+    fn new(ids: &[u32], n: usize) -> GaussianLists {
         let mut start = vec![0usize; n + 1];
         for &g in ids {
             start[g as usize + 1] += 1;
@@ -379,9 +400,9 @@ impl GaussianLists {
             intersections[*c] = j as u32;
             *c += 1;
         }
-        Ok(GaussianLists {
+        GaussianLists {
             start,
             intersections,
-        })
+        }
     }
 }

@@ -34,7 +34,12 @@ use terminal::Terminal;
 use train::bake::STORED_SH_DEGREE;
 use train::{BakeConfig, DecoderMode, DecoderTrainConfig, FeatureNorm, Variant};
 
+mod memory;
 mod terminal;
+
+/// Large blocks advised for huge pages (`memory`).
+#[global_allocator]
+static ALLOCATOR: memory::HugePageAdvice = memory::HugePageAdvice;
 
 /// Zero-shot 3D style transfer on Gaussian splatting (DS-StyleGaussian), exact and CPU-only.
 #[derive(Parser)]
@@ -1008,7 +1013,7 @@ fn parse() -> Cli {
 }
 
 fn main() -> ExitCode {
-    keep_freed_memory();
+    memory::keep_freed_memory();
     match run(parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) if is_interrupted(&e) => {
@@ -1019,23 +1024,6 @@ fn main() -> ExitCode {
             eprintln!("error: {e:#}");
             ExitCode::FAILURE
         }
-    }
-}
-
-/// Asks glibc's allocator to serve allocations below 1 GiB from its heap and to keep up to
-/// 2 GiB of freed memory there instead of returning it to the system. The stages allocate and
-/// free tensors of tens of megabytes many times per iteration (a 256-channel 256x256 activation
-/// is 64 MiB); by default each is mapped afresh, and the kernel faults in and clears every page
-/// again. Measured on a 256->256 convolution at 256x256: 1.15x to 1.35x faster with this
-/// setting, and the munmap calls of a benchmark run fell from 79 to 6 (`docs/performance.md`).
-/// The cost is that the process keeps its peak heap until it exits.
-fn keep_freed_memory() {
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: mallopt only changes allocator parameters; it is called before any other thread
-    // exists, and a value it rejects leaves the default in place.
-    unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 30);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
     }
 }
 

@@ -5,7 +5,8 @@
 //! `sigmoid(opacity_logits)`; the blended channels are chosen by [`Channels`] (SH colour at an
 //! active degree, the feature vectors, or colour then features concatenated); then
 //! [`crate::rasterize`]. Backward: [`crate::rasterize_backward`], then the sigmoid, the SH colour
-//! backward (which also reaches the means through the view direction) and `project_backward`.
+//! backward (which also reaches the means through the view direction) and `project_backward`;
+//! for frozen geometry, [`render_backward_features`] stops after the rasterizer.
 //! Conventions are the oracle's throughout (see the `gaussian` and `raster` module docs).
 //!
 //! Memory beyond the rasterizer's: per Gaussian, the projection (6 reals and 2 `u32`), the opacity,
@@ -19,7 +20,7 @@ use rayon::prelude::*;
 use gaussian::{project, project_backward, sh_colors, sh_colors_backward};
 use gaussian::{Camera, FeatureGaussians, ProjectSettings, Projected, Real};
 
-use crate::backward::{rasterize_backward, Cotangents};
+use crate::backward::{rasterize_backward, Cotangents, SplatGrads};
 use crate::error::{check_len, RasterError};
 use crate::forward::{rasterize, Rasterized, Splats};
 use crate::stats::ndc_grad_norms;
@@ -340,11 +341,9 @@ pub fn render_window<T: Real>(
     })
 }
 
-/// Gradients of the loss `sum v_image image + sum v_alpha alpha + sum v_depth depth` (the images
-/// of `render`, from the same camera, scene and options, [`render`] or [`render_window`]; the
-/// cotangents cover its window) with respect to the scene parameters and the background. `depth` is the accumulated depth `sum_i w_i z_i`; see
-/// [`crate::fold_normalized_depth_cotangent`] for a cotangent on the normalised depth.
-pub fn render_backward<T: Real>(
+/// Validates a backward pass's inputs and runs the rasterizer's backward pass on the render's
+/// splats: the gradients with respect to the splats, and the channel count.
+fn splat_grads<T: Real>(
     camera: &Camera,
     scene: &FeatureGaussians<T>,
     opts: &RenderOptions<T>,
@@ -352,7 +351,7 @@ pub fn render_backward<T: Real>(
     v_image: &[T],
     v_alpha: Option<&[T]>,
     v_depth: Option<&[T]>,
-) -> Result<SceneGrads<T>, RasterError> {
+) -> Result<(SplatGrads<T>, usize), RasterError> {
     let d = validate(scene, opts)?;
     render.window.check(camera)?;
     let n = scene.len();
@@ -389,22 +388,18 @@ pub fn render_backward<T: Real>(
         depth: v_depth,
     };
     let g = rasterize_backward(&splats, &render.raster.bins, &opts.background, &cot)?;
-    drop(rows);
-    drop(means2d);
+    Ok((g, d))
+}
 
-    let opacity_logits = g
-        .opacities
-        .iter()
-        .zip(&render.opacities)
-        .map(|(&v, &o)| v * o * (T::one() - o))
-        .collect();
-
-    // Split the channel gradients into colour and feature parts.
+/// The feature part of the channel gradients `channels` (`D = d` per Gaussian), in the layout
+/// of the scene's `features` (zero when the features were not rendered).
+fn feature_grads<T: Real>(
+    scene: &FeatureGaussians<T>,
+    opts: &RenderOptions<T>,
+    channels: &[T],
+    d: usize,
+) -> Vec<T> {
     let f = scene.feature_dim;
-    let color_offset = match opts.channels {
-        Channels::Features => None,
-        _ => Some(0),
-    };
     let feature_offset = match opts.channels {
         Channels::Color { .. } => None,
         Channels::Features => Some(0),
@@ -412,10 +407,60 @@ pub fn render_backward<T: Real>(
     };
     let mut features = vec![T::zero(); scene.features.len()];
     if let Some(off) = feature_offset {
-        for (i, dst) in features.chunks_exact_mut(f.max(1)).enumerate().take(n) {
-            dst.copy_from_slice(&g.channels[i * d + off..i * d + off + f]);
+        for (i, dst) in features
+            .chunks_exact_mut(f.max(1))
+            .enumerate()
+            .take(scene.len())
+        {
+            dst.copy_from_slice(&channels[i * d + off..i * d + off + f]);
         }
     }
+    features
+}
+
+/// The gradient with respect to the features alone, for geometry (and colour) held fixed:
+/// `render_backward(..).features`, bit for bit, without the backward passes of the opacities,
+/// the SH colour and the projection, whose results such a caller would discard. Only the image
+/// cotangent reaches the features (the alpha and depth images do not depend on them).
+pub fn render_backward_features<T: Real>(
+    camera: &Camera,
+    scene: &FeatureGaussians<T>,
+    opts: &RenderOptions<T>,
+    render: &Render<T>,
+    v_image: &[T],
+) -> Result<Vec<T>, RasterError> {
+    let (g, d) = splat_grads(camera, scene, opts, render, v_image, None, None)?;
+    Ok(feature_grads(scene, opts, &g.channels, d))
+}
+
+/// Gradients of the loss `sum v_image image + sum v_alpha alpha + sum v_depth depth` (the images
+/// of `render`, from the same camera, scene and options, [`render`] or [`render_window`]; the
+/// cotangents cover its window) with respect to the scene parameters and the background. `depth` is the accumulated depth `sum_i w_i z_i`; see
+/// [`crate::fold_normalized_depth_cotangent`] for a cotangent on the normalised depth.
+pub fn render_backward<T: Real>(
+    camera: &Camera,
+    scene: &FeatureGaussians<T>,
+    opts: &RenderOptions<T>,
+    render: &Render<T>,
+    v_image: &[T],
+    v_alpha: Option<&[T]>,
+    v_depth: Option<&[T]>,
+) -> Result<SceneGrads<T>, RasterError> {
+    let (g, d) = splat_grads(camera, scene, opts, render, v_image, v_alpha, v_depth)?;
+    let n = scene.len();
+    let p = &render.projected;
+    let opacity_logits = g
+        .opacities
+        .iter()
+        .zip(&render.opacities)
+        .map(|(&v, &o)| v * o * (T::one() - o))
+        .collect();
+
+    let features = feature_grads(scene, opts, &g.channels, d);
+    let color_offset = match opts.channels {
+        Channels::Features => None,
+        _ => Some(0),
+    };
     let proj = project_backward(
         camera,
         &scene.means,

@@ -10,7 +10,8 @@ use glam::{DMat4, DQuat, DVec3};
 use proptest::prelude::*;
 use proptest::test_runner::TestCaseError;
 use raster::{
-    render, render_backward, render_window, Channels, PixelWindow, Render, RenderOptions,
+    render, render_backward, render_backward_features, render_window, Channels, PixelWindow,
+    Render, RenderOptions,
 };
 
 /// An image side `16 k + r` with `r` in 1..16: never a multiple of 16.
@@ -442,6 +443,51 @@ proptest! {
         let outside = PixelWindow { x: width, ..window };
         let msg = render_window(&camera, &scene, &opts, outside).unwrap_err().to_string();
         prop_assert!(msg.contains("does not fit") && msg.contains(&format!("{width}x{height}")), "{}", msg);
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 24, ..ProptestConfig::default() })]
+    /// The features-only backward pass (frozen geometry) gives what the whole chain's backward
+    /// pass gives for the features, bit for bit: in `f64` (the scalar reference) and in `f32`
+    /// (the vector kernels where the machine has them), on a window or the whole image, with
+    /// every channel mode (colour alone: zero), and whatever the alpha and depth cotangents of
+    /// the whole pass, which do not reach the features.
+    #[test]
+    fn features_only_backward_is_the_features_part_of_the_whole(
+        n in 1usize..40, d in 1usize..=8, width in side(), height in side(),
+        sh_degree in 0usize..=3, mode in 0usize..3, seed in any::<u64>(), whole in any::<bool>(),
+    ) {
+        let mut rng = Rng(seed);
+        let (camera, scene) = random_case(&mut rng, n, width, height, d, sh_degree);
+        let channels = channels_of(mode, sh_degree);
+        let dc = channels.count(d);
+        let opts = RenderOptions::new(channels, rng.vec(dc, 0.0, 1.0));
+        let window = if whole {
+            PixelWindow::full(&camera)
+        } else {
+            PixelWindow { x: width / 4, y: height / 3, width: width / 2, height: height / 2 }
+        };
+        let pixels = (window.width * window.height) as usize;
+        let (v_image, v_alpha, v_depth) = cotangents(&mut rng, pixels, dc, 0.1);
+
+        let r = render_window(&camera, &scene, &opts, window).unwrap();
+        let all = render_backward(&camera, &scene, &opts, &r, &v_image, Some(&v_alpha), Some(&v_depth)).unwrap();
+        let features = render_backward_features(&camera, &scene, &opts, &r, &v_image).unwrap();
+        prop_assert_eq!(&features, &all.features);
+        if mode == 0 {
+            prop_assert!(features.iter().all(|&g| g == 0.0), "colour alone reaches no feature");
+        }
+
+        let s32: FeatureGaussians<f32> = scene.cast();
+        let o32 = RenderOptions::new(channels, opts.background.iter().map(|&b| b as f32).collect());
+        let cast = |v: &[f64]| -> Vec<f32> { v.iter().map(|&x| x as f32).collect() };
+        let (vi, va, vd) = (cast(&v_image), cast(&v_alpha), cast(&v_depth));
+        let r = render_window(&camera, &s32, &o32, window).unwrap();
+        let all = render_backward(&camera, &s32, &o32, &r, &vi, Some(&va), Some(&vd)).unwrap();
+        let features = render_backward_features(&camera, &s32, &o32, &r, &vi).unwrap();
+        let bits = |v: &[f32]| -> Vec<u32> { v.iter().map(|x| x.to_bits()).collect() };
+        prop_assert_eq!(bits(&features), bits(&all.features));
     }
 }
 

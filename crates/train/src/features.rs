@@ -24,7 +24,7 @@
 //!    with `t = std_s l(r) + mean_s`; with both lambdas zero (the alignment-only ablation) the
 //!    decoder and encoder are not run at all and the content and style terms are reported as 0;
 //! 4. run the rasterizer's backward pass from `dL/dr` on the window
-//!    ([`raster::render_backward`], feature channels) to per-Gaussian feature gradients;
+//!    ([`raster::render_backward_features`], feature channels) to per-Gaussian feature gradients;
 //! 5. Adam steps the features and the lifter's weight and bias (nothing else changes).
 //!
 //! [`stage3_gradients`] is steps 2-4 for any precision, so the same code is checked against
@@ -91,7 +91,7 @@ use nets::{ConvGrad, Decoder, Encoder, Lifter, NetWeights};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
-use raster::{render_backward, render_window, Channels, PixelWindow, RenderOptions};
+use raster::{render_backward_features, render_window, Channels, PixelWindow, RenderOptions};
 use serde::{Deserialize, Serialize};
 use style::{
     align_loss, align_loss_backward, channel_stats, encode_style, stage3_loss, ChannelStats,
@@ -482,13 +482,14 @@ pub fn stage3_gradients<T: Real>(
     for ((_, ch, y, x), &g) in grad_r.indexed_iter() {
         v_image[(y * win.width + x) * f + ch] = g;
     }
-    let grads = render_backward(&cam, scene, &opts, &fwd, &v_image, None, None)?;
+    // The geometry is frozen: only the features' gradient is formed.
+    let features = render_backward_features(&cam, scene, &opts, &fwd, &v_image)?;
     Ok(Stage3Gradients {
         loss_align: terms[0],
         loss_content: terms[1],
         loss_style: terms[2],
         loss: terms[3],
-        features: grads.features,
+        features,
         lifter: grad_lifter,
         decoder: grad_decoder,
     })

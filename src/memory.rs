@@ -36,6 +36,15 @@ pub struct HugePageAdvice;
 /// whole huge page, and the small allocations (the vast majority) cost nothing more.
 const ADVISE_FROM: usize = 4 << 20;
 
+/// `ptr`, a block of `len` bytes from the system allocator, advised when it is large enough.
+#[inline]
+fn advised(ptr: *mut u8, len: usize) -> *mut u8 {
+    if len >= ADVISE_FROM {
+        advise(ptr, len);
+    }
+    ptr
+}
+
 /// Advises the whole 2 MiB pages of the `len` bytes at `ptr` (a block from the allocator).
 #[inline]
 fn advise(ptr: *mut u8, len: usize) {
@@ -63,22 +72,14 @@ unsafe impl GlobalAlloc for HugePageAdvice {
     #[inline]
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         // SAFETY: the caller's contract for `layout` is passed on unchanged.
-        let ptr = unsafe { System.alloc(layout) };
-        if layout.size() >= ADVISE_FROM {
-            advise(ptr, layout.size());
-        }
-        ptr
+        advised(unsafe { System.alloc(layout) }, layout.size())
     }
 
     #[inline]
     unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
         // SAFETY: as `alloc`. The system allocator's own zeroing is kept: it skips memory fresh
         // from the kernel (zero already), which is then faulted in only when first written.
-        let ptr = unsafe { System.alloc_zeroed(layout) };
-        if layout.size() >= ADVISE_FROM {
-            advise(ptr, layout.size());
-        }
-        ptr
+        advised(unsafe { System.alloc_zeroed(layout) }, layout.size())
     }
 
     #[inline]
@@ -90,11 +91,7 @@ unsafe impl GlobalAlloc for HugePageAdvice {
     #[inline]
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
         // SAFETY: the caller's contract for `ptr`, `layout` and `new_size` is passed on.
-        let ptr = unsafe { System.realloc(ptr, layout, new_size) };
-        if new_size >= ADVISE_FROM {
-            advise(ptr, new_size);
-        }
-        ptr
+        advised(unsafe { System.realloc(ptr, layout, new_size) }, new_size)
     }
 }
 

@@ -383,8 +383,8 @@ fn for_each_bit(mut m: Mask, mut f: impl FnMut(usize)) {
 /// Evaluates `s` at the pixel centres `cx` of the row with centre `cy`: the scalar loops'
 /// `evaluate`, lane by lane, for the lanes of `lanes`. Writes every lane's falloff and alpha and
 /// returns the lanes where the Gaussian is not skipped. The exponential is evaluated on every
-/// lane (where the scalar loops skip it, its value is never used), so no branch depends on the
-/// data.
+/// lane, so no branch depends on the data; outside the lanes whose `sigma` passes the skip test
+/// it is taken at 0 (falloff 1), a value that is never used.
 ///
 /// The skip tests are the scalar loops' negated: `!(sigma.is_nan() || sigma < 0 || sigma > cut)`
 /// is `0 <= sigma && sigma <= cut` and `!(alpha.is_nan() || alpha < ALPHA_MIN)` is
@@ -410,6 +410,11 @@ fn evaluate_row<const EVERY_ROW: bool, I: LaneIsa>(
     if !EVERY_ROW && hit == 0 {
         return 0;
     }
+    // The lanes outside `hit` take the exponential of 0: their values are never used, and far
+    // from the centre `exp(-sigma)` is subnormal, which makes every vector instruction that
+    // touches it (here and in the blend and gradient arithmetic of the row) take a slow
+    // microcode path on some processors.
+    let sigma = isa.select(hit, &sigma, &[0.0; LANES]);
     // A plain loop: `array::from_fn` with this body is not always inlined, and out of line it
     // runs without the instruction set's features.
     for l in 0..LANES {
@@ -601,8 +606,8 @@ fn replay<I: LaneIsa>(
         let r = rr.row as usize;
         let s = &packed[ids[rr.k as usize] as usize].s;
         let cy = pixel_centre::<f32>(y0 + r as u32);
-        evaluate_row::<true, I>(isa, s, 0, &cx, cy, &mut falloff, &mut alpha);
         let blend = rr.blend as Mask;
+        evaluate_row::<true, I>(isa, s, blend, &cx, cy, &mut falloff, &mut alpha);
         let front = trans[r];
         let mut next = [0f32; LANES];
         for l in 0..LANES {
@@ -930,6 +935,61 @@ impl BackwardTile<'_, '_> {
             let record = &mut rec[k * stride..(k + 1) * stride];
             record[..GEOMETRY].copy_from_slice(&sums);
             record[GEOMETRY..].copy_from_slice(grads.as_ref());
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// Every falloff and alpha of a row evaluation, in every lane (those that blend and those
+    /// that do not), for the portable lanes and each instruction set this machine has.
+    fn row_values(s: &Splat<f32>, cy: f32) -> Vec<f32> {
+        struct Op<'a>(&'a Splat<f32>, f32);
+        impl LaneOp for Op<'_> {
+            type Output = Vec<f32>;
+            #[inline(always)]
+            fn run<I: LaneIsa>(self, isa: I) -> Vec<f32> {
+                let cx: [f32; LANES] = std::array::from_fn(|l| pixel_centre::<f32>(l as u32));
+                let (mut falloff, mut alpha) = ([0f32; LANES], [0f32; LANES]);
+                evaluate_row::<true, I>(
+                    isa,
+                    self.0,
+                    Mask::MAX,
+                    &cx,
+                    self.1,
+                    &mut falloff,
+                    &mut alpha,
+                );
+                falloff.into_iter().chain(alpha).collect()
+            }
+        }
+        super::super::Isa::available()
+            .into_iter()
+            .filter_map(super::super::Token::new)
+            .flat_map(|token| token.run(Op(s, cy)))
+            .collect()
+    }
+
+    proptest! {
+        /// No row evaluation leaves a subnormal value in any lane: far from a Gaussian's centre
+        /// `exp(-sigma)` is subnormal, and arithmetic on subnormals is many times slower on some
+        /// processors, so the lanes the Gaussian does not reach must not compute it.
+        #[test]
+        fn row_evaluations_leave_no_subnormal_lane(
+            mx in -8f32..24.0,
+            my in -8f32..24.0,
+            radius in 0.3f32..6.0,
+            skew in -0.9f32..0.9,
+            opacity in 0.01f32..1.0,
+            row in 0u32..16,
+        ) {
+            let a = 1.0 / (radius * radius);
+            let s = Splat::new([mx, my], [a, skew * a, a], opacity);
+            let values = row_values(&s, pixel_centre::<f32>(row));
+            prop_assert!(values.iter().all(|v| !v.is_subnormal()), "{values:?}");
         }
     }
 }

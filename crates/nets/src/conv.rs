@@ -60,10 +60,11 @@
 //! through the same sequence of GEMM calls (taps in a fixed order), so results are bitwise
 //! identical for any thread count.
 
+use std::mem::MaybeUninit;
 use std::sync::Mutex;
 
 use base::Real;
-use ndarray::{s, Array1, Array4, ArrayView1, ArrayView4, Axis};
+use ndarray::{s, Array1, Array4, ArrayView1, ArrayView4, ArrayViewMut2, Axis, Zip};
 use rayon::prelude::*;
 
 use crate::matmul::{backend_for, matmul, GemmBackend, Pass};
@@ -232,7 +233,7 @@ pub(crate) fn conv_valid<T: Real>(
         );
     }
     let ckk = c * k * k;
-    let mut out = Array4::<T>::zeros((n, o, h_out, w_out));
+    let mut out = zeroed::<T>((n, o, h_out, w_out));
     let out_ptr = SyncPtr(out.as_mut_ptr());
     let rows = rows_per_implicit_tile::<T>(o, wp, h_out);
     let jobs = tiles(n, h_out, rows);
@@ -483,30 +484,46 @@ pub fn pad_reflect1<T: Real>(x: ArrayView4<T>) -> Array4<T> {
         h >= 2 && w >= 2,
         "reflection padding needs at least 2x2 pixels, got {h}x{w}"
     );
-    let mut out = Array4::<T>::zeros((n, c, h + 2, w + 2));
-    out.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .zip(x.axis_iter(Axis(0)).into_par_iter())
-        .for_each(|(mut o_img, x_img)| {
-            for (mut o, xc) in o_img.outer_iter_mut().zip(x_img.outer_iter()) {
-                o.slice_mut(s![1..h + 1, 1..w + 1]).assign(&xc);
-                o.slice_mut(s![0, 1..w + 1]).assign(&xc.row(1));
-                o.slice_mut(s![h + 1, 1..w + 1]).assign(&xc.row(h - 2));
-                for r in 0..h + 2 {
-                    o[[r, 0]] = o[[r, 2]];
-                    o[[r, w + 1]] = o[[r, w - 1]];
-                }
-            }
-        });
-    out
+    // Padded row `r` copies input row `1` (r = 0), `r - 1` or `h - 2` (r = h + 1); within it,
+    // column 0 copies input column 1 and column w + 1 input column w - 2.
+    by_planes((n, c, h + 2, w + 2), |i, j, mut o| {
+        let xc = x.slice(s![i, j, .., ..]);
+        for (r, mut row) in o.outer_iter_mut().enumerate() {
+            let src = xc.row(match r {
+                0 => 1,
+                r if r == h + 1 => h - 2,
+                r => r - 1,
+            });
+            row[0].write(src[1]);
+            row[w + 1].write(src[w - 2]);
+            Zip::from(row.slice_mut(s![1..w + 1]))
+                .and(&src)
+                .for_each(|d, &v| {
+                    d.write(v);
+                });
+        }
+    })
 }
 
 /// Zero padding by `p` pixels on both spatial axes.
 fn pad_zero<T: Real>(x: ArrayView4<T>, p: usize) -> Array4<T> {
     let (n, c, h, w) = x.dim();
-    let mut out = Array4::<T>::zeros((n, c, h + 2 * p, w + 2 * p));
-    out.slice_mut(s![.., .., p..p + h, p..p + w]).assign(&x);
-    out
+    by_planes((n, c, h + 2 * p, w + 2 * p), |i, j, mut o| {
+        let xc = x.slice(s![i, j, .., ..]);
+        for (r, mut row) in o.outer_iter_mut().enumerate() {
+            if r < p || r >= p + h {
+                row.fill(MaybeUninit::new(T::zero()));
+                continue;
+            }
+            row.slice_mut(s![..p]).fill(MaybeUninit::new(T::zero()));
+            row.slice_mut(s![p + w..]).fill(MaybeUninit::new(T::zero()));
+            Zip::from(row.slice_mut(s![p..p + w]))
+                .and(xc.row(r - p))
+                .for_each(|d, &v| {
+                    d.write(v);
+                });
+        }
+    })
 }
 
 /// The adjoint of [`pad_reflect1`]: folds the gradient of a reflection-padded tensor
@@ -514,33 +531,60 @@ fn pad_zero<T: Real>(x: ArrayView4<T>, p: usize) -> Array4<T> {
 fn fold_reflect1<T: Real>(gp: Array4<T>) -> Array4<T> {
     let (n, c, hp, wp) = gp.dim();
     let (h, w) = (hp - 2, wp - 2);
-    let mut out = Array4::<T>::zeros((n, c, h, w));
-    out.axis_iter_mut(Axis(0))
-        .into_par_iter()
-        .zip(gp.axis_iter(Axis(0)).into_par_iter())
-        .for_each(|(mut o_img, g_img)| {
-            for (mut o, g) in o_img.outer_iter_mut().zip(g_img.outer_iter()) {
-                // Rows first on padded columns: padded row 0 mirrors input row 1, row h+1 mirrors
-                // input row h-2; then the padded columns likewise.
-                let mut rows = g.slice(s![1..h + 1, ..]).to_owned();
-                {
-                    let top = g.row(0);
-                    let mut r = rows.row_mut(1);
-                    r += &top;
-                }
-                {
-                    let bottom = g.row(h + 1);
-                    let mut r = rows.row_mut(h - 2);
-                    r += &bottom;
-                }
-                o.assign(&rows.slice(s![.., 1..w + 1]));
-                for r in 0..h {
-                    o[[r, 1]] += rows[[r, 0]];
-                    o[[r, w - 2]] += rows[[r, w + 1]];
-                }
-            }
+    by_planes((n, c, h, w), |i, j, mut out| {
+        let g = gp.slice(s![i, j, .., ..]);
+        // Rows first on padded columns: padded row 0 mirrors input row 1, row h+1 mirrors
+        // input row h-2; then the padded columns likewise.
+        let mut rows = g.slice(s![1..h + 1, ..]).to_owned();
+        {
+            let top = g.row(0);
+            let mut r = rows.row_mut(1);
+            r += &top;
+        }
+        {
+            let bottom = g.row(h + 1);
+            let mut r = rows.row_mut(h - 2);
+            r += &bottom;
+        }
+        let mut o = rows.slice(s![.., 1..w + 1]).to_owned();
+        for r in 0..h {
+            o[[r, 1]] += rows[[r, 0]];
+            o[[r, w - 2]] += rows[[r, w + 1]];
+        }
+        Zip::from(&mut out).and(&o).for_each(|d, &v| {
+            d.write(v);
         });
-    out
+    })
+}
+
+/// A zeroed `[N,C,H,W]` array, its planes zeroed in parallel (`Array4::zeros` clears the whole
+/// block on the calling thread; a convolution's output is tens of megabytes).
+pub(crate) fn zeroed<T: Real>(dim: (usize, usize, usize, usize)) -> Array4<T> {
+    by_planes(dim, |_, _, mut plane| {
+        plane.fill(MaybeUninit::new(T::zero()))
+    })
+}
+
+/// A `[N,C,H,W]` array whose `[H,W]` planes are written by `fill(n, c, plane)`, the planes in
+/// parallel. `fill` must write every element of the plane it is given: the array is returned
+/// as initialised without being zeroed first (padding, folding and upsampling overwrite every
+/// element, and zeroing a large tensor first costs a pass over its memory on one thread).
+pub(crate) fn by_planes<T: Real>(
+    dim: (usize, usize, usize, usize),
+    fill: impl Fn(usize, usize, ArrayViewMut2<MaybeUninit<T>>) + Sync,
+) -> Array4<T> {
+    let (n, c, h, w) = dim;
+    let mut out = Array4::<T>::uninit(dim);
+    out.view_mut()
+        .into_shape_with_order((n * c, h, w))
+        .expect("a fresh array is contiguous")
+        .axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(p, plane)| fill(p / c.max(1), p % c.max(1), plane));
+    // SAFETY: every caller's `fill` writes each element of its plane (the planes partition the
+    // array), so every element is initialised here.
+    unsafe { out.assume_init() }
 }
 
 /// The kernel of the input gradient: `wt[c,o,i,j] = w[o,c,K-1-i,K-1-j]`.
@@ -697,6 +741,73 @@ mod tests {
                     assert_eq!(v, w[[oi, ci, k - 1 - i, k - 1 - j]]);
                 }
             }
+        }
+    }
+
+    /// Reflection about the edge pixel without repeating it, as `F.pad(.., mode="reflect")`:
+    /// padded index `-1` reads `1`, padded index `len` reads `len - 2`.
+    fn reflect(i: isize, len: usize) -> usize {
+        match i {
+            -1 => 1,
+            i if i == len as isize => len - 2,
+            i => i as usize,
+        }
+    }
+
+    /// Inputs of several batch and channel counts, down to 2x2, in standard and transposed
+    /// layouts, with distinct integer values.
+    fn inputs() -> Vec<Array4<f64>> {
+        let mut out = Vec::new();
+        for (n, c, h, w) in [(1, 1, 2, 2), (2, 3, 2, 5), (1, 4, 6, 3), (3, 2, 7, 9)] {
+            let x = Array4::from_shape_fn((n, c, h, w), |(a, b, i, j)| {
+                (((a * 7 + b) * 11 + i) * 13 + j) as f64
+            });
+            out.push(x.clone());
+            // The same values through a non-standard layout.
+            let t = x
+                .permuted_axes([1, 0, 3, 2])
+                .as_standard_layout()
+                .to_owned();
+            out.push(t.permuted_axes([1, 0, 3, 2]));
+        }
+        out
+    }
+
+    #[test]
+    fn padding_follows_its_index_rule_for_any_shape_and_layout() {
+        for x in inputs() {
+            let (n, c, h, w) = x.dim();
+            let r = pad_reflect1(x.view());
+            assert_eq!(r.dim(), (n, c, h + 2, w + 2));
+            for ((a, b, i, j), &v) in r.indexed_iter() {
+                let (si, sj) = (reflect(i as isize - 1, h), reflect(j as isize - 1, w));
+                assert_eq!(v, x[[a, b, si, sj]], "reflect at {:?}", (a, b, i, j));
+            }
+            for p in [1, 2] {
+                let z = pad_zero(x.view(), p);
+                assert_eq!(z.dim(), (n, c, h + 2 * p, w + 2 * p));
+                for ((a, b, i, j), &v) in z.indexed_iter() {
+                    let inside = (p..p + h).contains(&i) && (p..p + w).contains(&j);
+                    let want = if inside { x[[a, b, i - p, j - p]] } else { 0.0 };
+                    assert_eq!(v, want, "zero pad {p} at {:?}", (a, b, i, j));
+                }
+            }
+        }
+    }
+
+    /// `fold_reflect1` is the adjoint of `pad_reflect1`: `<pad(x), g> = <x, fold(g)>` for every
+    /// `x` and `g`; with integer values both sides are exact sums.
+    #[test]
+    fn folding_is_the_adjoint_of_reflection_padding() {
+        for x in inputs() {
+            let (n, c, h, w) = x.dim();
+            let g = Array4::from_shape_fn((n, c, h + 2, w + 2), |(a, b, i, j)| {
+                ((a * 3 + b * 5 + i * 7 + j * 11) % 17) as f64 - 8.0
+            });
+            let lhs = (&pad_reflect1(x.view()) * &g).sum();
+            let folded = fold_reflect1(g.clone());
+            assert_eq!(folded.dim(), x.dim());
+            assert_eq!(lhs, (&x * &folded).sum());
         }
     }
 }

@@ -7,8 +7,10 @@
 //! as PyTorch does, and the backward pass routes each output gradient to that pixel.
 
 use base::Real;
-use ndarray::{Array4, ArrayView4, Axis};
+use ndarray::{Array4, ArrayView4};
 use rayon::prelude::*;
+
+use crate::conv::zeroed;
 
 /// How the pooled size is rounded when the input size is odd.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -108,18 +110,17 @@ pub fn max_pool2x2_backward<T: Real>(dy: ArrayView4<T>, argmax: &PoolArgmax) -> 
     );
     let dy = dy.as_standard_layout();
     let ds = dy.as_slice().expect("standard layout");
-    let mut dx = Array4::<T>::zeros((n, c, h, w));
-    dx.axis_iter_mut(Axis(0))
-        .into_par_iter()
+    let mut dx = zeroed::<T>((n, c, h, w));
+    dx.as_slice_mut()
+        .expect("fresh array")
+        .par_chunks_mut(h * w)
         .enumerate()
-        .for_each(|(img, mut dimg)| {
-            for (ch, mut plane) in dimg.outer_iter_mut().enumerate() {
-                let base = (img * c + ch) * ho * wo;
-                for oy in 0..ho {
-                    for ox in 0..wo {
-                        let d = argmax.which[base + oy * wo + ox] as usize;
-                        plane[[2 * oy + (d >> 1), 2 * ox + (d & 1)]] += ds[base + oy * wo + ox];
-                    }
+        .for_each(|(p, plane)| {
+            let base = p * ho * wo;
+            for oy in 0..ho {
+                for ox in 0..wo {
+                    let d = argmax.which[base + oy * wo + ox] as usize;
+                    plane[(2 * oy + (d >> 1)) * w + 2 * ox + (d & 1)] += ds[base + oy * wo + ox];
                 }
             }
         });

@@ -254,7 +254,7 @@ pub(crate) fn conv3x3_valid<T: Real>(
         Vec::new()
     };
     let w64: OnceLock<Vec<f64>> = OnceLock::new();
-    let mut out = Array4::<T>::zeros((n, o, h_out, w_out));
+    let mut out = crate::conv::zeroed::<T>((n, o, h_out, w_out));
     let out_ptr = SyncPtr(out.as_mut_ptr());
     let plane_in = hp * wp;
     let arch = pulp::Arch::new();

@@ -546,14 +546,18 @@ fn fold_reflect1<T: Real>(gp: Array4<T>) -> Array4<T> {
             let mut r = rows.row_mut(h - 2);
             r += &bottom;
         }
-        let mut o = rows.slice(s![.., 1..w + 1]).to_owned();
-        for r in 0..h {
-            o[[r, 1]] += rows[[r, 0]];
-            o[[r, w - 2]] += rows[[r, w + 1]];
-        }
-        Zip::from(&mut out).and(&o).for_each(|d, &v| {
+        // Column q takes padded column q + 1, then column 1 adds padded column 0 and column
+        // w - 2 padded column w + 1, in that order (both when w = 3).
+        for ((r, q), d) in out.indexed_iter_mut() {
+            let mut v = rows[[r, q + 1]];
+            if q == 1 {
+                v += rows[[r, 0]];
+            }
+            if q == w - 2 {
+                v += rows[[r, w + 1]];
+            }
             d.write(v);
-        });
+        }
     })
 }
 
@@ -581,7 +585,7 @@ pub(crate) fn by_planes<T: Real>(
         .axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()
-        .for_each(|(p, plane)| fill(p / c.max(1), p % c.max(1), plane));
+        .for_each(|(p, plane)| fill(p / c, p % c, plane));
     // SAFETY: every caller's `fill` writes each element of its plane (the planes partition the
     // array), so every element is initialised here.
     unsafe { out.assume_init() }

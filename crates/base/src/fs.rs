@@ -2,8 +2,11 @@
 //! images, reports) is written through [`write_atomic`], so a reader never sees a partly
 //! written file and an interrupted write leaves the previous file intact. The file and its
 //! directory are synced to disk, except through [`write_atomic_unsynced_with`]: the same write
-//! without the syncs, for files whose readers check them and rebuild them when the check
-//! fails (the encoding cache).
+//! without the syncs, for large files whose readers check them and rebuild them when the check
+//! fails (the encoding cache). That one also writes around the operating system's page cache
+//! where the platform and the file system allow it (Linux `O_DIRECT`, through
+//! [`UncachedWriter`]): copying gigabytes into the page cache costs the kernel several CPU-seconds
+//! that the program's own threads need, and the pages would only crowd out memory.
 //!
 //! While a write is in flight its temporary file (`.NAME.tmp-PID-N`, beside the target) is
 //! recorded in a process-wide registry, and removed from it once the write has finished or
@@ -109,11 +112,167 @@ pub fn write_atomic_with(
 /// missing, old, or (on file systems that let the rename reach the disk before the data) empty
 /// or partial, which the reader's check must catch. Syncing is what makes a write of tens of
 /// megabytes wait for the disk.
+///
+/// The contents go through an [`UncachedWriter`], which bypasses the page cache where it can;
+/// the file's bytes are the same either way.
 pub fn write_atomic_unsynced_with(
     path: &Path,
-    write: impl FnOnce(&mut fs::File) -> io::Result<()>,
+    write: impl FnOnce(&mut UncachedWriter<'_>) -> io::Result<()>,
 ) -> io::Result<()> {
-    write_atomic_impl(path, false, write)
+    write_atomic_impl(path, false, |f| {
+        let mut w = UncachedWriter::new(f, true);
+        write(&mut w)?;
+        w.finish()
+    })
+}
+
+/// Alignment of the buffer, file offsets and lengths of a write around the page cache: the
+/// page size, a multiple of every logical block size Linux's `O_DIRECT` asks for.
+const DIRECT_ALIGN: usize = 4096;
+
+/// Bytes gathered per write (1 MiB, a multiple of [`DIRECT_ALIGN`]).
+const DIRECT_BLOCK: usize = 1 << 20;
+
+/// The writer of [`write_atomic_unsynced_with`]: it gathers the bytes in an aligned 1 MiB
+/// block and writes whole blocks, with the file opened for direct I/O (Linux `O_DIRECT`, data
+/// sent from the block to the device without a copy into the page cache) when the file system
+/// accepts it. The last, partial block is padded with zeros to the alignment, written, and the
+/// padding cut off again (`set_len`). Where direct I/O is not available (another platform, a
+/// file system such as tmpfs that refuses it, or a write it rejects), it writes the same bytes
+/// through the page cache; the file is the same either way. [`Write::flush`] writes the whole
+/// blocks gathered so far; the rest is written when the write completes.
+pub struct UncachedWriter<'f> {
+    file: &'f mut fs::File,
+    /// One aligned block starts at `start`.
+    buf: Vec<u8>,
+    start: usize,
+    /// Bytes of the block filled.
+    filled: usize,
+    /// Bytes written to the file so far (the file's offset).
+    written: u64,
+    direct: bool,
+}
+
+impl<'f> UncachedWriter<'f> {
+    /// A writer at the start of the empty `file`; `direct` asks for direct I/O.
+    fn new(file: &'f mut fs::File, direct: bool) -> Self {
+        let buf = vec![0u8; DIRECT_BLOCK + DIRECT_ALIGN];
+        let start = buf.as_ptr().align_offset(DIRECT_ALIGN);
+        let direct = direct && set_direct(file, true);
+        UncachedWriter {
+            file,
+            buf,
+            start,
+            filled: 0,
+            written: 0,
+            direct,
+        }
+    }
+
+    /// Whether the writes go around the page cache.
+    pub fn is_direct(&self) -> bool {
+        self.direct
+    }
+
+    /// Writes the first `len` bytes of the block (a multiple of [`DIRECT_ALIGN`] while direct);
+    /// a direct write the system rejects is written again through the page cache, which stays in
+    /// use from then on.
+    fn write_block(&mut self, len: usize) -> io::Result<()> {
+        let block = &self.buf[self.start..self.start + len];
+        if self.direct {
+            match self.file.write_all(block) {
+                Ok(()) => {
+                    self.written += len as u64;
+                    return Ok(());
+                }
+                Err(e) if e.kind() == io::ErrorKind::InvalidInput => {
+                    // A rejected write wrote nothing the offset does not show; go on buffered
+                    // from the file's end.
+                    self.direct = false;
+                    set_direct(self.file, false);
+                    self.file.set_len(self.written)?;
+                    use std::io::Seek;
+                    self.file.seek(io::SeekFrom::Start(self.written))?;
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        self.file.write_all(block)?;
+        self.written += len as u64;
+        Ok(())
+    }
+
+    /// Writes what is left and gives the file its exact length.
+    fn finish(mut self) -> io::Result<()> {
+        let len = self.filled;
+        if len == 0 {
+            return Ok(());
+        }
+        if self.direct {
+            // Padded to the alignment (written directly, or again through the page cache if the
+            // system rejects it), then cut to the exact length.
+            let padded = len.next_multiple_of(DIRECT_ALIGN);
+            self.buf[self.start + len..self.start + padded].fill(0);
+            let exact = self.written + len as u64;
+            self.write_block(padded)?;
+            return self.file.set_len(exact);
+        }
+        self.write_block(len)
+    }
+}
+
+impl Write for UncachedWriter<'_> {
+    fn write(&mut self, bytes: &[u8]) -> io::Result<usize> {
+        let n = bytes.len().min(DIRECT_BLOCK - self.filled);
+        let at = self.start + self.filled;
+        self.buf[at..at + n].copy_from_slice(&bytes[..n]);
+        self.filled += n;
+        if self.filled == DIRECT_BLOCK {
+            self.write_block(DIRECT_BLOCK)?;
+            self.filled = 0;
+        }
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        let whole = self.filled / DIRECT_ALIGN * DIRECT_ALIGN;
+        if whole > 0 {
+            self.write_block(whole)?;
+            let rest = self.filled - whole;
+            let at = self.start;
+            self.buf.copy_within(at + whole..at + whole + rest, at);
+            self.filled = rest;
+        }
+        Ok(())
+    }
+}
+
+/// Turns direct I/O on or off for `file`; whether that succeeded (never, off Linux).
+fn set_direct(file: &fs::File, on: bool) -> bool {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::fd::AsRawFd;
+        let fd = file.as_raw_fd();
+        // SAFETY: `fcntl` with F_GETFL / F_SETFL and integer flags on a descriptor that `file`
+        // owns and keeps open for the call; no memory is passed.
+        unsafe {
+            let flags = libc::fcntl(fd, libc::F_GETFL);
+            if flags < 0 {
+                return false;
+            }
+            let new = if on {
+                flags | libc::O_DIRECT
+            } else {
+                flags & !libc::O_DIRECT
+            };
+            libc::fcntl(fd, libc::F_SETFL, new) == 0
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        let _ = (file, on);
+        false
+    }
 }
 
 /// The write of [`write_atomic_with`]; `sync` syncs the file before the rename and the
@@ -273,6 +432,78 @@ mod tests {
         assert_eq!(fs::read(&p).unwrap(), b"second");
         assert_eq!(names(&d.join("a")), ["out.bin"]);
         assert!(registered_in(&d).is_empty());
+        fs::remove_dir_all(&d).unwrap();
+    }
+
+    /// Bytes that tell positions apart (not a repeating pattern of a power-of-two period).
+    fn pattern(len: usize) -> Vec<u8> {
+        (0..len).map(|i| (i * 7 + i / 251) as u8).collect()
+    }
+
+    #[test]
+    fn the_uncached_writer_gives_the_bytes_written_at_every_length_and_chunking() {
+        let _w = writing();
+        let d = scratch("uncached");
+        let p = d.join("out.bin");
+        let lens = [
+            0,
+            1,
+            DIRECT_ALIGN - 1,
+            DIRECT_ALIGN,
+            DIRECT_ALIGN + 1,
+            DIRECT_BLOCK - 1,
+            DIRECT_BLOCK,
+            DIRECT_BLOCK + 3,
+            3 * DIRECT_BLOCK + DIRECT_ALIGN + 5,
+        ];
+        for len in lens {
+            let data = pattern(len);
+            for chunk in [1000, 4096, DIRECT_BLOCK + 17] {
+                write_atomic_unsynced_with(&p, |w| {
+                    for (i, piece) in data.chunks(chunk).enumerate() {
+                        w.write_all(piece)?;
+                        if i % 3 == 1 {
+                            w.flush()?;
+                        }
+                    }
+                    Ok(())
+                })
+                .unwrap();
+                assert!(
+                    fs::read(&p).unwrap() == data,
+                    "length {len}, chunks of {chunk}"
+                );
+            }
+        }
+        assert_eq!(names(&d), ["out.bin"]);
+        fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn the_uncached_writer_goes_on_through_the_page_cache_when_direct_io_is_refused() {
+        let _w = writing();
+        let d = scratch("uncached-refused");
+        let p = d.join("out.bin");
+        let data = pattern(2 * DIRECT_BLOCK + 9);
+        for direct in [false, true] {
+            let mut f = fs::File::create(&p).unwrap();
+            let mut w = UncachedWriter::new(&mut f, direct);
+            // One byte written past the writer moves the file's offset off the alignment: a
+            // direct write is refused there (where direct I/O is on at all), and the writer
+            // must go on buffered with every byte in place.
+            let was_direct = w.is_direct();
+            set_direct(w.file, false);
+            w.file.write_all(&data[..1]).unwrap();
+            if was_direct {
+                assert!(set_direct(w.file, true));
+            }
+            w.written = 1;
+            w.write_all(&data[1..]).unwrap();
+            assert!(!w.is_direct());
+            w.finish().unwrap();
+            drop(f);
+            assert!(fs::read(&p).unwrap() == data, "direct asked: {direct}");
+        }
         fs::remove_dir_all(&d).unwrap();
     }
 

@@ -42,6 +42,7 @@ pub mod real;
 
 pub use fs::{
     remove_unfinished_writes, write_atomic, write_atomic_unsynced_with, write_atomic_with,
+    UncachedWriter,
 };
 pub use hash::{fnv1a_hex, Fnv1a};
 pub use real::{exp_f32, Real};

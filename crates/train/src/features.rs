@@ -53,7 +53,9 @@
 //! written atomically but not synced to disk ([`base::write_atomic_unsynced_with`]): a file
 //! that a system crash left empty or partial fails its checksum and is rebuilt. They are
 //! written by a thread of their own while encoding goes on, from the same target arrays as
-//! training uses (no copy), and the setup waits for the last one before it reports.
+//! training uses (no second copy in memory), around the page cache where the system allows it
+//! (so a run does not pay the kernel's copy of gigabytes into it, nor fill memory with them), and
+//! the setup waits for the last one before it reports.
 //!
 //! Ablations (the paper's Fig. 4 and 5), chosen by [`FeatureTrainConfig::decoder_mode`] and
 //! [`FeatureTrainConfig::normalize`] and recorded in the bundle:

@@ -186,8 +186,8 @@ impl<'f> UncachedWriter<'f> {
                     return Ok(());
                 }
                 Err(e) if e.kind() == io::ErrorKind::InvalidInput => {
-                    // A rejected write wrote nothing the offset does not show; go on buffered
-                    // from the file's end.
+                    // Whatever part of the block got through before the rejection is cut off,
+                    // and the block written again, buffered, from where the file stood.
                     self.direct = false;
                     set_direct(self.file, false);
                     self.file.set_len(self.written)?;
@@ -223,14 +223,15 @@ impl<'f> UncachedWriter<'f> {
 
 impl Write for UncachedWriter<'_> {
     fn write(&mut self, bytes: &[u8]) -> io::Result<usize> {
+        // A full block is written before more bytes are taken, so that an error takes none.
+        if self.filled == DIRECT_BLOCK && !bytes.is_empty() {
+            self.write_block(DIRECT_BLOCK)?;
+            self.filled = 0;
+        }
         let n = bytes.len().min(DIRECT_BLOCK - self.filled);
         let at = self.start + self.filled;
         self.buf[at..at + n].copy_from_slice(&bytes[..n]);
         self.filled += n;
-        if self.filled == DIRECT_BLOCK {
-            self.write_block(DIRECT_BLOCK)?;
-            self.filled = 0;
-        }
         Ok(n)
     }
 

@@ -896,6 +896,9 @@ impl BackwardTile<'_, '_> {
 
         // Back to front, one Gaussian at a time; its rows in ascending order.
         let cx: [f32; LANES] = std::array::from_fn(|l| pixel_centre::<f32>(x0 + l as u32));
+        // One channel accumulator for the tile, cleared per Gaussian: with `Any` width it is a
+        // heap buffer, which per Gaussian would be an allocation per tile list entry.
+        let mut grads = wd.zeros();
         for group in (0..groups).rev() {
             if let Some(ahead) = group.checked_sub(PREFETCH_AHEAD) {
                 let g = ids[blended[starts[ahead]].k as usize] as usize;
@@ -912,7 +915,7 @@ impl BackwardTile<'_, '_> {
                 let at = bl.row as usize * d * LANES;
                 &v_image_t[at..at + d * LANES]
             };
-            let mut grads = wd.zeros();
+            grads.as_mut().fill(0.0);
             let mut sums = [0f32; GEOMETRY];
             // The rows two at a time, for `v_image . c` of their pixels: two independent sums
             // (each lane sums its channels in order); a single last row is paired with itself.

@@ -7,6 +7,10 @@
 //! filter to run a subset, e.g. `cargo bench -p raster --bench raster -- forward/simd/35ch`.
 //! `benches/side_by_side.sh raster` runs the two kernels in one run and prints their ratios.
 //!
+//! `depth_order/{f32|f64}/{N}/t{threads}` times the depth sort of binning alone on `N` uniform
+//! depths: `f32` depths take the parallel 32-bit-key passes, the same depths as `f64` the
+//! one-part 64-bit-key passes (the same order; the baseline in the same run).
+//!
 //! Scenes are synthetic projected Gaussians: means uniform over the image, random orientations
 //! and anisotropy, standard deviations chosen so that the summed 2-sigma footprints cover every
 //! pixel about 20 times on average (like a trained scene seen from a training view), opacities
@@ -178,5 +182,50 @@ fn bench(c: &mut Criterion) {
     }
 }
 
-criterion_group!(benches, bench);
+fn sort(c: &mut Criterion) {
+    // Build the depths only when some benchmark of the group is selected.
+    let ids: Vec<String> = ["f32", "f64"]
+        .iter()
+        .flat_map(|p| {
+            ["100k", "1000k"]
+                .iter()
+                .flat_map(move |n| [1, 2].map(|t| format!("depth_order/{p}/{n}/t{t}")))
+        })
+        .collect();
+    let filters: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with('-'))
+        .collect();
+    if !filters.is_empty()
+        && !filters
+            .iter()
+            .any(|f| ids.iter().any(|id| id.contains(f.as_str())))
+    {
+        return;
+    }
+    let mut g = c.benchmark_group("depth_order");
+    g.sample_size(20);
+    for n in [100_000usize, 1_000_000] {
+        let mut rng = Rng(n as u64);
+        let d32: Vec<f32> = (0..n).map(|_| rng.uniform(1.0, 100.0) as f32).collect();
+        let d64: Vec<f64> = d32.iter().map(|&d| d as f64).collect();
+        let ids: Vec<u32> = (0..n as u32).collect();
+        for t in [1usize, 2] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(t)
+                .build()
+                .unwrap();
+            let id = |p: &str| format!("{p}/{}k/t{t}", n / 1000);
+            g.bench_function(id("f32"), |b| {
+                pool.install(|| b.iter(|| raster::tiles::depth_order(ids.clone(), &d32)))
+            });
+            g.bench_function(id("f64"), |b| {
+                pool.install(|| b.iter(|| raster::tiles::depth_order(ids.clone(), &d64)))
+            });
+        }
+    }
+    g.finish();
+}
+
+criterion_group!(benches, sort, bench);
 criterion_main!(benches);

@@ -100,6 +100,36 @@ pub fn tile_grid(width: u32, height: u32) -> (u32, u32) {
     (width.div_ceil(TILE_SIZE), height.div_ceil(TILE_SIZE))
 }
 
+/// `floor(v)` clamped to `[0, n]` (0 for NaN), without a call to `floor`: on `(0, n)` the floor
+/// of a positive number is its truncation, and the clamp covers the rest. (The baseline x86-64
+/// target has no rounding instruction, so `floor` is a library call.)
+#[inline]
+fn floor_in<T: Real>(v: T, n: u32) -> u32 {
+    let v = v.to_f64_exact();
+    if v.is_nan() || v <= 0.0 {
+        0
+    } else if v >= n as f64 {
+        n
+    } else {
+        v as u32
+    }
+}
+
+/// `ceil(v)` clamped to `[0, n]` (0 for NaN), without a call to `ceil`: on `(0, n)` it is the
+/// truncation, plus one where that is below `v`.
+#[inline]
+fn ceil_in<T: Real>(v: T, n: u32) -> u32 {
+    let v = v.to_f64_exact();
+    if v.is_nan() || v <= 0.0 {
+        0
+    } else if v >= n as f64 {
+        n
+    } else {
+        let t = v as u32;
+        t + u32::from((t as f64) < v)
+    }
+}
+
 /// The tiles a Gaussian touches, or `None` when a radius is zero (culled) or the clamped range is
 /// empty.
 pub fn tile_rect<T: Real>(
@@ -116,17 +146,7 @@ pub fn tile_rect<T: Real>(
     let range = |m: T, r: u32, n: u32| -> (u32, u32) {
         let tm = m / tile;
         let tr = T::lit(r as f64) / tile;
-        let clamp = |v: T| -> u32 {
-            let v = v.to_f64_exact();
-            if v.is_nan() || v <= 0.0 {
-                0
-            } else if v >= n as f64 {
-                n
-            } else {
-                v as u32
-            }
-        };
-        (clamp((tm - tr).floor()), clamp((tm + tr).ceil()))
+        (floor_in(tm - tr, n), ceil_in(tm + tr, n))
     };
     let (x0, x1) = range(mean2d[0], radii[0], tiles_x);
     let (y0, y1) = range(mean2d[1], radii[1], tiles_y);
@@ -543,6 +563,25 @@ mod tests {
 
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(300))]
+
+        // The clamped floor and ceiling without library calls are the library's, clamped as
+        // the oracle clamps them, in f32 and f64, near integers and tile-grid ends included.
+        #[test]
+        fn the_clamped_floor_and_ceiling_are_the_library_ones(
+            whole in -3i64..70, frac in prop::sample::select(vec![
+                0.0, 1e-9, 0.25, 0.5, 0.999_999, -1e-9, -0.5,
+            ]), raw in -1e3f64..1e3, pick in 0usize..5, n in 0u32..66,
+        ) {
+            let v = [f64::NAN, f64::INFINITY, f64::NEG_INFINITY, raw, whole as f64 + frac][pick];
+            let clamp = |v: f64| -> u32 {
+                if v.is_nan() || v <= 0.0 { 0 } else if v >= n as f64 { n } else { v as u32 }
+            };
+            prop_assert_eq!(floor_in(v, n), clamp(v.floor()));
+            prop_assert_eq!(ceil_in(v, n), clamp(v.ceil()));
+            let v32 = v as f32;
+            prop_assert_eq!(floor_in(v32, n), clamp(v32.floor() as f64));
+            prop_assert_eq!(ceil_in(v32, n), clamp(v32.ceil() as f64));
+        }
 
         // Any depths, with many ties, signed zeros, infinities and NaNs: the same order as a
         // stable comparison sort, in f32 and f64.

@@ -100,34 +100,34 @@ pub fn tile_grid(width: u32, height: u32) -> (u32, u32) {
     (width.div_ceil(TILE_SIZE), height.div_ceil(TILE_SIZE))
 }
 
-/// `floor(v)` clamped to `[0, n]` (0 for NaN), without a call to `floor`: on `(0, n)` the floor
-/// of a positive number is its truncation, and the clamp covers the rest. (The baseline x86-64
-/// target has no rounding instruction, so `floor` is a library call.)
+/// `v` clamped to the tile range `[0, n]` (0 for NaN), with `inside` applied on `(0, n)`.
 #[inline]
-fn floor_in<T: Real>(v: T, n: u32) -> u32 {
-    let v = v.to_f64_exact();
+fn clamp_to_tiles(v: f64, n: u32, inside: impl Fn(f64) -> u32) -> u32 {
     if v.is_nan() || v <= 0.0 {
         0
     } else if v >= n as f64 {
         n
     } else {
-        v as u32
+        inside(v)
     }
 }
 
-/// `ceil(v)` clamped to `[0, n]` (0 for NaN), without a call to `ceil`: on `(0, n)` it is the
+/// `floor(v)` clamped to `[0, n]` (0 for NaN), without a call to `floor`: on `(0, n)` the floor
+/// of a positive number is its truncation. (The baseline x86-64 target has no rounding
+/// instruction, so `floor` is a library call.)
+#[inline]
+fn floor_clamped<T: Real>(v: T, n: u32) -> u32 {
+    clamp_to_tiles(v.to_f64_exact(), n, |v| v as u32)
+}
+
+/// `ceil(v)` clamped to `[0, n]` (0 for NaN), without a call to `ceil`: on `(0, n)` the
 /// truncation, plus one where that is below `v`.
 #[inline]
-fn ceil_in<T: Real>(v: T, n: u32) -> u32 {
-    let v = v.to_f64_exact();
-    if v.is_nan() || v <= 0.0 {
-        0
-    } else if v >= n as f64 {
-        n
-    } else {
+fn ceil_clamped<T: Real>(v: T, n: u32) -> u32 {
+    clamp_to_tiles(v.to_f64_exact(), n, |v| {
         let t = v as u32;
         t + u32::from((t as f64) < v)
-    }
+    })
 }
 
 /// The tiles a Gaussian touches, or `None` when a radius is zero (culled) or the clamped range is
@@ -146,7 +146,7 @@ pub fn tile_rect<T: Real>(
     let range = |m: T, r: u32, n: u32| -> (u32, u32) {
         let tm = m / tile;
         let tr = T::lit(r as f64) / tile;
-        (floor_in(tm - tr, n), ceil_in(tm + tr, n))
+        (floor_clamped(tm - tr, n), ceil_clamped(tm + tr, n))
     };
     let (x0, x1) = range(mean2d[0], radii[0], tiles_x);
     let (y0, y1) = range(mean2d[1], radii[1], tiles_y);
@@ -576,11 +576,11 @@ mod tests {
             let clamp = |v: f64| -> u32 {
                 if v.is_nan() || v <= 0.0 { 0 } else if v >= n as f64 { n } else { v as u32 }
             };
-            prop_assert_eq!(floor_in(v, n), clamp(v.floor()));
-            prop_assert_eq!(ceil_in(v, n), clamp(v.ceil()));
+            prop_assert_eq!(floor_clamped(v, n), clamp(v.floor()));
+            prop_assert_eq!(ceil_clamped(v, n), clamp(v.ceil()));
             let v32 = v as f32;
-            prop_assert_eq!(floor_in(v32, n), clamp(v32.floor() as f64));
-            prop_assert_eq!(ceil_in(v32, n), clamp(v32.ceil() as f64));
+            prop_assert_eq!(floor_clamped(v32, n), clamp(v32.floor() as f64));
+            prop_assert_eq!(ceil_clamped(v32, n), clamp(v32.ceil() as f64));
         }
 
         // Any depths, with many ties, signed zeros, infinities and NaNs: the same order as a

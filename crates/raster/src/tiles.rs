@@ -388,7 +388,7 @@ impl TileBins {
 /// that unsigned order is numeric order), one stable counting pass per byte; a byte that all
 /// keys share is skipped. Linear in the number of Gaussians. `f32` depths take 32-bit keys (the
 /// conversion to `f64` is exact and monotonic, so the order is the same) and run each pass in
-/// parallel over [`SORT_PARTS`] parts of the array; `f64` depths take 64-bit keys, one part.
+/// parallel over 16 parts of the array; `f64` depths take 64-bit keys, one part.
 pub fn depth_order<T: Real>(ids: Vec<u32>, depths: &[T]) -> Vec<u32> {
     match T::as_f32_slice(depths) {
         Some(depths) => depth_order_f32(&ids, depths),

@@ -45,8 +45,6 @@ use crate::tiles::TileBins;
 
 /// Pixels evaluated together: one tile row.
 pub(crate) const LANES: usize = TILE_SIZE as usize;
-/// Channels per step of the channel loops.
-const CHUNK: usize = 8;
 
 /// A set of lanes (bit `l` for lane `l`) or of tile rows (bit `r` for row `r`).
 type Mask = u32;
@@ -379,7 +377,7 @@ impl Kept {
 #[derive(Default)]
 pub(crate) struct Scratch {
     /// Forward: the tile's channel accumulators: per tile row and channel a vector of the row's
-    /// pixels (`[(r * D + c) * LANES + l]`) when `D <= CHANNEL_MAJOR_MAX`, else `padded(D)`
+    /// pixels (`[(r * D + c) * LANES + l]`) when `D <= CHANNEL_MAJOR_MAX`, else `line_padded(D)`
     /// per pixel.
     acc: Vec<f32>,
     /// Backward: the rows blended, in the front-to-back walk's order.
@@ -650,9 +648,27 @@ fn replay<I: LaneIsa>(
     trans
 }
 
-/// `D` rounded up to a whole number of chunks (at least one).
-fn padded(d: usize) -> usize {
-    d.div_ceil(CHUNK).max(1) * CHUNK
+/// `f32`s in a cache line.
+const LINE_FLOATS: usize = 16;
+
+/// `D` rounded up to whole cache lines: the stride of the forward pass's per-pixel accumulators.
+fn line_padded(d: usize) -> usize {
+    d.div_ceil(LINE_FLOATS).max(1) * LINE_FLOATS
+}
+
+/// `len` zeros in `buf`, starting on a cache line: `buf` is cleared and refilled with room to
+/// spare, and the returned window starts at its first element on a line boundary.
+fn zeroed_on_lines(buf: &mut Vec<f32>, len: usize) -> &mut [f32] {
+    buf.clear();
+    buf.resize(len + LINE_FLOATS, 0.0);
+    // An f32 address is a multiple of 4, so at most 15 elements precede a 64-byte boundary;
+    // `min` only guards the documented "cannot align" answer, which leaves the window unaligned
+    // but correct.
+    let start = buf
+        .as_ptr()
+        .align_offset(LINE_FLOATS * std::mem::size_of::<f32>())
+        .min(LINE_FLOATS);
+    &mut buf[start..start + len]
 }
 
 /// The most channels for which the forward pass accumulates a blended row channel by channel,
@@ -701,13 +717,13 @@ impl ForwardTile<'_, '_> {
             mut keep,
         } = self;
         let d = wd.d();
-        let dp = padded(d);
+        let dp = line_padded(d);
         let channel_major = d <= CHANNEL_MAJOR_MAX;
         let (x0, y0, x1, y1) = bins.pixel_rect(t);
         let (width, height) = ((x1 - x0) as usize, (y1 - y0) as usize);
-        let acc = &mut scratch.acc;
-        acc.clear();
-        acc.resize(LANES * LANES * dp, 0.0);
+        // Each pixel's accumulator starts on a cache line (`dp` is a whole number of lines), so
+        // that no vector store of the channel loop spans two lines.
+        let acc = zeroed_on_lines(&mut scratch.acc, LANES * LANES * dp);
         let mut z = Aligned([[0f32; LANES]; LANES]);
         let mut n = [[0u32; LANES]; LANES];
         let mut walk = Walk::new(width, height);
@@ -858,8 +874,8 @@ impl BackwardTile<'_, '_> {
         };
 
         // The tile's cotangents, and what each pixel shows behind its last Gaussian.
-        v_image_t.clear();
-        v_image_t.resize(LANES * d * LANES, 0.0);
+        // On cache lines: each row's channel vectors are whole lines.
+        let v_image_t = zeroed_on_lines(v_image_t, LANES * d * LANES);
         let mut v_alpha = Aligned([[0f32; LANES]; LANES]);
         let mut v_depth = Aligned([[0f32; LANES]; LANES]);
         let mut behind = Aligned([[0f32; LANES]; LANES]);

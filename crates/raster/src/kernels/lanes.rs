@@ -174,7 +174,8 @@ trait Width: Copy {
 struct Fixed<const D: usize>;
 
 impl<const D: usize> Width for Fixed<D> {
-    type Acc = [f32; D];
+    /// On a cache line, so that the whole-vector stores of [`Width::axpy`] span one line each.
+    type Acc = Aligned<[f32; D]>;
 
     #[inline(always)]
     fn d(self) -> usize {
@@ -182,8 +183,8 @@ impl<const D: usize> Width for Fixed<D> {
     }
 
     #[inline(always)]
-    fn zeros(self) -> [f32; D] {
-        [0.0; D]
+    fn zeros(self) -> Aligned<[f32; D]> {
+        Aligned([0.0; D])
     }
 
     #[inline(always)]
@@ -323,6 +324,18 @@ impl<T> std::ops::Deref for Aligned<T> {
     #[inline(always)]
     fn deref(&self) -> &T {
         &self.0
+    }
+}
+
+impl<const D: usize> AsRef<[f32]> for Aligned<[f32; D]> {
+    fn as_ref(&self) -> &[f32] {
+        &self.0
+    }
+}
+
+impl<const D: usize> AsMut<[f32]> for Aligned<[f32; D]> {
+    fn as_mut(&mut self) -> &mut [f32] {
+        &mut self.0
     }
 }
 

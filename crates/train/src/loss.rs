@@ -6,10 +6,9 @@
 //! `20 log10(1 / sqrt(MSE))` for images in [0, 1], as the 3DGS evaluation computes it.
 
 use gaussian::Real;
-use rayon::prelude::*;
 
 use crate::error::TrainError;
-use crate::ssim::{mean_f64, ssim, ssim_with_grad, sum_f64, ImageShape};
+use crate::ssim::{ssim, ssim_with_grad_map, sum_f64_of, ImageShape};
 
 /// The terms of the photometric loss.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -46,20 +45,16 @@ pub fn photometric_loss_with_grad<T: Real>(
     lambda_dssim: f64,
 ) -> Result<(LossTerms, Vec<T>), TrainError> {
     let l1 = l1_loss(render, target, shape)?;
-    let s = ssim_with_grad(render, target, shape)?;
     let w_l1 = T::lit((1.0 - lambda_dssim) / shape.len() as f64);
     let w_ssim = T::lit(-lambda_dssim);
-    let grad: Vec<T> = render
-        .par_iter()
-        .zip(target)
-        .zip(&s.grad_x)
-        .map(|((&r, &t), &gs)| w_l1 * sign(r - t) + w_ssim * gs)
-        .collect();
+    let (ssim, grad) = ssim_with_grad_map(render, target, shape, |r, t, gs| {
+        w_l1 * sign(r - t) + w_ssim * gs
+    })?;
     Ok((
         LossTerms {
-            total: (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s.value),
+            total: (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim),
             l1,
-            ssim: s.value,
+            ssim,
         },
         grad,
     ))
@@ -69,23 +64,17 @@ pub fn photometric_loss_with_grad<T: Real>(
 pub fn l1_loss<T: Real>(a: &[T], b: &[T], shape: ImageShape) -> Result<f64, TrainError> {
     shape.check("l1: first image", a.len())?;
     shape.check("l1: second image", b.len())?;
-    let d: Vec<T> = a.par_iter().zip(b).map(|(&x, &y)| (x - y).abs()).collect();
-    Ok(mean_f64(&d))
+    Ok(sum_f64_of(a, b, |x, y| (x - y).abs().to_f64_exact()) / a.len() as f64)
 }
 
 /// Mean squared difference.
 pub fn mse<T: Real>(a: &[T], b: &[T], shape: ImageShape) -> Result<f64, TrainError> {
     shape.check("mse: first image", a.len())?;
     shape.check("mse: second image", b.len())?;
-    let d: Vec<f64> = a
-        .par_iter()
-        .zip(b)
-        .map(|(&x, &y)| {
-            let e = x.to_f64_exact() - y.to_f64_exact();
-            e * e
-        })
-        .collect();
-    Ok(sum_f64(&d) / d.len() as f64)
+    Ok(sum_f64_of(a, b, |x, y| {
+        let e = x.to_f64_exact() - y.to_f64_exact();
+        e * e
+    }) / a.len() as f64)
 }
 
 /// Peak signal-to-noise ratio in dB for images in [0, 1]: `20 log10(1 / sqrt(mse))`.

@@ -99,8 +99,7 @@ pub struct SsimGrad<T> {
 pub fn ssim<T: Real>(x: &[T], y: &[T], shape: ImageShape) -> Result<f64, TrainError> {
     shape.check("ssim: first image", x.len())?;
     shape.check("ssim: second image", y.len())?;
-    let stats = Stats::new(x, y, shape);
-    Ok(mean_f64(&stats.ssim_map()))
+    Ok(forward(x, y, shape, false).value)
 }
 
 /// Mean SSIM of `x` against `y` and its gradient with respect to `x` (`y` is the constant target).
@@ -109,119 +108,117 @@ pub fn ssim_with_grad<T: Real>(
     y: &[T],
     shape: ImageShape,
 ) -> Result<SsimGrad<T>, TrainError> {
+    let (value, grad_x) = ssim_with_grad_map(x, y, shape, |_, _, g| g)?;
+    Ok(SsimGrad { value, grad_x })
+}
+
+/// Mean SSIM of `x` against `y`, and `f(x_i, y_i, g_i)` for every value `i` (laid out like `x`),
+/// where `g = d SSIM / d x`: a caller that combines the gradient with other per-value terms does
+/// so in the same pass, without another image-sized buffer.
+pub(crate) fn ssim_with_grad_map<T: Real>(
+    x: &[T],
+    y: &[T],
+    shape: ImageShape,
+    f: impl Fn(T, T, T) -> T + Sync,
+) -> Result<(f64, Vec<T>), TrainError> {
     shape.check("ssim: first image", x.len())?;
     shape.check("ssim: second image", y.len())?;
-    let stats = Stats::new(x, y, shape);
-    let map = stats.ssim_map();
-    let value = mean_f64(&map);
-
-    // Per pixel, with A = 2 mu_x mu_y + C1, B = 2 s_xy + C2, C = mu_x^2 + mu_y^2 + C1,
-    // D = s_xx + s_yy + C2 and S = AB / (CD), the partials of S with respect to the three blurred
-    // maps that depend on x (mu_x, E_xx = G*(xx), E_xy = G*(xy)) are
-    //   dS/dmu_x = 2 mu_y (dS/dA - dS/dB) + 2 mu_x (dS/dC - dS/dD)
-    //   dS/dE_xx = dS/dD,   dS/dE_xy = 2 dS/dB.
-    let n = stats.mu_x.len();
-    let inv_m = T::lit(1.0 / n as f64);
-    let c1 = T::lit(C1);
-    let c2 = T::lit(C2);
-    let two = T::lit(2.0);
-    let mut g_mu = vec![T::zero(); n];
-    let mut g_exx = vec![T::zero(); n];
-    let mut g_exy = vec![T::zero(); n];
-    let w = shape.width;
-    g_mu.par_chunks_mut(w)
-        .zip(g_exx.par_chunks_mut(w))
-        .zip(g_exy.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(row, ((gm, gxx), gxy))| {
-            for i in 0..w {
-                let k = row * w + i;
-                let (mx, my) = (stats.mu_x[k], stats.mu_y[k]);
-                let sxx = stats.e_xx[k] - mx * mx;
-                let syy = stats.e_yy[k] - my * my;
-                let sxy = stats.e_xy[k] - mx * my;
-                let a = two * mx * my + c1;
-                let b = two * sxy + c2;
-                let c = mx * mx + my * my + c1;
-                let d = sxx + syy + c2;
-                let cd = c * d;
-                let ds_da = b / cd;
-                let ds_db = a / cd;
-                let s = a * b / cd;
-                let ds_dc = -s / c;
-                let ds_dd = -s / d;
-                gm[i] = inv_m * (two * my * (ds_da - ds_db) + two * mx * (ds_dc - ds_dd));
-                gxx[i] = inv_m * ds_dd;
-                gxy[i] = inv_m * two * ds_db;
-            }
-        });
-
-    // The zero-padded correlation with a symmetric window is its own transpose.
+    let fwd = forward(x, y, shape, true);
+    let (c, w, h) = (shape.channels, shape.width, shape.height);
     let taps = taps::<T>();
-    let planes_h = shape.channels * shape.height;
-    let b_mu = blur(&g_mu, w, shape.height, planes_h, &taps);
-    let b_xx = blur(&g_exx, w, shape.height, planes_h, &taps);
-    let b_xy = blur(&g_exy, w, shape.height, planes_h, &taps);
 
-    let xp = &stats.x;
-    let yp = &stats.y;
-    let grad_planar: Vec<T> = (0..n)
-        .into_par_iter()
-        .map(|k| b_mu[k] + two * xp[k] * b_xx[k] + yp[k] * b_xy[k])
-        .collect();
-    Ok(SsimGrad {
-        value,
-        grad_x: from_planar(&grad_planar, shape),
-    })
+    // The zero-padded correlation with a symmetric window is its own transpose: the three
+    // partials are blurred like the forward maps, then
+    //   dS/dx = G*(dS/dmu_x) + 2 x G*(dS/dE_xx) + y G*(dS/dE_xy).
+    let horiz = horizontal_passes::<T, 3>(c * h, w, &taps, |r, m, row| {
+        row.copy_from_slice(&fwd.partials[(r * 3 + m) * w..(r * 3 + m + 1) * w]);
+    });
+    let mut grad = vec![T::zero(); x.len()];
+    grad.par_chunks_mut(w * c).enumerate().for_each_init(
+        || vec![T::zero(); 3 * w],
+        |blurred, (yy, out)| {
+            for p in 0..c {
+                vertical_passes::<T, 3>(&horiz, w, h, p * h + yy, &taps, blurred);
+                pulp::Arch::new().dispatch(GradientRow {
+                    blurred,
+                    x: &x[yy * w * c..(yy + 1) * w * c],
+                    y: &y[yy * w * c..(yy + 1) * w * c],
+                    channel: p,
+                    out,
+                    f: &f,
+                });
+            }
+        },
+    );
+    Ok((fwd.value, grad))
 }
 
-/// The five blurred maps, planar (`C` planes of `H x W`).
-struct Stats<T> {
-    x: Vec<T>,
-    y: Vec<T>,
-    mu_x: Vec<T>,
-    mu_y: Vec<T>,
-    e_xx: Vec<T>,
-    e_yy: Vec<T>,
-    e_xy: Vec<T>,
+/// The forward pass of SSIM: its mean and, when asked, the partials of the mean with respect to
+/// the three blurred maps that depend on `x`, laid out by planar row `r = channel * H + y` as
+/// `[r][map][W]` with maps `dS/dmu_x`, `dS/dE_xx`, `dS/dE_xy` (each divided by the value count).
+struct Forward<T> {
+    value: f64,
+    partials: Vec<T>,
 }
 
-impl<T: Real> Stats<T> {
-    fn new(x: &[T], y: &[T], shape: ImageShape) -> Self {
-        let x = to_planar(x, shape);
-        let y = to_planar(y, shape);
-        let xx: Vec<T> = x.par_iter().map(|&v| v * v).collect();
-        let yy: Vec<T> = y.par_iter().map(|&v| v * v).collect();
-        let xy: Vec<T> = x.par_iter().zip(&y).map(|(&a, &b)| a * b).collect();
-        let taps = taps::<T>();
-        let (w, h) = (shape.width, shape.height);
-        let rows = shape.channels * h;
-        Stats {
-            mu_x: blur(&x, w, h, rows, &taps),
-            mu_y: blur(&y, w, h, rows, &taps),
-            e_xx: blur(&xx, w, h, rows, &taps),
-            e_yy: blur(&yy, w, h, rows, &taps),
-            e_xy: blur(&xy, w, h, rows, &taps),
-            x,
-            y,
+/// The five blurred maps `mu_x`, `mu_y`, `E_xx`, `E_yy`, `E_xy` row by row, then per pixel the SSIM
+/// map and (with `grads`) its partials. Two passes over the image, each parallel over rows; every
+/// value is computed by the same operations in the same order as the textbook sequence of
+/// separate blurs (see the tests), so the bits do not depend on the thread count.
+fn forward<T: Real>(x: &[T], y: &[T], shape: ImageShape, grads: bool) -> Forward<T> {
+    let (c, w, h) = (shape.channels, shape.width, shape.height);
+    let n = x.len();
+    let rows = c * h;
+    let taps = taps::<T>();
+    // The planar rows of x, y, x x, y y and x y, each horizontally blurred.
+    let horiz = horizontal_passes::<T, 5>(rows, w, &taps, |r, m, row| {
+        let (p, yy) = (r / h, r % h);
+        let at = |i: usize| (yy * w + i) * c + p;
+        match m {
+            0 => row.iter_mut().enumerate().for_each(|(i, o)| *o = x[at(i)]),
+            1 => row.iter_mut().enumerate().for_each(|(i, o)| *o = y[at(i)]),
+            2 => row.iter_mut().enumerate().for_each(|(i, o)| {
+                let v = x[at(i)];
+                *o = v * v
+            }),
+            3 => row.iter_mut().enumerate().for_each(|(i, o)| {
+                let v = y[at(i)];
+                *o = v * v
+            }),
+            _ => row
+                .iter_mut()
+                .enumerate()
+                .for_each(|(i, o)| *o = x[at(i)] * y[at(i)]),
         }
-    }
+    });
 
-    fn ssim_map(&self) -> Vec<T> {
-        let c1 = T::lit(C1);
-        let c2 = T::lit(C2);
-        let two = T::lit(2.0);
-        (0..self.mu_x.len())
-            .into_par_iter()
-            .map(|k| {
-                let (mx, my) = (self.mu_x[k], self.mu_y[k]);
-                let sxx = self.e_xx[k] - mx * mx;
-                let syy = self.e_yy[k] - my * my;
-                let sxy = self.e_xy[k] - mx * my;
-                ((two * mx * my + c1) * (two * sxy + c2))
-                    / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-            })
-            .collect()
+    let inv_m = T::lit(1.0 / n as f64);
+    let mut map = vec![T::zero(); n];
+    let mut partials = vec![T::zero(); if grads { 3 * n } else { 0 }];
+    let mut partial_rows: Vec<&mut [T]> = if grads {
+        partials.chunks_mut(3 * w).collect()
+    } else {
+        (0..rows).map(|_| &mut [][..]).collect()
+    };
+    map.par_chunks_mut(w)
+        .zip(partial_rows.par_iter_mut())
+        .enumerate()
+        .for_each_init(
+            || vec![T::zero(); 5 * w],
+            |blurred, (r, (s_row, g_row))| {
+                vertical_passes::<T, 5>(&horiz, w, h, r, &taps, blurred);
+                pulp::Arch::new().dispatch(MapRow {
+                    blurred,
+                    map: s_row,
+                    partials: g_row,
+                    inv_m,
+                });
+            },
+        );
+    drop(partial_rows);
+    Forward {
+        value: mean_f64(&map),
+        partials,
     }
 }
 
@@ -234,36 +231,170 @@ pub(crate) fn mean_f64<T: Real>(v: &[T]) -> f64 {
     sum_f64(v) / v.len() as f64
 }
 
+/// The chunk of [`sum_f64`] and [`sum_f64_of`]: the order of their sums.
+const SUM_CHUNK: usize = 4096;
+
 /// Sum of a buffer in `f64`, in a fixed order independent of the thread count.
 pub(crate) fn sum_f64<T: Real>(v: &[T]) -> f64 {
-    const CHUNK: usize = 4096;
-    let partial: Vec<f64> = v
-        .par_chunks(CHUNK)
-        .map(|c| c.iter().map(|&a| a.to_f64_exact()).sum::<f64>())
+    sum_f64_of(v, v, |a, _| a.to_f64_exact())
+}
+
+/// The sum of `f(a_i, b_i)` in the order of [`sum_f64`] (per chunk of [`SUM_CHUNK`] values, then
+/// over the chunks), without a buffer of the terms.
+pub(crate) fn sum_f64_of<T: Real>(a: &[T], b: &[T], f: impl Fn(T, T) -> f64 + Sync) -> f64 {
+    debug_assert_eq!(a.len(), b.len());
+    let partial: Vec<f64> = a
+        .par_chunks(SUM_CHUNK)
+        .zip(b.par_chunks(SUM_CHUNK))
+        .map(|(a, b)| a.iter().zip(b).map(|(&x, &y)| f(x, y)).sum::<f64>())
         .collect();
     partial.iter().sum()
 }
 
-fn to_planar<T: Real>(v: &[T], shape: ImageShape) -> Vec<T> {
-    let (c, hw) = (shape.channels, shape.width * shape.height);
-    let mut out = vec![T::zero(); v.len()];
-    out.par_chunks_mut(hw).enumerate().for_each(|(ch, plane)| {
-        for (p, o) in plane.iter_mut().enumerate() {
-            *o = v[p * c + ch];
+/// The SSIM map of one planar row from its five blurred maps (`blurred`: `[map][W]`), and with
+/// `partials` (`[map][W]`, empty without) the partials of the mean.
+struct MapRow<'a, T> {
+    blurred: &'a [T],
+    map: &'a mut [T],
+    partials: &'a mut [T],
+    inv_m: T,
+}
+
+impl<T: Real> pulp::WithSimd for MapRow<'_, T> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _: S) {
+        let w = self.map.len();
+        let c1 = T::lit(C1);
+        let c2 = T::lit(C2);
+        let two = T::lit(2.0);
+        let [mu_x, mu_y, e_xx, e_yy, e_xy] =
+            [0, 1, 2, 3, 4].map(|k| &self.blurred[k * w..(k + 1) * w]);
+        let terms = |i: usize| {
+            let (mx, my) = (mu_x[i], mu_y[i]);
+            let sxx = e_xx[i] - mx * mx;
+            let syy = e_yy[i] - my * my;
+            let sxy = e_xy[i] - mx * my;
+            let a = two * mx * my + c1;
+            let b = two * sxy + c2;
+            let c = mx * mx + my * my + c1;
+            let d = sxx + syy + c2;
+            (mx, my, a, b, c, d)
+        };
+        if self.partials.is_empty() {
+            for (i, s) in self.map.iter_mut().enumerate() {
+                let (_, _, a, b, c, d) = terms(i);
+                *s = (a * b) / (c * d);
+            }
+            return;
         }
-    });
+        // Per pixel, with A = 2 mu_x mu_y + C1, B = 2 s_xy + C2, C = mu_x^2 + mu_y^2 + C1,
+        // D = s_xx + s_yy + C2 and S = AB / (CD), the partials of S with respect to the three
+        // blurred maps that depend on x (mu_x, E_xx = G*(xx), E_xy = G*(xy)) are
+        //   dS/dmu_x = 2 mu_y (dS/dA - dS/dB) + 2 mu_x (dS/dC - dS/dD)
+        //   dS/dE_xx = dS/dD,   dS/dE_xy = 2 dS/dB.
+        let inv_m = self.inv_m;
+        let (g_mu, rest) = self.partials.split_at_mut(w);
+        let (g_xx, g_xy) = rest.split_at_mut(w);
+        for i in 0..w {
+            let (mx, my, a, b, c, d) = terms(i);
+            self.map[i] = (a * b) / (c * d);
+            let cd = c * d;
+            let ds_da = b / cd;
+            let ds_db = a / cd;
+            let s = a * b / cd;
+            let ds_dc = -s / c;
+            let ds_dd = -s / d;
+            g_mu[i] = inv_m * (two * my * (ds_da - ds_db) + two * mx * (ds_dc - ds_dd));
+            g_xx[i] = inv_m * ds_dd;
+            g_xy[i] = inv_m * two * ds_db;
+        }
+    }
+}
+
+/// One channel of one image row of the gradient: from the blurred partials (`blurred`:
+/// `[map][W]`) and the row's interleaved values of `x` and `y`, `out[k] = f(x, y, dS/dx)` at the
+/// channel's values.
+struct GradientRow<'a, T, F> {
+    blurred: &'a [T],
+    x: &'a [T],
+    y: &'a [T],
+    channel: usize,
+    out: &'a mut [T],
+    f: &'a F,
+}
+
+impl<T: Real, F: Fn(T, T, T) -> T> pulp::WithSimd for GradientRow<'_, T, F> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _: S) {
+        let w = self.blurred.len() / 3;
+        let c = self.x.len() / w.max(1);
+        let two = T::lit(2.0);
+        let (b_mu, rest) = self.blurred.split_at(w);
+        let (b_xx, b_xy) = rest.split_at(w);
+        for i in 0..w {
+            let k = i * c + self.channel;
+            let (xv, yv) = (self.x[k], self.y[k]);
+            let g = b_mu[i] + two * xv * b_xx[i] + yv * b_xy[i];
+            self.out[k] = (self.f)(xv, yv, g);
+        }
+    }
+}
+
+/// The horizontal passes of [`blur`] over `rows` rows of `M` maps, laid out `[row][map][W]`:
+/// `fill(r, m, buf)` writes row `r` of map `m` into `buf`, which is then blurred.
+fn horizontal_passes<T: Real, const M: usize>(
+    rows: usize,
+    w: usize,
+    taps: &[T; WINDOW_SIZE],
+    fill: impl Fn(usize, usize, &mut [T]) + Sync,
+) -> Vec<T> {
+    let mut out = vec![T::zero(); rows * M * w];
+    if w == 0 {
+        return out;
+    }
+    out.par_chunks_mut(M * w).enumerate().for_each_init(
+        || vec![T::zero(); w],
+        |src, (r, maps)| {
+            for (m, out) in maps.chunks_mut(w).enumerate() {
+                fill(r, m, src);
+                pulp::Arch::new().dispatch(HorizontalPass {
+                    out,
+                    row: src,
+                    taps,
+                });
+            }
+        },
+    );
     out
 }
 
-fn from_planar<T: Real>(v: &[T], shape: ImageShape) -> Vec<T> {
-    let (c, hw) = (shape.channels, shape.width * shape.height);
-    let mut out = vec![T::zero(); v.len()];
-    out.par_chunks_mut(c).enumerate().for_each(|(p, px)| {
-        for (ch, o) in px.iter_mut().enumerate() {
-            *o = v[ch * hw + p];
-        }
-    });
-    out
+/// The vertical passes of [`blur`] for planar row `r` (plane `r / h`, row `r % h`) of the `M` maps
+/// of `horiz` (laid out by [`horizontal_passes`]) into `out` (`[map][W]`).
+fn vertical_passes<T: Real, const M: usize>(
+    horiz: &[T],
+    w: usize,
+    h: usize,
+    r: usize,
+    taps: &[T; WINDOW_SIZE],
+    out: &mut [T],
+) {
+    let (plane, y) = (r / h, r % h);
+    let plane_rows = &horiz[plane * h * M * w..(plane + 1) * h * M * w];
+    out.fill(T::zero());
+    for (m, out) in out.chunks_mut(w).enumerate() {
+        pulp::Arch::new().dispatch(VerticalPass {
+            out,
+            plane: &plane_rows[m * w..],
+            row_stride: M * w,
+            h,
+            y,
+            taps,
+        });
+    }
 }
 
 /// Zero-padded "same" correlation of `planes` stacked `H x W` planes (`rows = planes * H` rows)
@@ -273,27 +404,18 @@ fn from_planar<T: Real>(v: &[T], shape: ImageShape) -> Vec<T> {
 /// taps outside the image; the passes loop over taps outside and pixels inside, which keeps that
 /// order and lets the pixel loop run as vector code (compiled for the instruction set `pulp`
 /// picks at run time; the same bits whichever it is).
+#[cfg(test)]
 fn blur<T: Real>(src: &[T], w: usize, h: usize, rows: usize, taps: &[T; WINDOW_SIZE]) -> Vec<T> {
     debug_assert_eq!(src.len(), w * rows);
-    let mut horiz = vec![T::zero(); src.len()];
-    horiz
-        .par_chunks_mut(w)
-        .zip(src.par_chunks(w))
-        .for_each(|(out, row)| {
-            pulp::Arch::new().dispatch(HorizontalPass { out, row, taps });
-        });
-    let mut out = vec![T::zero(); src.len()];
-    out.par_chunks_mut(w).enumerate().for_each(|(r, orow)| {
-        let (plane, y) = (r / h, r % h);
-        let base = plane * h;
-        let horiz = &horiz[base * w..(base + h) * w];
-        pulp::Arch::new().dispatch(VerticalPass {
-            out: orow,
-            plane: horiz,
-            y,
-            taps,
-        });
+    let horiz = horizontal_passes::<T, 1>(rows, w, taps, |r, _, row| {
+        row.copy_from_slice(&src[r * w..(r + 1) * w])
     });
+    let mut out = vec![T::zero(); src.len()];
+    out.par_chunks_mut(w.max(1))
+        .enumerate()
+        .for_each(|(r, orow)| {
+            vertical_passes::<T, 1>(&horiz, w, h, r, taps, orow);
+        });
     out
 }
 
@@ -330,10 +452,13 @@ impl<T: Real> pulp::WithSimd for HorizontalPass<'_, T> {
     }
 }
 
-/// The vertical pass of [`blur`] for row `y` of one `H x W` plane (`out` starts at zero).
+/// The vertical pass of [`blur`] for row `y` of one `H x W` plane whose row `sy` starts at
+/// `plane[sy * row_stride]` (`out` starts at zero).
 struct VerticalPass<'a, T> {
     out: &'a mut [T],
     plane: &'a [T],
+    row_stride: usize,
+    h: usize,
     y: usize,
     taps: &'a [T; WINDOW_SIZE],
 }
@@ -344,11 +469,11 @@ impl<T: Real> pulp::WithSimd for VerticalPass<'_, T> {
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _: S) {
         let w = self.out.len();
-        let h = self.plane.len() / w.max(1);
         for (k, &t) in self.taps.iter().enumerate() {
             let sy = self.y as isize + k as isize - HALF as isize;
-            if sy >= 0 && (sy as usize) < h {
-                let srow = &self.plane[sy as usize * w..(sy as usize + 1) * w];
+            if sy >= 0 && (sy as usize) < self.h {
+                let at = sy as usize * self.row_stride;
+                let srow = &self.plane[at..at + w];
                 add_shifted(self.out, srow, t, 0);
             }
         }
@@ -371,28 +496,112 @@ mod tests {
     }
 
     /// The two passes pixel by pixel, each output value summing its taps in window order.
-    fn blur_pixel_by_pixel(src: &[f32], w: usize, h: usize, taps: &[f32; WINDOW_SIZE]) -> Vec<f32> {
-        let pass =
-            |src: &[f32], stride: usize, len: usize, at: &dyn Fn(usize) -> (usize, usize)| {
-                let mut out = vec![0.0f32; src.len()];
-                for (i, o) in out.iter_mut().enumerate() {
-                    let (base, pos) = at(i);
-                    let mut acc = 0.0f32;
-                    for (k, &t) in taps.iter().enumerate() {
-                        let sp = pos as isize + k as isize - HALF as isize;
-                        if sp >= 0 && (sp as usize) < len {
-                            acc += t * src[base + sp as usize * stride];
-                        }
+    fn blur_pixel_by_pixel<T: Real>(
+        src: &[T],
+        w: usize,
+        h: usize,
+        taps: &[T; WINDOW_SIZE],
+    ) -> Vec<T> {
+        let pass = |src: &[T], stride: usize, len: usize, at: &dyn Fn(usize) -> (usize, usize)| {
+            let mut out = vec![T::zero(); src.len()];
+            for (i, o) in out.iter_mut().enumerate() {
+                let (base, pos) = at(i);
+                let mut acc = T::zero();
+                for (k, &t) in taps.iter().enumerate() {
+                    let sp = pos as isize + k as isize - HALF as isize;
+                    if sp >= 0 && (sp as usize) < len {
+                        acc += t * src[base + sp as usize * stride];
                     }
-                    *o = acc;
                 }
-                out
-            };
+                *o = acc;
+            }
+            out
+        };
         let horiz = pass(src, 1, w, &|i| (i - i % w, i % w));
         pass(&horiz, w, h, &|i| {
             let (plane, y, x) = (i / (w * h), i / w % h, i % w);
             (plane * w * h + x, y)
         })
+    }
+
+    /// SSIM and its gradient the textbook way: planar copies, the five maps blurred pixel by
+    /// pixel, the map and the partials per pixel, the partials blurred, the gradient per value.
+    fn ssim_reference<T: Real>(x: &[T], y: &[T], shape: ImageShape) -> (f64, Vec<T>) {
+        let (c, w, h) = (shape.channels, shape.width, shape.height);
+        let n = x.len();
+        let planar =
+            |v: &[T]| -> Vec<T> { (0..n).map(|k| v[(k % (w * h)) * c + k / (w * h)]).collect() };
+        let (xp, yp) = (planar(x), planar(y));
+        let taps = taps::<T>();
+        let blur = |v: &[T]| blur_pixel_by_pixel(v, w, h, &taps);
+        let mu_x = blur(&xp);
+        let mu_y = blur(&yp);
+        let e_xx = blur(&xp.iter().map(|&v| v * v).collect::<Vec<_>>());
+        let e_yy = blur(&yp.iter().map(|&v| v * v).collect::<Vec<_>>());
+        let e_xy = blur(&xp.iter().zip(&yp).map(|(&a, &b)| a * b).collect::<Vec<_>>());
+        let (c1, c2, two) = (T::lit(C1), T::lit(C2), T::lit(2.0));
+        let inv_m = T::lit(1.0 / n as f64);
+        let mut map = vec![T::zero(); n];
+        let (mut g_mu, mut g_xx, mut g_xy) = (map.clone(), map.clone(), map.clone());
+        for k in 0..n {
+            let (mx, my) = (mu_x[k], mu_y[k]);
+            let sxx = e_xx[k] - mx * mx;
+            let syy = e_yy[k] - my * my;
+            let sxy = e_xy[k] - mx * my;
+            let a = two * mx * my + c1;
+            let b = two * sxy + c2;
+            let cc = mx * mx + my * my + c1;
+            let d = sxx + syy + c2;
+            map[k] = (a * b) / (cc * d);
+            let s = a * b / (cc * d);
+            g_mu[k] =
+                inv_m * (two * my * (b / (cc * d) - a / (cc * d)) + two * mx * (-s / cc - -s / d));
+            g_xx[k] = inv_m * (-s / d);
+            g_xy[k] = inv_m * two * (a / (cc * d));
+        }
+        let value = map
+            .chunks(4096)
+            .map(|ch| ch.iter().map(|v| v.to_f64_exact()).sum::<f64>())
+            .sum::<f64>()
+            / n as f64;
+        let (b_mu, b_xx, b_xy) = (blur(&g_mu), blur(&g_xx), blur(&g_xy));
+        let mut grad = vec![T::zero(); n];
+        for k in 0..n {
+            let g = b_mu[k] + two * xp[k] * b_xx[k] + yp[k] * b_xy[k];
+            grad[(k % (w * h)) * c + k / (w * h)] = g;
+        }
+        (value, grad)
+    }
+
+    fn check_against_reference<T: Real>() {
+        // narrower and wider than the window, one to four channels, more values than one chunk
+        // of the f64 sum
+        for (w, h, c) in [(1, 1, 1), (3, 14, 2), (13, 9, 3), (40, 23, 3), (70, 31, 4)] {
+            let shape = ImageShape::new(w, h, c);
+            let n = shape.len();
+            let x: Vec<T> = (0..n)
+                .map(|i| T::lit(((i * 7919 % 1013) as f64) / 1013.0))
+                .collect();
+            let y: Vec<T> = (0..n)
+                .map(|i| T::lit(((i * 104729 % 997) as f64) / 997.0))
+                .collect();
+            let (value, grad) = ssim_reference(&x, &y, shape);
+            let fast = ssim_with_grad(&x, &y, shape).unwrap();
+            let bits = |v: &[T]| {
+                v.iter()
+                    .map(|a| a.to_f64_exact().to_bits())
+                    .collect::<Vec<_>>()
+            };
+            assert_eq!(fast.value.to_bits(), value.to_bits(), "{w}x{h}x{c}");
+            assert_eq!(ssim(&x, &y, shape).unwrap().to_bits(), value.to_bits());
+            assert_eq!(bits(&fast.grad_x), bits(&grad), "{w}x{h}x{c}");
+        }
+    }
+
+    #[test]
+    fn fused_passes_give_the_bits_of_the_textbook_sequence_of_blurs() {
+        check_against_reference::<f32>();
+        check_against_reference::<f64>();
     }
 
     #[test]

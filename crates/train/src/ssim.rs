@@ -344,8 +344,15 @@ impl<T: Real, F: Fn(T, T, T) -> T> pulp::WithSimd for GradientRow<'_, T, F> {
     }
 }
 
-/// The horizontal passes of [`blur`] over `rows` rows of `M` maps, laid out `[row][map][W]`:
-/// `fill(r, m, buf)` writes row `r` of map `m` into `buf`, which is then blurred.
+/// The first half of the zero-padded "same" correlation with the separable window: the
+/// horizontal passes over `rows` rows of `M` maps, laid out `[row][map][W]`; `fill(r, m, buf)`
+/// writes row `r` of map `m` into `buf`, which is then blurred. [`vertical_passes`] is the second
+/// half.
+///
+/// Each output value of either half starts at zero and adds `tap * input` tap by tap in window
+/// order, skipping taps outside the image; the passes loop over taps outside and pixels inside,
+/// which keeps that order and lets the pixel loop run as vector code (compiled for the
+/// instruction set `pulp` picks at run time; the same bits whichever it is).
 fn horizontal_passes<T: Real, const M: usize>(
     rows: usize,
     w: usize,
@@ -372,8 +379,8 @@ fn horizontal_passes<T: Real, const M: usize>(
     out
 }
 
-/// The vertical passes of [`blur`] for planar row `r` (plane `r / h`, row `r % h`) of the `M` maps
-/// of `horiz` (laid out by [`horizontal_passes`]) into `out` (`[map][W]`).
+/// The vertical passes for planar row `r` (plane `r / h`, row `r % h`) of the `M` maps of
+/// `horiz` (laid out by [`horizontal_passes`]) into `out` (`[map][W]`), within each plane.
 fn vertical_passes<T: Real, const M: usize>(
     horiz: &[T],
     w: usize,
@@ -398,12 +405,8 @@ fn vertical_passes<T: Real, const M: usize>(
 }
 
 /// Zero-padded "same" correlation of `planes` stacked `H x W` planes (`rows = planes * H` rows)
-/// with the separable window: a horizontal pass, then a vertical pass within each plane.
-///
-/// Each output value starts at zero and adds `tap * input` tap by tap in window order, skipping
-/// taps outside the image; the passes loop over taps outside and pixels inside, which keeps that
-/// order and lets the pixel loop run as vector code (compiled for the instruction set `pulp`
-/// picks at run time; the same bits whichever it is).
+/// with the separable window, one map at a time through [`horizontal_passes`] and
+/// [`vertical_passes`] (for the tests of the passes).
 #[cfg(test)]
 fn blur<T: Real>(src: &[T], w: usize, h: usize, rows: usize, taps: &[T; WINDOW_SIZE]) -> Vec<T> {
     debug_assert_eq!(src.len(), w * rows);
@@ -434,7 +437,7 @@ fn add_shifted<T: Real>(out: &mut [T], src: &[T], tap: T, shift: isize) {
     }
 }
 
-/// The horizontal pass of [`blur`] over one row (`out` starts at zero).
+/// The horizontal pass over one row (`out` starts at zero).
 struct HorizontalPass<'a, T> {
     out: &'a mut [T],
     row: &'a [T],
@@ -452,7 +455,7 @@ impl<T: Real> pulp::WithSimd for HorizontalPass<'_, T> {
     }
 }
 
-/// The vertical pass of [`blur`] for row `y` of one `H x W` plane whose row `sy` starts at
+/// The vertical pass for row `y` of one `H x W` plane whose row `sy` starts at
 /// `plane[sy * row_stride]` (`out` starts at zero).
 struct VerticalPass<'a, T> {
     out: &'a mut [T],

@@ -556,7 +556,7 @@ mod tests {
             let cc = mx * mx + my * my + c1;
             let d = sxx + syy + c2;
             map[k] = (a * b) / (cc * d);
-            let s = a * b / (cc * d);
+            let s = map[k];
             g_mu[k] =
                 inv_m * (two * my * (b / (cc * d) - a / (cc * d)) + two * mx * (-s / cc - -s / d));
             g_xx[k] = inv_m * (-s / d);

@@ -357,11 +357,39 @@ mod fast {
     }
 
     impl<const NB: usize> Block<NB> {
+        /// A block of zeros, filled by [`Block::fill`].
         #[inline(always)]
-        fn new(k: usize, sh: &[[f32; 3]], means: &[[f32; 3]], center: [f32; 3], i0: usize) -> Self {
-            let mut u = [[0.0f32; LANES]; 3];
-            let mut denom = [0.0f32; LANES];
-            let mut clamped = [false; LANES];
+        fn zeros() -> Self {
+            Block {
+                u: [[0.0; LANES]; 3],
+                denom: [0.0; LANES],
+                clamped: [false; LANES],
+                b: [[0.0; LANES]; NB],
+                coef: [[[0.0; LANES]; 3]; NB],
+                raw: [[0.0; LANES]; 3],
+            }
+        }
+
+        /// Computes the stages of the block of Gaussians starting at `i0` in place (one block
+        /// reused by a loop: returning a new one per step copies kilobytes, and the loads of
+        /// the copy wait for it).
+        #[inline(always)]
+        fn fill(
+            &mut self,
+            k: usize,
+            sh: &[[f32; 3]],
+            means: &[[f32; 3]],
+            center: [f32; 3],
+            i0: usize,
+        ) {
+            let Block {
+                u,
+                denom,
+                clamped,
+                b,
+                coef,
+                raw,
+            } = self;
             for l in 0..LANES {
                 let m = &means[i0 + l];
                 let (ul, dl, cl) = normalize_dir(v3(|a| m[a] - center[a]));
@@ -371,14 +399,12 @@ mod fast {
                 denom[l] = dl;
                 clamped[l] = cl;
             }
-            let mut b = [[0.0f32; LANES]; NB];
             for l in 0..LANES {
                 let bl = eval_bases(NB, [u[0][l], u[1][l], u[2][l]]);
                 for kk in 0..NB {
                     b[kk][l] = bl[kk];
                 }
             }
-            let mut coef = [[[0.0f32; LANES]; 3]; NB];
             for l in 0..LANES {
                 let row = &sh[(i0 + l) * k..(i0 + l) * k + NB];
                 for kk in 0..NB {
@@ -387,21 +413,13 @@ mod fast {
                     }
                 }
             }
-            let mut raw = [[0.0f32; LANES]; 3];
+            *raw = [[0.0f32; LANES]; 3];
             for kk in 0..NB {
                 for c in 0..3 {
                     for l in 0..LANES {
                         raw[c][l] += b[kk][l] * coef[kk][c][l];
                     }
                 }
-            }
-            Block {
-                u,
-                denom,
-                clamped,
-                b,
-                coef,
-                raw,
             }
         }
     }
@@ -464,11 +482,13 @@ mod fast {
                 out,
             } = self.0;
             let blocks = means.len() / LANES;
+            let mut block = Block::<NB>::zeros();
             for blk in 0..blocks {
                 let i0 = blk * LANES;
                 // color_one across lanes, stage by stage on lane arrays
                 let half = 0.5f32;
-                let Block { raw, .. } = Block::<NB>::new(k, sh, means, center, i0);
+                block.fill(k, sh, means, center, i0);
+                let raw = &block.raw;
                 for l in 0..LANES {
                     out[i0 + l] = v3(|c| (raw[c][l] + half).max(0.0));
                 }
@@ -549,6 +569,7 @@ mod fast {
                 d_means,
             } = self.0;
             let blocks = means.len() / LANES;
+            let mut block = Block::<NB>::zeros();
             for blk in 0..blocks {
                 let i0 = blk * LANES;
                 // The Gaussians the image depends on (the generic loop's skip test).
@@ -560,6 +581,7 @@ mod fast {
                     continue;
                 }
                 // backward_one across lanes, stage by stage on lane arrays.
+                block.fill(k, sh, means, center, i0);
                 let Block {
                     u,
                     denom,
@@ -567,7 +589,7 @@ mod fast {
                     b,
                     coef,
                     raw,
-                } = Block::<NB>::new(k, sh, means, center, i0);
+                } = &block;
                 // The colour cotangent where the clamp at 0 passes it.
                 let mut v = [[0.0f32; LANES]; 3];
                 for c in 0..3 {

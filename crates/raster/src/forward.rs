@@ -230,8 +230,8 @@ pub fn rasterize_binned_with<T: Real>(
         .collect();
     work.sort_unstable_by_key(|&(t, _)| bins.locality_key(t));
     work.into_par_iter().for_each_init(
-        <(scalar::Scratch<T>, lanes::Scratch)>::default,
-        |(scalar_scratch, lane_scratch),
+        <(scalar::Scratch<T>, lanes::Scratch, Vec<lanes::RowRef>)>::default,
+        |(scalar_scratch, lane_scratch, rows),
          (t, ((((image, alpha), depth), count), (keep, keep_blends)))| {
             let mut out = TileOut {
                 image,
@@ -241,8 +241,9 @@ pub fn rasterize_binned_with<T: Real>(
             };
             match (token, &lanes_in, out.as_f32()) {
                 (Some(token), Some((splats, background)), Some(out)) => {
-                    // The lane kernels build no row lists; they keep the rows they blend.
-                    let mut rows = Vec::new();
+                    // The lane kernels build no row lists; they keep the rows they blend, in a
+                    // buffer of the thread's (grown once, not per tile), copied out to fit.
+                    rows.clear();
                     token.run(lanes::ForwardTile {
                         splats,
                         packed: &packed32,
@@ -251,13 +252,13 @@ pub fn rasterize_binned_with<T: Real>(
                         t,
                         scratch: lane_scratch,
                         out,
-                        keep: Some(&mut rows),
+                        keep: Some(rows),
                     });
                     let bytes = std::mem::size_of_val(rows.as_slice());
                     if kept_bytes.fetch_add(bytes, Ordering::Relaxed) + bytes
                         <= ROW_LIST_BUDGET_BYTES
                     {
-                        *keep_blends = Some(rows);
+                        *keep_blends = Some(rows.to_vec());
                     }
                 }
                 _ => {

@@ -164,14 +164,18 @@ pub(crate) fn at_column(list: &[RowEntry], lx: u8) -> impl Iterator<Item = usize
 /// The image rows `lo..hi` (of `height`) outside which `s` is certainly skipped: the rows of its
 /// widened ellipse (see the module docs; the image taken as one tile), every row when the reach
 /// is not computed, none when it reaches nothing.
+///
+/// The same decisions and arithmetic as [`Reach::of`] and [`Ellipse::rows`], written without
+/// branches (every case computed, one selected), so that a loop over Gaussians vectorises.
+#[inline(always)]
 pub(crate) fn reach_rows<T: Real>(s: &Splat<T>, height: u32) -> (u32, u32) {
-    match Reach::of(s, 0, 0) {
-        Reach::Nothing => (0, 0),
-        Reach::Whole => (0, height),
-        Reach::Ellipse(e) => {
-            let rows = e.rows(height as usize);
-            (rows.start as u32, rows.end as u32)
-        }
+    let (reach, e) = Reach::classify(s, 0, 0);
+    // NaN or infinite terms (when the reach is not an ellipse) give some rows, not selected.
+    let rows = e.rows(height as usize);
+    match reach {
+        ReachKind::Nothing => (0, 0),
+        ReachKind::Whole => (0, height),
+        ReachKind::Ellipse => (rows.start as u32, rows.end as u32),
     }
 }
 
@@ -180,6 +184,14 @@ enum Reach {
     Nothing,
     Whole,
     Ellipse(Ellipse),
+}
+
+/// Which [`Reach`] a Gaussian has.
+#[derive(Clone, Copy)]
+enum ReachKind {
+    Nothing,
+    Whole,
+    Ellipse,
 }
 
 /// The widened ellipse of a Gaussian, in tile-local pixel coordinates.
@@ -198,36 +210,55 @@ struct Ellipse {
 impl Reach {
     /// The reach of `s` in the tile whose corner is `(x0, y0)`.
     fn of<T: Real>(s: &Splat<T>, x0: u32, y0: u32) -> Reach {
+        match Reach::classify(s, x0, y0) {
+            (ReachKind::Nothing, _) => Reach::Nothing,
+            (ReachKind::Whole, _) => Reach::Whole,
+            (ReachKind::Ellipse, e) => Reach::Ellipse(e),
+        }
+    }
+
+    /// The kind of reach of `s` in the tile whose corner is `(x0, y0)`, and its ellipse's terms
+    /// (meaningful for [`ReachKind::Ellipse`] only), without branches: every test is evaluated.
+    #[inline(always)]
+    fn classify<T: Real>(s: &Splat<T>, x0: u32, y0: u32) -> (ReachKind, Ellipse) {
         let cut = s.sigma_cut.to_f64_exact();
-        if cut.is_nan() || cut == f64::INFINITY {
-            return Reach::Whole;
-        }
-        if cut < 0.0 {
-            return Reach::Nothing;
-        }
         let (a, b, c) = (s.a.to_f64_exact(), s.b.to_f64_exact(), s.c.to_f64_exact());
         let (mx, my) = (s.mx.to_f64_exact(), s.my.to_f64_exact());
         let det = a * c - b * b;
         let trace = a + c;
-        if ![a, b, c, mx, my, det].iter().all(|v| v.is_finite())
-            || a <= 0.0
-            || c <= 0.0
-            || det <= DEGENERACY * trace * trace
-        {
-            return Reach::Whole;
-        }
-        Reach::Ellipse(Ellipse {
+        let whole_cut = cut.is_nan() | (cut == f64::INFINITY);
+        let nothing = cut < 0.0;
+        let degenerate = !(a.is_finite()
+            & b.is_finite()
+            & c.is_finite()
+            & mx.is_finite()
+            & my.is_finite()
+            & det.is_finite())
+            | (a <= 0.0)
+            | (c <= 0.0)
+            | (det <= DEGENERACY * trace * trace);
+        let kind = if whole_cut {
+            ReachKind::Whole
+        } else if nothing {
+            ReachKind::Nothing
+        } else if degenerate {
+            ReachKind::Whole
+        } else {
+            ReachKind::Ellipse
+        };
+        let e = Ellipse {
             mx: mx - x0 as f64,
             my: my - y0 as f64,
             b_over_a: b / a,
             inv_a: 1.0 / a,
             det,
             s2a: 2.0 * (CUT_SCALE * cut + CUT_PAD) * a,
-        })
+        };
+        (kind, e)
     }
 }
 
-/// `ceil(v)` clamped to `[lo, hi + 1]`, without branches or a library call (`v` not NaN).
+/// `ceil(v)` clamped to `[lo, hi + 1]`, without branches or a library call (NaN gives `lo`).
 #[inline]
 fn ceil_in(v: f64, lo: i64, hi: i64) -> i64 {
     let c = v.max(lo as f64).min((hi + 1) as f64);
@@ -235,7 +266,7 @@ fn ceil_in(v: f64, lo: i64, hi: i64) -> i64 {
     t + ((t as f64) < c) as i64
 }
 
-/// `floor(v)` clamped to `[lo - 1, hi]`, without branches or a library call (`v` not NaN).
+/// `floor(v)` clamped to `[lo - 1, hi]`, without branches or a library call (NaN gives `lo - 1`).
 #[inline]
 fn floor_in(v: f64, lo: i64, hi: i64) -> i64 {
     let c = v.max((lo - 1) as f64).min(hi as f64);
@@ -389,6 +420,29 @@ mod tests {
         assert!(r[8 * 16 + 8] && r[7 * 16 + 7]);
         assert!(count(&r) < 60, "{}", count(&r));
         assert!(!r[5 * 16 + 5] && !r[0]);
+        // The same classes for the image rows (the branch-free `reach_rows`).
+        let rows = |mean: [f64; 2], conic: [f64; 3], opacity: f64| {
+            reach_rows(&Splat::new(mean, conic, opacity), 40)
+        };
+        for (mean, conic) in [
+            ([8.0, 8.0], [1.0, 2.0, 1.0]),
+            ([8.0, 8.0], [1.0, 0.9999, 1.0]),
+            ([8.0, 8.0], [f64::NAN, 0.0, 1.0]),
+            ([8.0, 8.0], [1.0, 0.0, f64::INFINITY]),
+            ([f64::NAN, 8.0], [1.0, 0.0, 1.0]),
+            ([8.0, f64::NEG_INFINITY], [1.0, 0.0, 1.0]),
+        ] {
+            assert_eq!(rows(mean, conic, 0.5), (0, 40), "{mean:?} {conic:?}");
+        }
+        assert_eq!(rows([8.0, 8.0], [1.0, 0.0, 1.0], 1e-3), (0, 0));
+        // A NaN opacity is not positive (alpha 0 everywhere); an infinite one has no finite
+        // cut.
+        assert_eq!(rows([8.0, 8.0], [1.0, 0.0, 1.0], f64::NAN), (0, 0));
+        assert_eq!(rows([8.0, 8.0], [1.0, 0.0, 1.0], f64::INFINITY), (0, 40));
+        // A few rows around the centre, none above the image.
+        let (lo, hi) = rows([8.0, 8.0], [1.0, 0.0, 1.0], 0.5);
+        assert!(lo > 0 && lo <= 7 && hi >= 9 && hi < 40, "{lo}..{hi}");
+        assert_eq!(rows([8.0, -30.0], [1.0, 0.0, 1.0], 0.5), (0, 0));
     }
 
     #[test]

@@ -271,18 +271,43 @@ pub(crate) struct LaneSplat {
 }
 
 /// Every Gaussian of `splats` packed for an image of `height` rows, computed once per pass.
+///
+/// The Gaussians first (each one's alpha cut takes a logarithm), then their rows in blocks, as
+/// vector code for the instruction set `pulp` picks at run time ([`reach_rows`] has no
+/// branches; its `f64` operations are the same in every lane, so are its results).
 pub(crate) fn pack(splats: &Splats<f32>, height: u32) -> Vec<LaneSplat> {
-    (0..splats.len())
+    let mut packed: Vec<LaneSplat> = (0..splats.len())
         .into_par_iter()
-        .map(|g| {
-            let s = splats.splat(g);
-            LaneSplat {
-                s,
-                depth: splats.depths[g],
-                rows: reach_rows(&s, height),
-            }
+        .map(|g| LaneSplat {
+            s: splats.splat(g),
+            depth: splats.depths[g],
+            rows: (0, 0),
         })
-        .collect()
+        .collect();
+    packed
+        .par_chunks_mut(PACK_BLOCK)
+        .for_each(|block| pulp::Arch::new().dispatch(ReachRows { block, height }));
+    packed
+}
+
+/// Gaussians per parallel work item of [`pack`]'s rows.
+const PACK_BLOCK: usize = 4096;
+
+/// [`reach_rows`] of a block of packed Gaussians.
+struct ReachRows<'a> {
+    block: &'a mut [LaneSplat],
+    height: u32,
+}
+
+impl pulp::WithSimd for ReachRows<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _: S) {
+        for ls in self.block.iter_mut() {
+            ls.rows = reach_rows(&ls.s, self.height);
+        }
+    }
 }
 
 /// The tile rows (bits, relative to the tile's first row `y0`) of the image rows `rows` that
@@ -633,6 +658,8 @@ fn replay<I: LaneIsa>(
     let mut trans = Aligned([[1f32; LANES]; LANES]);
     let mut falloff = [0f32; LANES];
     let mut alpha = [0f32; LANES];
+    // One row each: no reallocation (and copy) while pushing.
+    blended.reserve(rows.len());
     for (i, rr) in rows.iter().enumerate() {
         if let Some(ahead) = rows.get(i + PREFETCH_AHEAD) {
             prefetch(std::slice::from_ref(

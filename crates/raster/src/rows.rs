@@ -441,7 +441,7 @@ mod tests {
         assert_eq!(rows([8.0, 8.0], [1.0, 0.0, 1.0], f64::INFINITY), (0, 40));
         // A few rows around the centre, none above the image.
         let (lo, hi) = rows([8.0, 8.0], [1.0, 0.0, 1.0], 0.5);
-        assert!(lo > 0 && lo <= 7 && hi >= 9 && hi < 40, "{lo}..{hi}");
+        assert!((1..=7).contains(&lo) && (9..40).contains(&hi), "{lo}..{hi}");
         assert_eq!(rows([8.0, -30.0], [1.0, 0.0, 1.0], 0.5), (0, 0));
     }
 

@@ -11,6 +11,9 @@
 //! depths: `f32` depths take the parallel 32-bit-key passes, the same depths as `f64` the
 //! one-part 64-bit-key passes (the same order; the baseline in the same run).
 //!
+//! `binning/100k/256/t{threads}` times `TileBins::new` (tile rectangles, depth order and
+//! intersection lists) on the scene of the 100k, 256x256 pass benchmarks.
+//!
 //! Scenes are synthetic projected Gaussians: means uniform over the image, random orientations
 //! and anisotropy, standard deviations chosen so that the summed 2-sigma footprints cover every
 //! pixel about 20 times on average (like a trained scene seen from a training view), opacities
@@ -227,5 +230,39 @@ fn sort(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, sort, bench);
+fn binning(c: &mut Criterion) {
+    let filters: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with('-'))
+        .collect();
+    if !filters.is_empty()
+        && !filters.iter().any(|f| {
+            "binning/100k/256/t1".contains(f.as_str()) || "binning/100k/256/t2".contains(f.as_str())
+        })
+    {
+        return;
+    }
+    // Binning alone (tile rectangles, depth order, intersection lists) on the scene of the
+    // 100k, 256x256 pass benchmarks.
+    let s = scene(100_000, 256, 3);
+    let mut g = c.benchmark_group("binning");
+    g.sample_size(20);
+    for t in [1usize, 2] {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(t)
+            .build()
+            .unwrap();
+        g.bench_function(format!("100k/256/t{t}"), |b| {
+            pool.install(|| {
+                b.iter(|| {
+                    raster::tiles::TileBins::new(s.width, s.height, &s.means2d, &s.depths, &s.radii)
+                        .unwrap()
+                })
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, sort, binning, bench);
 criterion_main!(benches);

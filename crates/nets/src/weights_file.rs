@@ -48,14 +48,55 @@ pub fn serialize_canonical(
     views: Vec<(String, TensorView<'_>)>,
     metadata: HashMap<String, String>,
 ) -> Result<Vec<u8>, String> {
+    Ok(canonical(views, metadata)?.into_vec())
+}
+
+/// The bytes of [`serialize_canonical`] in two pieces, the header and the tensor data, so that
+/// a file can take them in turn ([`Canonical::write_to`]) without a copy of the data that
+/// joins them.
+#[derive(Debug)]
+pub struct Canonical {
+    /// The header's length (8 bytes, little-endian) and its text.
+    head: Vec<u8>,
+    /// `safetensors::serialize`'s bytes, whose tensor data starts at `data_start`.
+    serialized: Vec<u8>,
+    data_start: usize,
+}
+
+impl Canonical {
+    /// The tensor data: every tensor's bytes at the offsets the header gives.
+    fn data(&self) -> &[u8] {
+        &self.serialized[self.data_start..]
+    }
+
+    /// Writes the file's bytes to `out`.
+    pub fn write_to(&self, out: &mut impl std::io::Write) -> std::io::Result<()> {
+        out.write_all(&self.head)?;
+        out.write_all(self.data())
+    }
+
+    /// The file's bytes in one buffer.
+    pub fn into_vec(self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.head.len() + self.data().len());
+        out.extend_from_slice(&self.head);
+        out.extend_from_slice(self.data());
+        out
+    }
+}
+
+/// [`serialize_canonical`] in two pieces ([`Canonical`]).
+pub fn canonical(
+    views: Vec<(String, TensorView<'_>)>,
+    metadata: HashMap<String, String>,
+) -> Result<Canonical, String> {
     use std::collections::{BTreeMap, BTreeSet};
     let mut names = BTreeSet::new();
     if let Some((name, _)) = views.iter().find(|(name, _)| !names.insert(name.as_str())) {
         return Err(format!("two tensors are both named `{name}`"));
     }
-    let bytes = safetensors::serialize(views, Some(metadata)).map_err(|e| e.to_string())?;
-    let n = u64::from_le_bytes(bytes[..8].try_into().expect("8 bytes")) as usize;
-    let (header, data) = bytes[8..].split_at(n);
+    let serialized = safetensors::serialize(views, Some(metadata)).map_err(|e| e.to_string())?;
+    let n = u64::from_le_bytes(serialized[..8].try_into().expect("8 bytes")) as usize;
+    let header = &serialized[8..8 + n];
     let mut header: BTreeMap<String, serde_json::Value> =
         serde_json::from_slice(header).map_err(|e| e.to_string())?;
     if let Some(meta) = header.get_mut("__metadata__") {
@@ -65,11 +106,14 @@ pub fn serialize_canonical(
     }
     let mut text = serde_json::to_vec(&header).map_err(|e| e.to_string())?;
     text.resize(text.len().next_multiple_of(8), b' ');
-    let mut out = Vec::with_capacity(8 + text.len() + data.len());
-    out.extend_from_slice(&(text.len() as u64).to_le_bytes());
-    out.extend_from_slice(&text);
-    out.extend_from_slice(data);
-    Ok(out)
+    let mut head = Vec::with_capacity(8 + text.len());
+    head.extend_from_slice(&(text.len() as u64).to_le_bytes());
+    head.extend_from_slice(&text);
+    Ok(Canonical {
+        head,
+        serialized,
+        data_start: 8 + n,
+    })
 }
 
 /// The `format` metadata value.

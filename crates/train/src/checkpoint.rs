@@ -14,6 +14,7 @@
 //! shortest round-trip form, so it reads back bit-identically. The file is written to a temporary
 //! name in the same directory and renamed into place.
 
+use std::borrow::Cow;
 use std::collections::HashMap;
 use std::path::Path;
 
@@ -77,26 +78,70 @@ pub struct GeometryCheckpoint {
     pub config_json: String,
 }
 
-struct Tensor {
+struct Tensor<'a> {
     name: String,
     dtype: Dtype,
     shape: Vec<usize>,
-    bytes: Vec<u8>,
+    bytes: Cow<'a, [u8]>,
 }
 
-fn f32_tensor(name: &str, shape: Vec<usize>, v: &[f32]) -> Tensor {
+/// An `f32` tensor over `v`'s own bytes on little-endian machines (no copy of the values), over a
+/// little-endian copy elsewhere.
+fn f32_tensor<'a>(name: &str, shape: Vec<usize>, v: &'a [f32]) -> Tensor<'a> {
     Tensor {
         name: name.to_string(),
         dtype: Dtype::F32,
         shape,
-        bytes: v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+        bytes: if cfg!(target_endian = "little") {
+            Cow::Borrowed(bytemuck::cast_slice(v))
+        } else {
+            Cow::Owned(v.iter().flat_map(|x| x.to_le_bytes()).collect())
+        },
     }
+}
+
+/// The contents of a geometry checkpoint, borrowed: those of a [`GeometryCheckpoint`], or of a
+/// trainer writing one without copying its model first.
+pub(crate) struct CheckpointParts<'a> {
+    pub step: u64,
+    pub model: &'a GaussianModel,
+    pub view_stack: &'a [usize],
+    pub ema_loss: f64,
+    pub ema_psnr: f64,
+    pub seed: u64,
+    pub extent: f64,
+    pub config_json: &'a str,
 }
 
 impl GeometryCheckpoint {
     /// Serialises the checkpoint to safetensors bytes.
     pub fn to_bytes(&self) -> Result<Vec<u8>, TrainError> {
-        let m = &self.model;
+        Ok(self.parts().encode()?.into_vec())
+    }
+
+    fn parts(&self) -> CheckpointParts<'_> {
+        CheckpointParts {
+            step: self.step,
+            model: &self.model,
+            view_stack: &self.view_stack,
+            ema_loss: self.ema_loss,
+            ema_psnr: self.ema_psnr,
+            seed: self.seed,
+            extent: self.extent,
+            config_json: &self.config_json,
+        }
+    }
+
+    /// Writes the checkpoint atomically.
+    pub fn save(&self, path: &Path) -> Result<(), TrainError> {
+        self.parts().save(path)
+    }
+}
+
+impl CheckpointParts<'_> {
+    /// The checkpoint's file, in the two pieces of [`nets::weights_file::Canonical`].
+    fn encode(&self) -> Result<nets::weights_file::Canonical, TrainError> {
+        let m = self.model;
         let s = &m.scene;
         let n = s.len();
         let k = s.sh_coeffs_per_gaussian();
@@ -140,7 +185,7 @@ impl GeometryCheckpoint {
                 p.exp_avg_sq(),
             ));
         }
-        meta.insert("config".to_string(), self.config_json.clone());
+        meta.insert("config".to_string(), self.config_json.to_string());
         tensors.push(Tensor {
             name: "stats.grad_norm_sum".into(),
             dtype: Dtype::F64,
@@ -181,16 +226,18 @@ impl GeometryCheckpoint {
                     .map_err(|e| TrainError::Shape(format!("checkpoint tensor {}: {e}", t.name)))
             })
             .collect::<Result<_, _>>()?;
-        nets::weights_file::serialize_canonical(views, meta)
+        nets::weights_file::canonical(views, meta)
             .map_err(|e| TrainError::Shape(format!("cannot serialise the checkpoint: {e}")))
     }
 
-    /// Writes the checkpoint atomically.
-    pub fn save(&self, path: &Path) -> Result<(), TrainError> {
-        let bytes = self.to_bytes()?;
-        base::write_atomic(path, &bytes).map_err(|e| TrainError::io(path, e))
+    /// Writes the checkpoint atomically, header and tensor data in turn.
+    pub(crate) fn save(&self, path: &Path) -> Result<(), TrainError> {
+        let file = self.encode()?;
+        base::write_atomic_with(path, |f| file.write_to(f)).map_err(|e| TrainError::io(path, e))
     }
+}
 
+impl GeometryCheckpoint {
     /// Reads a checkpoint written by [`GeometryCheckpoint::save`].
     pub fn load(path: &Path) -> Result<Self, TrainError> {
         let bytes = std::fs::read(path).map_err(|e| TrainError::io(path, e))?;

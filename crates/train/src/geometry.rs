@@ -63,7 +63,7 @@ use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
 use crate::adam::AdamConfig;
-use crate::checkpoint::GeometryCheckpoint;
+use crate::checkpoint::{CheckpointParts, GeometryCheckpoint};
 use crate::density::{scale_interval, scale_point, DensifyConfig, DensifyReport};
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop, DEFAULT_CHECKPOINT_INTERVAL};
 use crate::error::TrainError;
@@ -442,14 +442,30 @@ impl GeometryTrainer {
             ema_psnr: self.ema_psnr,
             seed: self.config.seed,
             extent: self.extent,
-            config_json: serde_json::to_string(&self.config)
-                .map_err(|e| TrainError::Config(e.to_string()))?,
+            config_json: self.config_json()?,
         })
     }
 
-    /// Writes a checkpoint atomically.
+    /// Writes a checkpoint atomically: the file of [`GeometryTrainer::checkpoint`], written from
+    /// the trainer's state without copying it first.
     pub fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
-        self.checkpoint()?.save(path)
+        let config_json = self.config_json()?;
+        CheckpointParts {
+            step: self.step,
+            model: &self.model,
+            view_stack: &self.view_stack,
+            ema_loss: self.ema_loss,
+            ema_psnr: self.ema_psnr,
+            seed: self.config.seed,
+            extent: self.extent,
+            config_json: &config_json,
+        }
+        .save(path)
+    }
+
+    /// The configuration as a checkpoint records it.
+    fn config_json(&self) -> Result<String, TrainError> {
+        serde_json::to_string(&self.config).map_err(|e| TrainError::Config(e.to_string()))
     }
 
     /// Writes the scene as an official 3DGS `.ply` (atomically).

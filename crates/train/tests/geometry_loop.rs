@@ -73,6 +73,11 @@ fn resuming_from_a_checkpoint_reproduces_the_uninterrupted_run() {
     first.save_checkpoint(&path).unwrap();
     let ckpt = GeometryCheckpoint::load(&path).unwrap();
     assert_eq!(ckpt, first.checkpoint().unwrap(), "checkpoint round trip");
+    // The trainer writes its state without copying it first; the file is the copy's.
+    assert!(
+        std::fs::read(&path).unwrap() == first.checkpoint().unwrap().to_bytes().unwrap(),
+        "the file of save_checkpoint is that of checkpoint().to_bytes()"
+    );
     drop(first);
     let mut resumed = GeometryTrainer::resume(busy_config(), ckpt, views(), vec![]).unwrap();
     assert_eq!(resumed.step, 10);

@@ -139,6 +139,20 @@ impl GeometryCheckpoint {
 }
 
 impl CheckpointParts<'_> {
+    /// The checkpoint, owning copies of the parts.
+    pub(crate) fn to_owned(&self) -> GeometryCheckpoint {
+        GeometryCheckpoint {
+            step: self.step,
+            model: self.model.clone(),
+            view_stack: self.view_stack.to_vec(),
+            ema_loss: self.ema_loss,
+            ema_psnr: self.ema_psnr,
+            seed: self.seed,
+            extent: self.extent,
+            config_json: self.config_json.to_string(),
+        }
+    }
+
     /// The checkpoint's file, in the two pieces of [`nets::weights_file::Canonical`].
     fn encode(&self) -> Result<nets::weights_file::Canonical, TrainError> {
         let m = self.model;

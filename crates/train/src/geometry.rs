@@ -434,22 +434,18 @@ impl GeometryTrainer {
 
     /// The resumable state of the run.
     pub fn checkpoint(&self) -> Result<GeometryCheckpoint, TrainError> {
-        Ok(GeometryCheckpoint {
-            step: self.step,
-            model: self.model.clone(),
-            view_stack: self.view_stack.clone(),
-            ema_loss: self.ema_loss,
-            ema_psnr: self.ema_psnr,
-            seed: self.config.seed,
-            extent: self.extent,
-            config_json: self.config_json()?,
-        })
+        Ok(self.checkpoint_parts(&self.config_json()?).to_owned())
     }
 
     /// Writes a checkpoint atomically: the file of [`GeometryTrainer::checkpoint`], written from
     /// the trainer's state without copying it first.
     pub fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
-        let config_json = self.config_json()?;
+        self.checkpoint_parts(&self.config_json()?).save(path)
+    }
+
+    /// What a checkpoint records, borrowed from the trainer (`config_json`: the configuration
+    /// as [`GeometryTrainer::config_json`] writes it).
+    fn checkpoint_parts<'a>(&'a self, config_json: &'a str) -> CheckpointParts<'a> {
         CheckpointParts {
             step: self.step,
             model: &self.model,
@@ -458,9 +454,8 @@ impl GeometryTrainer {
             ema_psnr: self.ema_psnr,
             seed: self.config.seed,
             extent: self.extent,
-            config_json: &config_json,
+            config_json,
         }
-        .save(path)
     }
 
     /// The configuration as a checkpoint records it.

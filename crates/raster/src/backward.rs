@@ -237,9 +237,10 @@ pub fn rasterize_backward_with<T: Real>(
             rest = tail;
             bg_rest = bg_tail;
         }
-        slices.sort_unstable_by_key(|&(t, _, _)| bins.locality_key(t));
+        // Handed out one tile at a time, longest lists first (see `TileBins::schedule_key`).
+        slices.sort_unstable_by_key(|&(t, _, _)| bins.schedule_key(t));
         let tile_pass = || {
-            slices.into_par_iter().for_each_init(
+            slices.into_iter().par_bridge().for_each_init(
                 <(scalar::Scratch<T>, lanes::Scratch)>::default,
                 |(scalar_scratch, lane_scratch), (t, rec, bg)| {
                     let lanes_out = T::as_f32_slice_mut(rec).zip(T::as_f32_slice_mut(bg));

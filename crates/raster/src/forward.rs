@@ -10,8 +10,8 @@
 //! The scalar loops walk each pixel over its row's list of [`crate::rows`] (the Gaussians that
 //! can reach the row, with the columns they can reach); the lane kernels evaluate each Gaussian
 //! on the tile rows its ellipse reaches. Either way the Gaussians left out are ones the blending
-//! rule skips there. Tiles run in Morton order ([`TileBins::locality_key`]), which changes no
-//! result.
+//! rule skips there. Tiles go to the threads one at a time, longest lists first
+//! ([`TileBins::schedule_key`]), which changes no result.
 //!
 //! Memory: the outputs (`D + 3` reals and one `u32` per pixel), a tile-major staging copy of
 //! them of the same size, the [`TileBins`], every Gaussian packed (7 to 10 reals each), and per
@@ -219,7 +219,8 @@ pub fn rasterize_binned_with<T: Real>(
     // same budget (tile by tile: a tile without them is walked again).
     let mut kept_blends: Vec<Option<Vec<lanes::RowRef>>> = (0..tiles).map(|_| None).collect();
     let kept_bytes = AtomicUsize::new(0);
-    // Tiles in an order that keeps neighbours together (each tile's results do not depend on it).
+    // Tiles handed out one at a time, longest lists first (each tile's results do not depend
+    // on the order or the thread).
     let mut work: Vec<_> = t_image
         .par_chunks_mut(TILE_PIXELS * d_stage)
         .zip(t_alpha.par_chunks_mut(TILE_PIXELS))
@@ -228,8 +229,8 @@ pub fn rasterize_binned_with<T: Real>(
         .zip(kept.par_iter_mut().zip(kept_blends.par_iter_mut()))
         .enumerate()
         .collect();
-    work.sort_unstable_by_key(|&(t, _)| bins.locality_key(t));
-    work.into_par_iter().for_each_init(
+    work.sort_unstable_by_key(|&(t, _)| bins.schedule_key(t));
+    work.into_iter().par_bridge().for_each_init(
         <(scalar::Scratch<T>, lanes::Scratch, Vec<lanes::RowRef>)>::default,
         |(scalar_scratch, lane_scratch, rows),
          (t, ((((image, alpha), depth), count), (keep, keep_blends)))| {

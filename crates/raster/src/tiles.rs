@@ -296,6 +296,14 @@ impl TileBins {
         spread(x) | spread(y) << 1
     }
 
+    /// The order in which the passes hand tiles to their threads, one tile at a time: the
+    /// longest lists first (ties in [`TileBins::locality_key`] order). A thread that finishes
+    /// then waits at most for a short tile, where with neighbours in runs it could wait for
+    /// a run of the scene's busiest tiles. The order changes no result.
+    pub fn schedule_key(&self, t: usize) -> (std::cmp::Reverse<usize>, u64) {
+        (std::cmp::Reverse(self.range(t).len()), self.locality_key(t))
+    }
+
     /// Number of tiles.
     pub fn tile_count(&self) -> usize {
         self.offsets.len() - 1
@@ -557,6 +565,13 @@ mod tests {
                     .collect();
                 expected.sort_by(|&a, &b| depths[a as usize].total_cmp(&depths[b as usize]));
                 prop_assert_eq!(bins.tile(t), &expected[..], "tile {}", t);
+            }
+            // The schedule is a total order of the tiles (one key each), longest lists first.
+            let mut order: Vec<usize> = (0..bins.tile_count()).collect();
+            order.sort_by_key(|&t| bins.schedule_key(t));
+            for pair in order.windows(2) {
+                prop_assert!(bins.schedule_key(pair[0]) < bins.schedule_key(pair[1]));
+                prop_assert!(bins.tile(pair[0]).len() >= bins.tile(pair[1]).len());
             }
         }
     }

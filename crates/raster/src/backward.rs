@@ -26,12 +26,16 @@
 //!
 //! # Determinism and memory
 //! Tiles run in parallel. Each tile accumulates its pixels' contributions, in a fixed pixel
-//! order, into one partial-gradient record per intersection (`7 + D` reals). Records are then
-//! summed per Gaussian in ascending intersection order (tile order), whatever the thread count.
+//! order, into one partial-gradient record per intersection (`7 + D` reals), or, when the lane
+//! forward pass kept the blended rows of every tile, one per intersection that blends somewhere
+//! (the others' records would be zero: a sum that starts at +0 is the same without zero
+//! terms, as it never becomes -0). Records are then summed per Gaussian in ascending
+//! intersection order (tile order), whatever the thread count.
 //! Tiles are processed in consecutive batches whose records fit in a budget
 //! (`gradient_buffer_values`, default [`DEFAULT_GRADIENT_BUFFER_VALUES`]), so the peak memory is:
 //! the outputs, `N (7 + D)` reals of per-Gaussian accumulators, `min(budget, I (7 + D))` reals of
-//! records (`I` intersections; a single tile larger than the budget gets a batch of its own),
+//! records (`I` intersections, or the blending ones; a single tile larger than the budget gets a
+//! batch of its own),
 //! `D` reals per tile for the background gradient, and per thread one tile's working memory:
 //! for the scalar loops its packed Gaussians (7 reals each), its row lists (8 bytes per Gaussian
 //! and row it reaches, see [`crate::rows`]) and one pixel's blend list (4 reals and 2 words per
@@ -207,22 +211,65 @@ pub fn rasterize_backward_with<T: Real>(
     } else {
         splats.packed()
     };
-    // Each Gaussian's intersections in ascending order, so that the sum of its records runs in
-    // intersection order in time linear in the intersections (see `GaussianLists`). Built
-    // alongside the first batch's tile pass, which does not read them.
-    GaussianLists::check(bins.gaussian_ids())?;
+    // The records: one per tile list entry, or, when the forward pass kept the blended rows of
+    // every tile, one per entry that blends somewhere in its tile (the others' records would
+    // stay zero, and a sum that starts at +0 is the same without zero terms: it never becomes
+    // -0). `record_ids` lists the Gaussian of each record, tile by tile, in list order.
+    let compact: Option<Vec<Vec<u32>>> =
+        kept.filter(|k| k.blends.iter().all(Option::is_some))
+            .map(|k| {
+                k.blends
+                    .par_iter()
+                    .map(|rows| lanes::blending_positions(rows.as_deref().unwrap_or_default()))
+                    .collect()
+            });
+    let compact_ids: Vec<u32>;
+    let (record_ids, record_start): (&[u32], Vec<usize>) = match &compact {
+        Some(positions) => {
+            compact_ids = (0..tiles)
+                .flat_map(|t| {
+                    let ids = bins.tile(t);
+                    positions[t].iter().map(move |&k| ids[k as usize])
+                })
+                .collect();
+            let mut start = Vec::with_capacity(tiles + 1);
+            let mut total = 0;
+            for p in positions {
+                start.push(total);
+                total += p.len();
+            }
+            start.push(total);
+            (&compact_ids, start)
+        }
+        None => (
+            bins.gaussian_ids(),
+            (0..=tiles)
+                .map(|t| {
+                    if t < tiles {
+                        bins.range(t).start
+                    } else {
+                        bins.intersection_count()
+                    }
+                })
+                .collect(),
+        ),
+    };
+    // Each Gaussian's records in ascending order, so that the sum of its records runs in
+    // intersection order in time linear in the records (see `GaussianLists`). Built alongside
+    // the first batch's tile pass, which does not read them.
+    GaussianLists::check(record_ids)?;
     let mut lists: Option<GaussianLists> = None;
     let mut next = Vec::new();
 
     let mut first = 0;
     while first < tiles {
         // The batch: tiles [first, last) whose records fit the budget (at least one tile).
-        let begin = bins.range(first).start;
+        let begin = record_start[first];
         let mut last = first + 1;
-        while last < tiles && (bins.range(last).end - begin) * stride <= gradient_buffer_values {
+        while last < tiles && (record_start[last + 1] - begin) * stride <= gradient_buffer_values {
             last += 1;
         }
-        let end = bins.range(last - 1).end;
+        let end = record_start[last];
         records.clear();
         records.resize((end - begin) * stride, T::zero());
 
@@ -231,7 +278,8 @@ pub fn rasterize_backward_with<T: Real>(
         let mut rest: &mut [T] = &mut records;
         let mut bg_rest: &mut [T] = &mut tile_bg[first * d..last * d];
         for t in first..last {
-            let (mine, tail) = rest.split_at_mut(bins.range(t).len() * stride);
+            let count = record_start[t + 1] - record_start[t];
+            let (mine, tail) = rest.split_at_mut(count * stride);
             let (bg_mine, bg_tail) = bg_rest.split_at_mut(d);
             slices.push((t, mine, bg_mine));
             rest = tail;
@@ -257,6 +305,7 @@ pub fn rasterize_backward_with<T: Real>(
                                 rec,
                                 bg_grad,
                                 kept: kept.and_then(|k| k.blends[t].as_deref()),
+                                compact: compact.is_some(),
                             }),
                         _ => scalar::backward_tile(
                             splats,
@@ -279,8 +328,7 @@ pub fn rasterize_backward_with<T: Real>(
                 lists
             }
             None => {
-                let (built, ()) =
-                    rayon::join(|| GaussianLists::new(bins.gaussian_ids(), n), tile_pass);
+                let (built, ()) = rayon::join(|| GaussianLists::new(record_ids, n), tile_pass);
                 next = built.start[..n].to_vec();
                 lists.insert(built)
             }

@@ -381,6 +381,19 @@ pub(crate) struct RowRef {
     blend: u16,
 }
 
+/// The positions in the tile list of the Gaussians that `rows` (a tile's kept rows, in the
+/// walk's order) blend, ascending: a Gaussian's rows are consecutive in the walk, and the walk
+/// takes the list front to back.
+pub(crate) fn blending_positions(rows: &[RowRef]) -> Vec<u32> {
+    let mut positions: Vec<u32> = Vec::new();
+    for r in rows {
+        if positions.last() != Some(&r.k) {
+            positions.push(r.k);
+        }
+    }
+    positions
+}
+
 /// What a lane forward pass keeps in its bins for the backward pass of the same Gaussians:
 /// every Gaussian packed, and per tile the rows it blended ([`RowRef`]), for the tiles whose
 /// lists fit the budget.
@@ -842,6 +855,9 @@ pub(crate) struct BackwardTile<'a, 'b> {
     pub bg_grad: &'b mut [f32],
     /// The rows the forward pass of the same Gaussians blended in this tile, when it kept them.
     pub kept: Option<&'a [RowRef]>,
+    /// Whether `rec` holds records only for the Gaussians `kept` blends, in list order
+    /// ([`blending_positions`]); otherwise one per tile list entry.
+    pub compact: bool,
 }
 
 impl LaneOp for BackwardTile<'_, '_> {
@@ -870,6 +886,7 @@ impl BackwardTile<'_, '_> {
             rec,
             bg_grad,
             kept,
+            compact,
         } = self;
         let d = wd.d();
         let stride = GEOMETRY + d;
@@ -1015,8 +1032,10 @@ impl BackwardTile<'_, '_> {
                 }
             }
             // The records start at zero and each Gaussian's sums are complete: storing them
-            // equals adding them.
-            let record = &mut rec[k * stride..(k + 1) * stride];
+            // equals adding them. Compact records are the blending Gaussians' in list order,
+            // which is the order of the groups.
+            let slot = if compact { group } else { k };
+            let record = &mut rec[slot * stride..(slot + 1) * stride];
             record[..GEOMETRY].copy_from_slice(&sums);
             record[GEOMETRY..].copy_from_slice(grads.as_ref());
         }

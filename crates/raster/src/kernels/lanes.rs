@@ -160,6 +160,25 @@ trait Width: Copy {
         own
     }
 
+    /// [`Width::dots`] for four row blocks.
+    #[inline(always)]
+    fn dots4(self, v: [&[f32]; 4], col: &[f32]) -> [[f32; LANES]; 4] {
+        let mut own = [[0f32; LANES]; 4];
+        let [v_0, v_1, v_2, v_3] = v;
+        let (v_0, v_1) = (v_0.as_chunks::<LANES>().0, v_1.as_chunks::<LANES>().0);
+        let (v_2, v_3) = (v_2.as_chunks::<LANES>().0, v_3.as_chunks::<LANES>().0);
+        let blocks = v_0.iter().zip(v_1).zip(v_2).zip(v_3);
+        for ((((a, b), e), f), &col_c) in blocks.zip(&col[..self.d()]) {
+            for l in 0..LANES {
+                own[0][l] += a[l] * col_c;
+                own[1][l] += b[l] * col_c;
+                own[2][l] += e[l] * col_c;
+                own[3][l] += f[l] * col_c;
+            }
+        }
+        own
+    }
+
     /// `acc[i] += w * x[i]` for `i < D`.
     #[inline(always)]
     fn axpy(self, acc: &mut [f32], w: f32, x: &[f32]) {
@@ -197,6 +216,26 @@ impl<const D: usize> Width for Fixed<D> {
             for l in 0..LANES {
                 own[0][l] += v_0[c][l] * col[c];
                 own[1][l] += v_1[c][l] * col[c];
+            }
+        }
+        own
+    }
+
+    #[inline(always)]
+    fn dots4(self, v: [&[f32]; 4], col: &[f32]) -> [[f32; LANES]; 4] {
+        let [v_0, v_1, v_2, v_3] = v;
+        let v_0: &[[f32; LANES]; D] = v_0.as_chunks().0.try_into().expect("D channels");
+        let v_1: &[[f32; LANES]; D] = v_1.as_chunks().0.try_into().expect("D channels");
+        let v_2: &[[f32; LANES]; D] = v_2.as_chunks().0.try_into().expect("D channels");
+        let v_3: &[[f32; LANES]; D] = v_3.as_chunks().0.try_into().expect("D channels");
+        let col: &[f32; D] = col.try_into().expect("D channels");
+        let mut own = [[0f32; LANES]; 4];
+        for c in 0..D {
+            for l in 0..LANES {
+                own[0][l] += v_0[c][l] * col[c];
+                own[1][l] += v_1[c][l] * col[c];
+                own[2][l] += v_2[c][l] * col[c];
+                own[3][l] += v_3[c][l] * col[c];
             }
         }
         own
@@ -990,11 +1029,22 @@ impl BackwardTile<'_, '_> {
             };
             grads.as_mut().fill(0.0);
             let mut sums = [0f32; GEOMETRY];
-            // The rows two at a time, for `v_image . c` of their pixels: two independent sums
-            // (each lane sums its channels in order); a single last row is paired with itself.
-            for pair in rows.chunks(2) {
-                let owns = wd.dots(block(&pair[0]), block(&pair[pair.len() - 1]), col);
-                for (bl, own) in pair.iter().zip(&owns) {
+            // The rows up to four at a time, for `v_image . c` of their pixels: independent
+            // sums (each lane sums its channels in order), two or four at once; a missing last
+            // row is taken as the one before.
+            for quad in rows.chunks(4) {
+                let last = block(&quad[quad.len() - 1]);
+                let mut owns = [[0f32; LANES]; 4];
+                if quad.len() <= 2 {
+                    let two = wd.dots(block(&quad[0]), last, col);
+                    owns[..2].copy_from_slice(&two);
+                } else {
+                    owns = wd.dots4(
+                        [block(&quad[0]), block(&quad[1]), block(&quad[2]), last],
+                        col,
+                    );
+                }
+                for (bl, own) in quad.iter().zip(&owns) {
                     let r = bl.row as usize;
                     let cy = pixel_centre::<f32>(y0 + bl.row);
                     let (alpha, clamped) = alphas(isa, s.opacity, &bl.falloff);

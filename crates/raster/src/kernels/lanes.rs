@@ -497,7 +497,7 @@ fn for_each_bit(mut m: Mask, mut f: impl FnMut(usize)) {
 /// `evaluate`, lane by lane, for the lanes of `lanes`. Writes every lane's falloff and alpha and
 /// returns the lanes where the Gaussian is not skipped. The exponential is evaluated on every
 /// lane, so no branch depends on the data; outside the lanes whose `sigma` passes the skip test
-/// it is taken at 0 (falloff 1), a value that is never used.
+/// it is taken at `sigma` clamped to `[0, cut]`, a value that is never used.
 ///
 /// The skip tests are the scalar loops' negated: `!(sigma.is_nan() || sigma < 0 || sigma > cut)`
 /// is `0 <= sigma && sigma <= cut` and `!(alpha.is_nan() || alpha < ALPHA_MIN)` is
@@ -523,15 +523,19 @@ fn evaluate_row<const EVERY_ROW: bool, I: LaneIsa>(
     if !EVERY_ROW && hit == 0 {
         return 0;
     }
-    // The lanes outside `hit` take the exponential of 0: their values are never used, and far
-    // from the centre `exp(-sigma)` is subnormal, which makes every vector instruction that
-    // touches it (here and in the blend and gradient arithmetic of the row) take a slow
-    // microcode path on some processors.
-    let sigma = isa.select(hit, &sigma, &[0.0; LANES]);
+    // The exponential of `-sigma` clamped to `[0, cut]`: in the lanes of `hit` that is `-sigma`
+    // itself (`-0.0` becomes `+0.0`, whose exponential is the same 1). The other lanes' values
+    // are never used; clamped, they cannot be subnormal (far from the centre `exp(-sigma)` is,
+    // which makes every vector instruction that touches it, here and in the blend and gradient
+    // arithmetic of the row, take a slow microcode path on some processors): the falloff is at
+    // least `exp(-cut)`, the alpha about `ALPHA_MIN` or more. Clamping rather than selecting by
+    // `hit` keeps the mask operations off the exponential's long dependency chain.
     // A plain loop: `array::from_fn` with this body is not always inlined, and out of line it
     // runs without the instruction set's features.
     for l in 0..LANES {
-        falloff[l] = exp_f32(-sigma[l]);
+        let x = if sigma[l] > 0.0 { sigma[l] } else { 0.0 };
+        let x = if x < s.sigma_cut { x } else { s.sigma_cut };
+        falloff[l] = exp_f32(-x);
     }
     (*alpha, _) = alphas(isa, s.opacity, falloff);
     hit & isa.le(&[ALPHA_MIN as f32; LANES], alpha)

@@ -123,9 +123,11 @@ pub fn exp_f32(x: f32) -> f32 {
     const SHIFTER: f32 = 12_582_912.0; // 1.5 * 2^23
     const LOW: f32 = -86.5;
     const HIGH: f32 = 88.72;
-    // Clamp into the range where 2^n is a normal number (NaN stays NaN); the result is fixed
-    // up below. Written as independent selects so that lane loops vectorise.
-    let xc = x.clamp(LOW, HIGH);
+    // Clamp into the range where 2^n is a normal number (NaN gives LOW); the result is fixed
+    // up below. Written as selects (a vector maximum and minimum) so that lane loops
+    // vectorise.
+    let xc = if x > LOW { x } else { LOW };
+    let xc = if xc < HIGH { xc } else { HIGH };
     let shifted = xc * LOG2_E + SHIFTER;
     let n = shifted - SHIFTER;
     let r = (xc - n * LN2_HEAD) - n * LN2_TAIL;
@@ -139,12 +141,18 @@ pub fn exp_f32(x: f32) -> f32 {
     let n_bits = shifted.to_bits().wrapping_sub(SHIFTER.to_bits());
     let half_scale = f32::from_bits(n_bits.wrapping_add(126) << 23);
     let y = (er * half_scale) * 2.0;
-    let y = if x < LOW { 0.0 } else { y };
-    let y = if x > HIGH { f32::INFINITY } else { y };
-    if x.is_nan() {
-        x
+    // Outside the range (or NaN) the result depends on `x` alone: chosen off the chain of `y`.
+    let outside = if x < LOW {
+        0.0
+    } else if x > HIGH {
+        f32::INFINITY
     } else {
+        x
+    };
+    if LOW <= x && x <= HIGH {
         y
+    } else {
+        outside
     }
 }
 

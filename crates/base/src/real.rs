@@ -149,7 +149,7 @@ pub fn exp_f32(x: f32) -> f32 {
     } else {
         x
     };
-    if LOW <= x && x <= HIGH {
+    if (LOW..=HIGH).contains(&x) {
         y
     } else {
         outside

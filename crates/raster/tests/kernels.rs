@@ -1,8 +1,8 @@
 //! Every tile kernel gives the same bits: the `f32` lane kernels, at every instruction set this
 //! machine can run, against the scalar reference loops, forward and backward, on random scenes
 //! (any size, partial tiles, any channel count), on saturated scenes (alpha clamp and
-//! transmittance stop everywhere), on scenes of Gaussians a few pixels across, and on hostile values (opacities above 1, degenerate and
-//! non-finite conics and channels).
+//! transmittance stop everywhere), on scenes of Gaussians a few pixels across, and on hostile
+//! values (opacities above 1, degenerate and non-finite conics and channels).
 
 mod common;
 

@@ -528,8 +528,9 @@ fn evaluate_row<const EVERY_ROW: bool, I: LaneIsa>(
     // are never used; clamped, they cannot be subnormal (far from the centre `exp(-sigma)` is,
     // which makes every vector instruction that touches it, here and in the blend and gradient
     // arithmetic of the row, take a slow microcode path on some processors): the falloff is at
-    // least `exp(-cut)`, the alpha about `ALPHA_MIN` or more. Clamping rather than selecting by
-    // `hit` keeps the mask operations off the exponential's long dependency chain.
+    // least `exp(-cut)`, so for a positive opacity the alpha is about `ALPHA_MIN` or more.
+    // Clamping rather than selecting by `hit` keeps the mask operations off the exponential's
+    // long dependency chain.
     // A plain loop: `array::from_fn` with this body is not always inlined, and out of line it
     // runs without the instruction set's features.
     for l in 0..LANES {

@@ -243,14 +243,9 @@ pub fn rasterize_backward_with<T: Real>(
         }
         None => (
             bins.gaussian_ids(),
-            (0..=tiles)
-                .map(|t| {
-                    if t < tiles {
-                        bins.range(t).start
-                    } else {
-                        bins.intersection_count()
-                    }
-                })
+            (0..tiles)
+                .map(|t| bins.range(t).start)
+                .chain([bins.intersection_count()])
                 .collect(),
         ),
     };

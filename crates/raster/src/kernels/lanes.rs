@@ -19,7 +19,9 @@
 //! Backward, a first front-to-back walk keeps, for every row a Gaussian blends in, its lanes,
 //! transmittances and falloffs; a second walk takes the Gaussians back to front (the rows of one
 //! Gaussian in ascending order), computing every pixel's gradient terms at once across the row
-//! and adding them to the Gaussian's record lane by lane in ascending pixel order. The forward
+//! and adding them to per-column sums of the Gaussian's record, all lanes at once (the channel
+//! terms of more than a few channels lane by lane in ascending pixel order), in the order of
+//! [`super::record`]. The forward
 //! pass keeps the (Gaussian, row, lanes) it blends ([`RowRef`], in the bins); when the backward
 //! pass gets them for the same Gaussians, its first walk becomes a replay of those rows
 //! ([`replay`]): the same evaluations and transmittance products, skipping the Gaussians and
@@ -28,13 +30,15 @@
 //! Each lane performs exactly the operations of the scalar loops ([`super::scalar`]) in the
 //! same order, with the same constants and the same exponential ([`gaussian::exp_f32`]); a
 //! value is combined into a lane's state only where that lane's mask is set, and every record
-//! sum takes the pixels in the scalar loops' order (tile raster order). The results are
-//! therefore bit-identical to the scalar loops in `f32`.
+//! sum takes the pixels in the scalar loops' order. The results are therefore bit-identical to
+//! the scalar loops in `f32`.
 
 use gaussian::exp_f32;
 use rayon::prelude::*;
 
-use super::record::{CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY};
+use super::record::{
+    COLUMN_CHANNELS_MAX, CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY,
+};
 use super::scalar::dot;
 use super::{prefetch, TileOut};
 use crate::backward::Cotangents;
@@ -476,6 +480,9 @@ pub(crate) struct Scratch {
     starts: Vec<usize>,
     /// Backward: the tile's image cotangents, channel-major per row: `[(r * D + c) * LANES + l]`.
     v_image_t: Vec<f32>,
+    /// Backward, when `D <= COLUMN_CHANNELS_MAX`: a Gaussian's channel gradients per tile
+    /// column, `[c * LANES + l]`, zero between Gaussians.
+    columns: Vec<f32>,
 }
 
 /// Whether lane `l` is in `m`.
@@ -939,8 +946,11 @@ impl BackwardTile<'_, '_> {
             blended,
             starts,
             v_image_t,
+            columns,
             ..
         } = scratch;
+        let by_column = d <= COLUMN_CHANNELS_MAX;
+        let columns = zeroed_on_lines(columns, if by_column { d * LANES } else { 0 });
         let (x0, y0, x1, y1) = bins.pixel_rect(t);
         let (width, height) = ((x1 - x0) as usize, (y1 - y0) as usize);
         let image_width = bins.width() as usize;
@@ -1034,6 +1044,11 @@ impl BackwardTile<'_, '_> {
             };
             grads.as_mut().fill(0.0);
             let mut sums = [0f32; GEOMETRY];
+            // The record's sums per tile column over the Gaussian's rows (top to bottom), all
+            // lanes at once; folded into `sums` (and `grads`) column by column from the left
+            // after its last row ([`super::record`]).
+            let mut part = Aligned([[0f32; LANES]; GEOMETRY]);
+            let mut cols: Mask = 0;
             // The rows up to four at a time, for `v_image . c` of their pixels: independent
             // sums (each lane sums its channels in order), two or four at once; a missing last
             // row is taken as the one before.
@@ -1074,18 +1089,40 @@ impl BackwardTile<'_, '_> {
                         geo[MEAN_Y][l] = v_sigma * (s.b * dx + s.c * dy);
                     }
                     behind[r] = isa.select(bl.blend, &next, &behind[r]);
-                    for_each_bit(bl.blend, |l| {
-                        let p = pixel(r, l);
-                        wd.axpy(grads.as_mut(), w[l], &cot.image[p * d..(p + 1) * d]);
-                        sums[DEPTH] += geo[DEPTH][l];
-                        if !has(clamped, l) {
-                            for j in [OPACITY, CONIC_A, CONIC_B, CONIC_C, MEAN_X, MEAN_Y] {
-                                sums[j] += geo[j][l];
-                            }
+                    cols |= bl.blend;
+                    // No gradient flows through a clamped alpha: only the depth term there.
+                    let free = bl.blend & !clamped;
+                    for j in 0..GEOMETRY {
+                        let m = if j == DEPTH { bl.blend } else { free };
+                        let sum: [f32; LANES] = std::array::from_fn(|l| part[j][l] + geo[j][l]);
+                        part[j] = isa.select(m, &sum, &part[j]);
+                    }
+                    if by_column {
+                        let v = block(bl).as_chunks::<LANES>().0;
+                        for (a, v) in columns.as_chunks_mut::<LANES>().0.iter_mut().zip(v) {
+                            let sum: [f32; LANES] = std::array::from_fn(|l| a[l] + w[l] * v[l]);
+                            *a = isa.select(bl.blend, &sum, a);
                         }
-                    });
+                    } else {
+                        // Pixel by pixel in raster order.
+                        for_each_bit(bl.blend, |l| {
+                            let p = pixel(r, l);
+                            wd.axpy(grads.as_mut(), w[l], &cot.image[p * d..(p + 1) * d]);
+                        });
+                    }
                 }
             }
+            for_each_bit(cols, |l| {
+                for j in 0..GEOMETRY {
+                    sums[j] += part[j][l];
+                }
+                if by_column {
+                    for (c, g) in grads.as_mut().iter_mut().enumerate() {
+                        *g += columns[c * LANES + l];
+                    }
+                }
+            });
+            columns.fill(0.0);
             // The records start at zero and each Gaussian's sums are complete: storing them
             // equals adding them. Compact records are the blending Gaussians' in list order,
             // which is the order of the groups.

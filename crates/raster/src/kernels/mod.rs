@@ -228,7 +228,17 @@ pub(crate) fn prefetch<T>(data: &[T]) {
     let _ = data;
 }
 
-/// Layout of a backward gradient record: one per tile intersection, `GEOMETRY + D` reals.
+/// Layout of a backward gradient record: one per tile intersection, `GEOMETRY + D` reals, and
+/// the order of its sums, which both kernels follow so that their `f32` records have the same
+/// bits.
+///
+/// A record sums one term per pixel of the tile that blends its Gaussian. The geometry terms
+/// (and the channel terms when `D <= COLUMN_CHANNELS_MAX`) are summed per tile column over its
+/// rows from the top, then those column sums from the left column to the right, each sum
+/// starting at `+0`; the channel terms of wider records are summed pixel by pixel in tile
+/// raster order. A column no pixel of which blends the Gaussian adds nothing (adding its `+0`
+/// would not change the sum either: a sum that starts at `+0` is never `-0`). The column sums
+/// let the lane kernels add a whole tile row's terms at once.
 pub(crate) mod record {
     pub const MEAN_X: usize = 0;
     pub const MEAN_Y: usize = 1;
@@ -239,6 +249,8 @@ pub(crate) mod record {
     pub const DEPTH: usize = 6;
     /// The channel gradients follow the first `GEOMETRY` reals.
     pub const GEOMETRY: usize = 7;
+    /// The most channels whose terms are summed by column.
+    pub const COLUMN_CHANNELS_MAX: usize = 8;
 }
 
 /// One tile's forward outputs, tile-major (pixel `(lx, ly)` at `ly * 16 + lx`, channel values

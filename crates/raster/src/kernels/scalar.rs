@@ -5,11 +5,14 @@
 //! [`crate::blend`]. Backward: each pixel re-runs that walk, keeping the blended Gaussians with
 //! their transmittances, then sweeps them back to front (see [`crate::backward`] for the
 //! maths), adding its contributions to the tile's gradient records. Pixels are visited in tile
-//! raster order, so every record is a sum in that order.
+//! raster order; a record's geometry terms (and few channels' terms) are summed per tile column
+//! first, then column by column from the left, the order [`super::record`] sets.
 
 use gaussian::Real;
 
-use super::record::{CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY};
+use super::record::{
+    COLUMN_CHANNELS_MAX, CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY,
+};
 use super::TileOut;
 use crate::backward::Cotangents;
 use crate::blend::{evaluate, pixel_centre, Hit, Splat, TILE_SIZE, TRANSMITTANCE_MIN};
@@ -32,6 +35,11 @@ pub(crate) struct Scratch<T> {
     packed: Vec<Splat<T>>,
     rows: RowLists,
     blended: Vec<Blended<T>>,
+    /// Backward: per tile list entry and tile column, the sums a record takes by column
+    /// ([`super::record`]); zero between tiles.
+    columns: Vec<T>,
+    /// Backward: per tile list entry, the tile columns (bits) whose sums it has.
+    touched: Vec<u16>,
 }
 
 /// Gathers tile `t`'s packed Gaussians (from `all`, one per Gaussian) and builds its row lists
@@ -126,11 +134,26 @@ pub(crate) fn backward_tile<T: Real>(
         packed,
         rows,
         blended,
+        columns,
+        touched,
     } = scratch;
     let (ids, rows) = prepare(all, bins, t, packed, rows);
     let (x0, y0, x1, y1) = bins.pixel_rect(t);
     let width = bins.width() as usize;
     let half = T::lit(0.5);
+    // The reals of a record summed by column, and their sums per entry and column.
+    let by_column = if d <= COLUMN_CHANNELS_MAX {
+        stride
+    } else {
+        GEOMETRY
+    };
+    let tile = TILE_SIZE as usize;
+    let needed = ids.len() * tile * by_column;
+    if columns.len() < needed {
+        columns.resize(needed, T::zero());
+    }
+    touched.clear();
+    touched.resize(ids.len(), 0);
     for py in y0..y1 {
         let cy = pixel_centre::<T>(py);
         for px in x0..x1 {
@@ -173,8 +196,14 @@ pub(crate) fn backward_tile<T: Real>(
                 let z = splats.depths[g];
                 let own = dot(v_img, splats.channels_of(g)) + v_depth * z + v_alpha;
                 let w = alpha * bl.trans;
-                let r = &mut rec[k * stride..(k + 1) * stride];
-                for (rc, &v) in r[GEOMETRY..].iter_mut().zip(v_img) {
+                let r = &mut columns[(k * tile + lx as usize) * by_column..][..by_column];
+                touched[k] |= 1 << lx;
+                let channels = if by_column == stride {
+                    &mut r[GEOMETRY..]
+                } else {
+                    &mut rec[k * stride + GEOMETRY..(k + 1) * stride]
+                };
+                for (rc, &v) in channels.iter_mut().zip(v_img) {
                     *rc += w * v;
                 }
                 r[DEPTH] += w * v_depth;
@@ -189,6 +218,18 @@ pub(crate) fn backward_tile<T: Real>(
                     r[MEAN_X] += v_sigma * (s.a * dx + s.b * dy);
                     r[MEAN_Y] += v_sigma * (s.b * dx + s.c * dy);
                 }
+            }
+        }
+    }
+    // The column sums into the records (which start at zero), from the left; the sums are
+    // left at zero for the next tile.
+    for (k, &cols) in touched.iter().enumerate() {
+        let r = &mut rec[k * stride..k * stride + by_column];
+        for l in (0..tile).filter(|&l| cols >> l & 1 != 0) {
+            let sums = &mut columns[(k * tile + l) * by_column..][..by_column];
+            for (a, c) in r.iter_mut().zip(sums) {
+                *a += *c;
+                *c = T::zero();
             }
         }
     }

@@ -45,4 +45,4 @@ pub use fs::{
     UncachedWriter,
 };
 pub use hash::{fnv1a_hex, Fnv1a};
-pub use real::{exp_f32, Real};
+pub use real::{exp_f32, exp_f32_in_range, Real, EXP_F32_HIGH, EXP_F32_LOW};

@@ -102,6 +102,12 @@ impl Real for f64 {
     }
 }
 
+/// The interval `[EXP_F32_LOW, EXP_F32_HIGH]` where [`exp_f32`] evaluates its polynomial;
+/// outside it the result depends on `x` alone (`0`, `+inf` or NaN).
+pub const EXP_F32_LOW: f32 = -86.5;
+/// See [`EXP_F32_LOW`].
+pub const EXP_F32_HIGH: f32 = 88.72;
+
 /// `exp(x)` in `f32` from a fixed sequence of IEEE-754 operations, for scalar and vector code
 /// that must agree bit for bit.
 ///
@@ -117,20 +123,39 @@ impl Real for f64 {
 /// and NaN stays NaN.
 #[inline(always)]
 pub fn exp_f32(x: f32) -> f32 {
+    // Clamp into the range where 2^n is a normal number (NaN gives LOW); the result is fixed
+    // up below. Written as selects (a vector maximum and minimum) so that lane loops
+    // vectorise.
+    let xc = if x > EXP_F32_LOW { x } else { EXP_F32_LOW };
+    let xc = if xc < EXP_F32_HIGH { xc } else { EXP_F32_HIGH };
+    let y = exp_f32_in_range(xc);
+    // Outside the range (or NaN) the result depends on `x` alone: chosen off the chain of `y`.
+    let outside = if x < EXP_F32_LOW {
+        0.0
+    } else if x > EXP_F32_HIGH {
+        f32::INFINITY
+    } else {
+        x
+    };
+    if (EXP_F32_LOW..=EXP_F32_HIGH).contains(&x) {
+        y
+    } else {
+        outside
+    }
+}
+
+/// [`exp_f32`] for `x` in `[EXP_F32_LOW, EXP_F32_HIGH]`, without the operations that handle the
+/// other arguments: the same bits for every `x` in that interval, an unspecified value (never
+/// undefined behaviour) outside it.
+#[inline(always)]
+pub fn exp_f32_in_range(x: f32) -> f32 {
     const LOG2_E: f32 = std::f32::consts::LOG2_E;
     const LN2_HEAD: f32 = 355.0 / 512.0; // exact in f32
     const LN2_TAIL: f32 = -2.121_944_4e-4;
     const SHIFTER: f32 = 12_582_912.0; // 1.5 * 2^23
-    const LOW: f32 = -86.5;
-    const HIGH: f32 = 88.72;
-    // Clamp into the range where 2^n is a normal number (NaN gives LOW); the result is fixed
-    // up below. Written as selects (a vector maximum and minimum) so that lane loops
-    // vectorise.
-    let xc = if x > LOW { x } else { LOW };
-    let xc = if xc < HIGH { xc } else { HIGH };
-    let shifted = xc * LOG2_E + SHIFTER;
+    let shifted = x * LOG2_E + SHIFTER;
     let n = shifted - SHIFTER;
-    let r = (xc - n * LN2_HEAD) - n * LN2_TAIL;
+    let r = (x - n * LN2_HEAD) - n * LN2_TAIL;
     let p = ((((1.987_569_2e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r
         + 1.666_666_5e-1)
         * r
@@ -140,20 +165,7 @@ pub fn exp_f32(x: f32) -> f32 {
     // applied as 2^(n - 1) * 2, both normal, so the largest n does not overflow the exponent.
     let n_bits = shifted.to_bits().wrapping_sub(SHIFTER.to_bits());
     let half_scale = f32::from_bits(n_bits.wrapping_add(126) << 23);
-    let y = (er * half_scale) * 2.0;
-    // Outside the range (or NaN) the result depends on `x` alone: chosen off the chain of `y`.
-    let outside = if x < LOW {
-        0.0
-    } else if x > HIGH {
-        f32::INFINITY
-    } else {
-        x
-    };
-    if (LOW..=HIGH).contains(&x) {
-        y
-    } else {
-        outside
-    }
+    (er * half_scale) * 2.0
 }
 
 #[cfg(test)]
@@ -192,6 +204,32 @@ mod tests {
             b += 97;
         }
         assert!(worst <= 2, "worst error {worst} ulp");
+    }
+
+    #[test]
+    fn exp_f32_in_range_gives_the_bits_of_exp_f32_inside_the_range() {
+        // Every 97th f32 of the range, both ends and the signed zeros.
+        let (lo, hi) = (EXP_F32_LOW, EXP_F32_HIGH);
+        let mut xs = vec![lo, hi, 0.0, -0.0, lo.next_up(), hi.next_down()];
+        let mut x = lo;
+        while x < hi {
+            xs.push(x);
+            x = f32::from_bits(if x < 0.0 {
+                x.to_bits() - 97
+            } else {
+                x.to_bits() + 97
+            });
+            if x.to_bits() == (-0.0f32).to_bits() || (x < 0.0 && x > -1e-30) {
+                x = 1e-30;
+            }
+        }
+        for x in xs {
+            assert_eq!(
+                exp_f32_in_range(x).to_bits(),
+                exp_f32(x).to_bits(),
+                "x = {x:e}"
+            );
+        }
     }
 
     #[test]

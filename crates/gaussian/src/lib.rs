@@ -62,7 +62,7 @@ pub mod scene;
 pub mod sh;
 
 /// The workspace's numeric trait and exponential, from `dsgs-base`.
-pub use base::{exp_f32, Real};
+pub use base::{exp_f32, exp_f32_in_range, Real, EXP_F32_HIGH, EXP_F32_LOW};
 pub use camera::{Camera, Intrinsics};
 pub use dataset::{Dataset, DatasetError, LoadOptions, Resolution};
 pub use ply::{load_ply, save_ply, PlyError};

@@ -33,7 +33,7 @@
 //! sum takes the pixels in the scalar loops' order. The results are therefore bit-identical to
 //! the scalar loops in `f32`.
 
-use gaussian::exp_f32;
+use gaussian::{exp_f32, exp_f32_in_range, EXP_F32_HIGH, EXP_F32_LOW};
 use rayon::prelude::*;
 
 use super::record::{
@@ -538,12 +538,22 @@ fn evaluate_row<const EVERY_ROW: bool, I: LaneIsa>(
     // least `exp(-cut)`, so for a positive opacity the alpha is about `ALPHA_MIN` or more.
     // Clamping rather than selecting by `hit` keeps the mask operations off the exponential's
     // long dependency chain.
-    // A plain loop: `array::from_fn` with this body is not always inlined, and out of line it
+    // With a cut in `[-EXP_F32_HIGH, -EXP_F32_LOW]` every argument lies in the range where
+    // `exp_f32_in_range` gives `exp_f32`'s bits, without its range handling on the chain.
+    // Plain loops: `array::from_fn` with this body is not always inlined, and out of line it
     // runs without the instruction set's features.
-    for l in 0..LANES {
-        let x = if sigma[l] > 0.0 { sigma[l] } else { 0.0 };
-        let x = if x < s.sigma_cut { x } else { s.sigma_cut };
-        falloff[l] = exp_f32(-x);
+    if (-EXP_F32_HIGH..=-EXP_F32_LOW).contains(&s.sigma_cut) {
+        for l in 0..LANES {
+            let x = if sigma[l] > 0.0 { sigma[l] } else { 0.0 };
+            let x = if x < s.sigma_cut { x } else { s.sigma_cut };
+            falloff[l] = exp_f32_in_range(-x);
+        }
+    } else {
+        for l in 0..LANES {
+            let x = if sigma[l] > 0.0 { sigma[l] } else { 0.0 };
+            let x = if x < s.sigma_cut { x } else { s.sigma_cut };
+            falloff[l] = exp_f32(-x);
+        }
     }
     (*alpha, _) = alphas(isa, s.opacity, falloff);
     hit & isa.le(&[ALPHA_MIN as f32; LANES], alpha)
@@ -1166,6 +1176,36 @@ mod tests {
             .filter_map(super::super::Token::new)
             .flat_map(|token| token.run(Op(s, cy)))
             .collect()
+    }
+
+    /// Where a Gaussian's cut lies beyond the exponential's range (an opacity of `f32::MAX` or
+    /// `+inf`), its rows still make the scalar evaluation's decisions and alphas: far lanes whose
+    /// `sigma` is below the cut but whose exponential underflows to 0 are skipped (`sigma` from
+    /// about 8 to 310 along the row).
+    #[test]
+    fn rows_of_a_cut_beyond_the_exponential_s_range_evaluate_as_the_scalar_loops() {
+        for opacity in [f32::MAX, f32::INFINITY] {
+            let s = Splat::new([0.25f32, 0.5], [2.67, 0.0, 2.67], opacity);
+            assert!(s.sigma_cut > -gaussian::EXP_F32_LOW, "cut {}", s.sigma_cut);
+            check_row_against_scalar(&s, pixel_centre::<f32>(0));
+        }
+    }
+
+    /// [`row_values`]' alphas against the scalar loops' evaluation, lane by lane.
+    fn check_row_against_scalar(s: &Splat<f32>, cy: f32) {
+        let values = row_values(s, cy);
+        for per_isa in values.chunks(2 * LANES) {
+            let alpha = &per_isa[LANES..];
+            for (l, &a) in alpha.iter().enumerate() {
+                let scalar = crate::blend::evaluate(s, pixel_centre::<f32>(l as u32), cy);
+                if let Some(hit) = scalar {
+                    assert_eq!(a.to_bits(), hit.alpha.to_bits(), "lane {l}");
+                } else {
+                    // Not blended: the lane's alpha stays below the skip threshold (or NaN).
+                    assert!(a < ALPHA_MIN as f32 || a.is_nan(), "lane {l}: alpha {a}");
+                }
+            }
+        }
     }
 
     proptest! {

@@ -274,8 +274,8 @@ pub fn sh_colors<T: Real>(
 /// the view direction). A Gaussian whose colour cotangent is zero gets zero gradients without
 /// evaluating its bases (the image does not depend on it).
 ///
-/// In `f32` this runs as vector code, as [`sh_colors`] does, with the same bits as the generic
-/// code; blocks of 16 Gaussians none of which the image depends on are skipped.
+/// Gaussian by Gaussian in every type: a lane version of this loop (as [`sh_colors`] has) ran
+/// slower than it, bound by the memory of the coefficients and their gradients.
 ///
 /// # Panics
 /// As [`sh_colors`], and if `v_colors.len() != means.len()`.
@@ -311,9 +311,6 @@ pub fn sh_colors_backward<T: Real>(
                 .zip(v_colors.par_chunks(MIN_CHUNK)),
         )
         .for_each(|(((d_sh, d_means), sh), (means, v_colors))| {
-            if fast::backward(nb, k, sh, means, camera_center, v_colors, d_sh, d_means) {
-                return;
-            }
             for i in 0..means.len() {
                 // A Gaussian the image does not depend on (culled, or blended nowhere) has a
                 // zero cotangent and so zero gradients: skip its bases.
@@ -333,24 +330,21 @@ pub fn sh_colors_backward<T: Real>(
     (d_sh, d_means)
 }
 
-/// The `f32` vector code of [`sh_colors`] and [`sh_colors_backward`]: blocks of
-/// [`fast::LANES`] Gaussians whose per-Gaussian scalar operations (those of [`color_one`] and
-/// [`backward_one`]) run stage by stage across lane arrays; the last partial block runs
-/// Gaussian by Gaussian. Compiled for the instruction set `pulp` picks at run time.
+/// The `f32` vector code of [`sh_colors`]: blocks of [`fast::LANES`] Gaussians whose
+/// per-Gaussian scalar operations (those of [`color_one`]) run stage by stage across lane
+/// arrays; the last partial block runs Gaussian by Gaussian. Compiled for the instruction set
+/// `pulp` picks at run time.
 mod fast {
-    use super::{backward_one, bases_vjp, color_one, eval_bases, normalize_dir, v3};
+    use super::{color_one, eval_bases, normalize_dir, v3};
     use crate::Real;
 
     pub(super) const LANES: usize = 16;
 
-    /// The stages [`color_one`] and [`backward_one`] share, for the block of [`LANES`]
-    /// Gaussians starting at `i0`, each stage on lane arrays: the view directions `u` (with the
-    /// norm `denom` they were divided by and whether it was `clamped`), the `NB` bases `b`, the
+    /// The stages of [`color_one`] for the block of [`LANES`] Gaussians starting at `i0`, each
+    /// stage on lane arrays: the view directions `u`, the `NB` bases `b`, the
     /// gathered coefficients `coef[basis][channel]` and the colours before the offset and clamp.
     struct Block<const NB: usize> {
         u: [[f32; LANES]; 3],
-        denom: [f32; LANES],
-        clamped: [bool; LANES],
         b: [[f32; LANES]; NB],
         coef: [[[f32; LANES]; 3]; NB],
         raw: [[f32; LANES]; 3],
@@ -362,8 +356,6 @@ mod fast {
         fn zeros() -> Self {
             Block {
                 u: [[0.0; LANES]; 3],
-                denom: [0.0; LANES],
-                clamped: [false; LANES],
                 b: [[0.0; LANES]; NB],
                 coef: [[[0.0; LANES]; 3]; NB],
                 raw: [[0.0; LANES]; 3],
@@ -382,22 +374,13 @@ mod fast {
             center: [f32; 3],
             i0: usize,
         ) {
-            let Block {
-                u,
-                denom,
-                clamped,
-                b,
-                coef,
-                raw,
-            } = self;
+            let Block { u, b, coef, raw } = self;
             for l in 0..LANES {
                 let m = &means[i0 + l];
-                let (ul, dl, cl) = normalize_dir(v3(|a| m[a] - center[a]));
+                let (ul, _, _) = normalize_dir(v3(|a| m[a] - center[a]));
                 for a in 0..3 {
                     u[a][l] = ul[a];
                 }
-                denom[l] = dl;
-                clamped[l] = cl;
             }
             for l in 0..LANES {
                 let bl = eval_bases(NB, [u[0][l], u[1][l], u[2][l]]);
@@ -495,167 +478,6 @@ mod fast {
             }
             for i in blocks * LANES..means.len() {
                 out[i] = color_one(NB, &sh[i * k..i * k + NB], &means[i], center);
-            }
-        }
-    }
-
-    /// The gradients of one work item when `T` is `f32` (returns `false`, doing nothing,
-    /// otherwise). As the generic loop, a Gaussian with a zero colour cotangent keeps its zero
-    /// gradients.
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn backward<T: Real>(
-        nb: usize,
-        k: usize,
-        sh: &[[T; 3]],
-        means: &[[T; 3]],
-        center: [T; 3],
-        v_colors: &[[T; 3]],
-        d_sh: &mut [[T; 3]],
-        d_means: &mut [[T; 3]],
-    ) -> bool {
-        let (Some(sh), Some(means), Some(center), Some(v_colors), Some(d_sh), Some(d_means)) = (
-            T::as_f32_slice(sh.as_flattened()),
-            T::as_f32_slice(means.as_flattened()),
-            T::as_f32_slice(&center),
-            T::as_f32_slice(v_colors.as_flattened()),
-            T::as_f32_slice_mut(d_sh.as_flattened_mut()),
-            T::as_f32_slice_mut(d_means.as_flattened_mut()),
-        ) else {
-            return false;
-        };
-        let op = Backward {
-            k,
-            sh: sh.as_chunks::<3>().0,
-            means: means.as_chunks::<3>().0,
-            center: [center[0], center[1], center[2]],
-            v_colors: v_colors.as_chunks::<3>().0,
-            d_sh: d_sh.as_chunks_mut::<3>().0,
-            d_means: d_means.as_chunks_mut::<3>().0,
-        };
-        let arch = pulp::Arch::new();
-        match nb {
-            1 => arch.dispatch(BackwardNb::<1>(op)),
-            4 => arch.dispatch(BackwardNb::<4>(op)),
-            9 => arch.dispatch(BackwardNb::<9>(op)),
-            _ => arch.dispatch(BackwardNb::<16>(op)),
-        }
-        true
-    }
-
-    struct Backward<'a> {
-        k: usize,
-        sh: &'a [[f32; 3]],
-        means: &'a [[f32; 3]],
-        center: [f32; 3],
-        v_colors: &'a [[f32; 3]],
-        d_sh: &'a mut [[f32; 3]],
-        d_means: &'a mut [[f32; 3]],
-    }
-
-    struct BackwardNb<'a, const NB: usize>(Backward<'a>);
-
-    impl<const NB: usize> pulp::WithSimd for BackwardNb<'_, NB> {
-        type Output = ();
-
-        #[inline(always)]
-        fn with_simd<S: pulp::Simd>(self, _: S) {
-            let Backward {
-                k,
-                sh,
-                means,
-                center,
-                v_colors,
-                d_sh,
-                d_means,
-            } = self.0;
-            let blocks = means.len() / LANES;
-            let mut block = Block::<NB>::zeros();
-            for blk in 0..blocks {
-                let i0 = blk * LANES;
-                // The Gaussians the image depends on (the generic loop's skip test).
-                let mut active = [false; LANES];
-                for l in 0..LANES {
-                    active[l] = !v_colors[i0 + l].iter().all(|&v| v == 0.0);
-                }
-                if !active.contains(&true) {
-                    continue;
-                }
-                // backward_one across lanes, stage by stage on lane arrays.
-                block.fill(k, sh, means, center, i0);
-                let Block {
-                    u,
-                    denom,
-                    clamped,
-                    b,
-                    coef,
-                    raw,
-                } = &block;
-                // The colour cotangent where the clamp at 0 passes it.
-                let mut v = [[0.0f32; LANES]; 3];
-                for c in 0..3 {
-                    for l in 0..LANES {
-                        v[c][l] = if raw[c][l] + 0.5 >= 0.0 {
-                            v_colors[i0 + l][c]
-                        } else {
-                            0.0
-                        };
-                    }
-                }
-                let mut g_basis = [[0.0f32; LANES]; NB];
-                for kk in 0..NB {
-                    for l in 0..LANES {
-                        g_basis[kk][l] = coef[kk][0][l] * v[0][l]
-                            + coef[kk][1][l] * v[1][l]
-                            + coef[kk][2][l] * v[2][l];
-                    }
-                }
-                let mut g_u = [[0.0f32; LANES]; 3];
-                for l in 0..LANES {
-                    let mut g = [0.0f32; 16];
-                    for kk in 0..NB {
-                        g[kk] = g_basis[kk][l];
-                    }
-                    let gl = bases_vjp(NB, [u[0][l], u[1][l], u[2][l]], &g);
-                    for a in 0..3 {
-                        g_u[a][l] = gl[a];
-                    }
-                }
-                // u = d / max(|d|, eps): (I - u u^T) / |d| unless the norm was clamped.
-                let mut d_mean = [[0.0f32; LANES]; 3];
-                for l in 0..LANES {
-                    let dot = u[0][l] * g_u[0][l] + u[1][l] * g_u[1][l] + u[2][l] * g_u[2][l];
-                    for a in 0..3 {
-                        d_mean[a][l] = if clamped[l] {
-                            g_u[a][l] / denom[l]
-                        } else {
-                            (g_u[a][l] - u[a][l] * dot) / denom[l]
-                        };
-                    }
-                }
-                for l in 0..LANES {
-                    if !active[l] {
-                        continue;
-                    }
-                    let i = i0 + l;
-                    d_means[i] = v3(|a| d_mean[a][l]);
-                    let row = &mut d_sh[i * k..i * k + NB];
-                    for kk in 0..NB {
-                        row[kk] = v3(|c| b[kk][l] * v[c][l]);
-                    }
-                }
-            }
-            for i in blocks * LANES..means.len() {
-                if v_colors[i].iter().all(|&v| v == 0.0) {
-                    continue;
-                }
-                d_means[i] = backward_one(
-                    NB,
-                    &sh[i * k..i * k + NB],
-                    &means[i],
-                    center,
-                    v_colors[i],
-                    &mut d_sh[i * k..i * k + NB],
-                );
             }
         }
     }

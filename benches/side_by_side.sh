@@ -19,7 +19,11 @@
 #
 # The raster cases run with the allocator setting the dsgs binary makes at start-up (freed
 # memory stays in glibc's heap; see keep_freed_memory in src/main.rs), for both kernels, so that
-# page faults of freshly mapped buffers do not hide the tile loops' speed.
+# page faults of freshly mapped buffers do not hide the tile loops' speed. They also run with
+# one glibc arena: criterion calls each pass inside `ThreadPool::install`, on a pool thread,
+# whose own arena cannot hold blocks above 64 MiB, so glibc maps and unmaps them at every call
+# (page faults and TLB shootdowns took a third of the 1M-Gaussian backward passes); the dsgs
+# binary calls the rasterizer from its main thread, whose arena keeps them.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 what="${1:-nets}"
@@ -46,7 +50,7 @@ raster)
   fi
   log="$(mktemp)"
   trap 'rm -f "$log"' EXIT
-  export MALLOC_MMAP_THRESHOLD_=1073741824 MALLOC_TRIM_THRESHOLD_=2147483647
+  export MALLOC_MMAP_THRESHOLD_=1073741824 MALLOC_TRIM_THRESHOLD_=2147483647 MALLOC_ARENA_MAX=1
   for c in $cases; do
     cargo bench -q -p dsgs-raster --bench raster -- "/$c/t2" 2>/dev/null | tee -a "$log" >/dev/null
   done

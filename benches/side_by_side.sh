@@ -18,7 +18,7 @@
 # optional; without it only the dsgs network figures are printed.
 #
 # The raster cases run with the allocator setting the dsgs binary makes at start-up (freed
-# memory stays in glibc's heap; see keep_freed_memory in src/main.rs), for both kernels, so that
+# memory stays in glibc's heap; see base::memory::keep_freed_memory), for both kernels, so that
 # page faults of freshly mapped buffers do not hide the tile loops' speed. They also run with
 # one glibc arena: criterion calls each pass inside `ThreadPool::install`, on a pool thread,
 # whose own arena cannot hold blocks above 64 MiB, so glibc maps and unmaps them at every call

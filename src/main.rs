@@ -34,12 +34,11 @@ use terminal::Terminal;
 use train::bake::STORED_SH_DEGREE;
 use train::{BakeConfig, DecoderMode, DecoderTrainConfig, FeatureNorm, Variant};
 
-mod memory;
 mod terminal;
 
 /// Large blocks advised for huge pages (`memory`).
 #[global_allocator]
-static ALLOCATOR: memory::HugePageAdvice = memory::HugePageAdvice;
+static ALLOCATOR: base::memory::HugePageAdvice = base::memory::HugePageAdvice;
 
 /// Zero-shot 3D style transfer on Gaussian splatting (DS-StyleGaussian), exact and CPU-only.
 #[derive(Parser)]
@@ -1013,7 +1012,7 @@ fn parse() -> Cli {
 }
 
 fn main() -> ExitCode {
-    memory::keep_freed_memory();
+    base::memory::keep_freed_memory();
     match run(parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) if is_interrupted(&e) => {

@@ -1,8 +1,9 @@
 //! What every dsgs crate shares, and nothing else: the numeric trait all kernels are generic
 //! over ([`Real`], `f32` or `f64`), the atomic file write every output goes through
 //! ([`write_atomic`], with [`remove_unfinished_writes`] for a process that must exit in the middle
-//! of one: it deletes the temporary files of the writes still in flight), and the content hash
-//! that identifies inputs and outputs ([`Fnv1a`]).
+//! of one: it deletes the temporary files of the writes still in flight), the content hash
+//! that identifies inputs and outputs ([`Fnv1a`]), and the memory policy a program may install
+//! ([`memory`]; the libraries never do).
 //!
 //! It sits below every other crate of the workspace and depends on none of them.
 //!
@@ -38,6 +39,7 @@
 
 pub mod fs;
 pub mod hash;
+pub mod memory;
 pub mod real;
 
 pub use fs::{

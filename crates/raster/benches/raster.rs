@@ -14,6 +14,9 @@
 //! `binning/100k/256/t{threads}` times `TileBins::new` (tile rectangles, depth order and
 //! intersection lists) on the scene of the 100k, 256x256 pass benchmarks.
 //!
+//! The benchmark runs with the `dsgs` binary's allocator (`base::memory::HugePageAdvice`);
+//! `benches/side_by_side.sh` adds its heap setting.
+//!
 //! Scenes are synthetic projected Gaussians: means uniform over the image, random orientations
 //! and anisotropy, standard deviations chosen so that the summed 2-sigma footprints cover every
 //! pixel about 20 times on average (like a trained scene seen from a training view), opacities
@@ -30,6 +33,11 @@ use raster::{
     rasterize, rasterize_backward_with, rasterize_binned_with, Cotangents, Kernel,
     DEFAULT_GRADIENT_BUFFER_VALUES,
 };
+
+/// The `dsgs` binary's allocator: large blocks advised for huge pages, so that the passes'
+/// random reads of per-Gaussian data do not miss the TLB more than in the program.
+#[global_allocator]
+static ALLOCATOR: base::memory::HugePageAdvice = base::memory::HugePageAdvice;
 
 fn scene(n: usize, size: u32, d: usize) -> Scene2d<f32> {
     let mut rng = Rng(n as u64 ^ ((size as u64) << 32) ^ d as u64);

@@ -1,7 +1,8 @@
-//! The program's memory policy: how the system allocator is set up for the stages' large,
-//! short-lived tensors. The libraries never change the allocator; a program using them may do
-//! the same as this one (`docs/performance.md`, "Keeping freed memory in the process" and
-//! "Huge pages for large blocks").
+//! A program's memory policy for the stages' large, short-lived tensors: glibc's heap set to
+//! keep freed memory ([`keep_freed_memory`]) and an allocator that advises large blocks for huge
+//! pages ([`HugePageAdvice`]). The libraries never install either; the `dsgs` binary and the
+//! benchmarks do, and any program using the libraries may (`docs/performance.md`, "Keeping freed
+//! memory in the process" and "Huge pages for large blocks").
 
 use std::alloc::{GlobalAlloc, Layout, System};
 
@@ -11,11 +12,12 @@ use std::alloc::{GlobalAlloc, Layout, System};
 /// is 64 MiB); by default each is mapped afresh, and the kernel faults in and clears every page
 /// again. Measured on a 256->256 convolution at 256x256: 1.15x to 1.35x faster with this
 /// setting, and the munmap calls of a benchmark run fell from 79 to 6 (`docs/performance.md`).
-/// The cost is that the process keeps its peak heap until it exits.
+/// The cost is that the process keeps its peak heap until it exits. Call it at start-up, before
+/// the large allocations; elsewhere than with glibc it does nothing.
 pub fn keep_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: mallopt only changes allocator parameters; it is called before any other thread
-    // exists, and a value it rejects leaves the default in place.
+    // SAFETY: mallopt only changes allocator parameters (under glibc's own lock), and a value
+    // it rejects leaves the default in place.
     unsafe {
         libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 30);
         libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);

@@ -24,7 +24,7 @@ pub fn keep_freed_memory() {
     }
 }
 
-/// The system allocator, with every block of at least [`ADVISE_FROM`] bytes advised for
+/// The system allocator, with every block of at least 4 MiB advised for
 /// transparent huge pages (`madvise(MADV_HUGEPAGE)` on the 2 MiB pages it covers whole), so that
 /// the kernel maps fresh memory there 2 MiB at a time where it allows huge pages on request
 /// (the `madvise` mode of `/sys/kernel/mm/transparent_hugepage/enabled`, a common default).

@@ -1197,7 +1197,7 @@ mod tests {
     /// Where a Gaussian's cut lies beyond the exponential's range (an opacity of `f32::MAX` or
     /// `+inf`), its rows still make the scalar evaluation's decisions and alphas: far lanes whose
     /// `sigma` is below the cut but whose exponential underflows to 0 are skipped (`sigma` from
-    /// about 8 to 310 along the row).
+    /// 0.08 to 310 along the row).
     #[test]
     fn rows_of_a_cut_beyond_the_exponential_s_range_evaluate_as_the_scalar_loops() {
         for opacity in [f32::MAX, f32::INFINITY] {

@@ -3,8 +3,40 @@
 //! pages ([`HugePageAdvice`]). The libraries never install either; the `dsgs` binary and the
 //! benchmarks do, and any program using the libraries may (`docs/performance.md`, "Keeping freed
 //! memory in the process" and "Huge pages for large blocks").
+//!
+//! It also has the one way the libraries create their large initialised buffers (gradients of
+//! every Gaussian, per-intersection records): [`filled`] and [`refill`], which write the
+//! elements on the threads of the current rayon pool instead of the calling thread alone.
 
 use std::alloc::{GlobalAlloc, Layout, System};
+
+use rayon::iter::ParallelExtend;
+
+/// Below this many bytes [`refill`] writes on the calling thread: splitting the work costs
+/// more than it saves (about the size where two threads' memset beats one by a handoff).
+const PARALLEL_FILL_BYTES: usize = 1 << 20;
+
+/// A vector of `len` copies of `value`. The same vector as `vec![value; len]`; long ones are
+/// written by the threads of the current rayon pool (see [`refill`]).
+pub fn filled<T: Clone + Send + Sync>(len: usize, value: T) -> Vec<T> {
+    let mut v = Vec::new();
+    refill(&mut v, len, value);
+    v
+}
+
+/// Makes `v` hold `len` copies of `value` (its old elements dropped, its allocation reused when
+/// large enough). From [`PARALLEL_FILL_BYTES`] on, the elements are written in parallel parts
+/// by the threads of the current rayon pool: a stage that calls this from its main thread
+/// (outside the pool) would otherwise clear tens of megabytes of gradients per iteration on one
+/// core while the pool's threads wait (`docs/performance.md`, "Buffers filled by the pool").
+pub fn refill<T: Clone + Send + Sync>(v: &mut Vec<T>, len: usize, value: T) {
+    v.clear();
+    if len.saturating_mul(size_of::<T>()) < PARALLEL_FILL_BYTES {
+        v.resize(len, value);
+    } else {
+        v.par_extend(rayon::iter::repeat_n(value, len));
+    }
+}
 
 /// Asks glibc's allocator to serve allocations below 1 GiB from its heap and to keep up to
 /// 2 GiB of freed memory there instead of returning it to the system. The stages allocate and
@@ -100,6 +132,23 @@ unsafe impl GlobalAlloc for HugePageAdvice {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `filled` and `refill` give `vec![value; len]` on both sides of the parallel size, for
+    /// elements of several sizes, and `refill` replaces what the vector held, growing or
+    /// shrinking.
+    #[test]
+    fn filled_vectors_equal_the_serial_ones() {
+        let big = PARALLEL_FILL_BYTES / 4;
+        for len in [0, 1, 17, big - 1, big, 3 * big + 5] {
+            assert_eq!(filled(len, 1.5f32), vec![1.5f32; len]);
+            assert_eq!(filled(len, [0u32, 7]), vec![[0u32, 7]; len]);
+        }
+        let mut v = vec![9.0f64; 10];
+        for len in [4 * big, 3, big / 2 + 1, 0, big + 11] {
+            refill(&mut v, len, -2.0);
+            assert_eq!(v, vec![-2.0; len], "refill to {len}");
+        }
+    }
 
     /// The advised allocator hands out blocks that hold what is written to them, zeroed ones
     /// zero, and keeps a reallocated block's contents, on both sides of the advised size.

@@ -31,6 +31,7 @@
 //! Gaussians; only IEEE operations without fused multiply-adds are involved, so every
 //! instruction set gives the bits of the generic code (a unit test compares them).
 
+use base::memory::filled;
 use rayon::prelude::*;
 
 use crate::camera::Camera;
@@ -337,10 +338,10 @@ pub fn project<T: Real>(
     check_lengths(n, quats.len(), log_scales.len());
     let cam = CamT::<T>::new(camera, settings);
     let mut out = Projected {
-        means2d: vec![[T::zero(); 2]; n],
-        conics: vec![[T::zero(); 3]; n],
-        depths: vec![T::zero(); n],
-        radii: vec![[0u32; 2]; n],
+        means2d: filled(n, [T::zero(); 2]),
+        conics: filled(n, [T::zero(); 3]),
+        depths: filled(n, T::zero()),
+        radii: filled(n, [0u32; 2]),
     };
     out.means2d
         .par_chunks_mut(MIN_CHUNK)
@@ -602,9 +603,9 @@ pub fn project_backward<T: Real>(
     let cam = CamT::<T>::new(camera, settings);
     let zero = T::zero();
     let mut grads = ProjectionGrads {
-        means: vec![[zero; 3]; n],
-        quats: vec![[zero; 4]; n],
-        log_scales: vec![[zero; 3]; n],
+        means: filled(n, [zero; 3]),
+        quats: filled(n, [zero; 4]),
+        log_scales: filled(n, [zero; 3]),
     };
     grads
         .means

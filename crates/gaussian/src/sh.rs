@@ -18,6 +18,7 @@
 //! the scalar operations in the same order per lane, so every path and thread count gives the
 //! same bits.
 
+use base::memory::filled;
 use rayon::prelude::*;
 
 use crate::Real;
@@ -297,8 +298,8 @@ pub fn sh_colors_backward<T: Real>(
     );
     let zero = T::zero();
     let k = coeffs_per_gaussian;
-    let mut d_sh = vec![[zero; 3]; sh.len()];
-    let mut d_means = vec![[zero; 3]; n];
+    let mut d_sh = filled(sh.len(), [zero; 3]);
+    let mut d_means = filled(n, [zero; 3]);
     if k == 0 {
         return (d_sh, d_means);
     }

@@ -44,6 +44,7 @@
 //! its packed Gaussians (40 bytes each) and its blended rows (8 bytes each, while they fit
 //! [`crate::tiles::ROW_LIST_BUDGET_BYTES`]; tiles beyond it are walked again).
 
+use base::memory::{filled, refill};
 use gaussian::Real;
 use rayon::prelude::*;
 
@@ -175,8 +176,8 @@ pub fn rasterize_backward_with<T: Real>(
 
     let stride = GEOMETRY + d;
     // The gradients, accumulated in place: per Gaussian, geometry and channels.
-    let mut geometry = vec![[T::zero(); GEOMETRY]; n];
-    let mut channels = vec![T::zero(); n * d];
+    let mut geometry = filled(n, [T::zero(); GEOMETRY]);
+    let mut channels = filled(n * d, T::zero());
     let tiles = bins.tile_count();
     let mut tile_bg = vec![T::zero(); tiles * d];
     let mut records: Vec<T> = Vec::new();
@@ -265,8 +266,7 @@ pub fn rasterize_backward_with<T: Real>(
             last += 1;
         }
         let end = record_start[last];
-        records.clear();
-        records.resize((end - begin) * stride, T::zero());
+        refill(&mut records, (end - begin) * stride, T::zero());
 
         // Split the records into per-tile slices.
         let mut slices: Vec<(usize, &mut [T], &mut [T])> = Vec::with_capacity(last - first);
@@ -392,14 +392,15 @@ pub fn rasterize_backward_with<T: Real>(
             *b += v;
         }
     }
+    // Element-wise copies out of the records, written in place by the pool's threads.
     let grads = SplatGrads {
-        means2d: geometry.iter().map(|r| [r[MEAN_X], r[MEAN_Y]]).collect(),
+        means2d: geometry.par_iter().map(|r| [r[MEAN_X], r[MEAN_Y]]).collect(),
         conics: geometry
-            .iter()
+            .par_iter()
             .map(|r| [r[CONIC_A], r[CONIC_B], r[CONIC_C]])
             .collect(),
-        opacities: geometry.iter().map(|r| r[OPACITY]).collect(),
-        depths: geometry.iter().map(|r| r[DEPTH]).collect(),
+        opacities: geometry.par_iter().map(|r| r[OPACITY]).collect(),
+        depths: geometry.par_iter().map(|r| r[DEPTH]).collect(),
         channels,
         background: background_grad,
     };

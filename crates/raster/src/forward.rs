@@ -21,6 +21,7 @@
 //! the backward pass when they fit [`crate::tiles::ROW_LIST_BUDGET_BYTES`] (64 MiB); otherwise
 //! none are kept and the backward pass builds them again.
 
+use base::memory::filled;
 use gaussian::Real;
 use rayon::prelude::*;
 
@@ -209,10 +210,10 @@ pub fn rasterize_binned_with<T: Real>(
     };
     // Staging rows hold at least one channel so that chunking works when `d == 0`.
     let d_stage = d.max(1);
-    let mut t_image = vec![T::zero(); tiles * TILE_PIXELS * d_stage];
-    let mut t_alpha = vec![T::zero(); tiles * TILE_PIXELS];
-    let mut t_depth = vec![T::zero(); tiles * TILE_PIXELS];
-    let mut t_count = vec![0u32; tiles * TILE_PIXELS];
+    let mut t_image = filled(tiles * TILE_PIXELS * d_stage, T::zero());
+    let mut t_alpha = filled(tiles * TILE_PIXELS, T::zero());
+    let mut t_depth = filled(tiles * TILE_PIXELS, T::zero());
+    let mut t_count = filled(tiles * TILE_PIXELS, 0u32);
     // The row lists each tile builds, kept for the backward pass while they fit the budget.
     let mut kept: Vec<RowLists> = (0..tiles).map(|_| RowLists::default()).collect();
     // The rows each tile's lane kernel blends, kept for the backward pass while they fit the
@@ -301,9 +302,9 @@ pub fn rasterize_binned_with<T: Real>(
     let ts = TILE_SIZE as usize;
     let staged =
         |x: usize, y: usize| (y / ts * tiles_x + x / ts) * TILE_PIXELS + (y % ts) * ts + x % ts;
-    let mut alpha = vec![T::zero(); h * w];
-    let mut depth = vec![T::zero(); h * w];
-    let mut blended = vec![0u32; h * w];
+    let mut alpha = filled(h * w, T::zero());
+    let mut depth = filled(h * w, T::zero());
+    let mut blended = filled(h * w, 0u32);
     alpha
         .par_chunks_mut(w)
         .zip(depth.par_chunks_mut(w))
@@ -317,7 +318,7 @@ pub fn rasterize_binned_with<T: Real>(
                 n_row[x] = t_count[lp];
             }
         });
-    let mut image = vec![T::zero(); h * w * d];
+    let mut image = filled(h * w * d, T::zero());
     if d > 0 {
         image
             .par_chunks_mut(w * d)

@@ -15,6 +15,7 @@
 
 use std::borrow::Cow;
 
+use base::memory::filled;
 use rayon::prelude::*;
 
 use gaussian::{project, project_backward, sh_colors, sh_colors_backward};
@@ -405,7 +406,7 @@ fn feature_grads<T: Real>(
         Channels::Features => Some(0),
         Channels::ColorAndFeatures { .. } => Some(3),
     };
-    let mut features = vec![T::zero(); scene.features.len()];
+    let mut features = filled(scene.features.len(), T::zero());
     if let Some(off) = feature_offset {
         for (i, dst) in features
             .chunks_exact_mut(f.max(1))
@@ -500,7 +501,7 @@ pub fn render_backward<T: Real>(
             }
             d_sh
         }
-        _ => vec![[T::zero(); 3]; scene.sh.len()],
+        _ => filled(scene.sh.len(), [T::zero(); 3]),
     };
     let k = &camera.intrinsics;
     let ndc_grad_norms = ndc_grad_norms(&g.means2d, k.width, k.height);

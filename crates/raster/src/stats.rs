@@ -9,6 +9,7 @@
 //! view is `max(rx, ry)` in pixels; its running maximum decides pruning of large splats.
 
 use gaussian::Real;
+use rayon::prelude::*;
 
 use crate::error::{check_len, RasterError};
 
@@ -40,6 +41,9 @@ pub fn screen_radii(radii: &[[u32; 2]]) -> Vec<u32> {
         })
         .collect()
 }
+
+/// Gaussians per task of [`DensificationStats::accumulate`].
+const ACCUMULATE_CHUNK: usize = 8192;
 
 /// Running densification statistics over views.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -88,13 +92,22 @@ impl DensificationStats {
         let n = self.len();
         check_len("radii", radii.len(), n)?;
         check_len("ndc_grad_norms", ndc_grad_norms.len(), n)?;
-        for (i, r) in radii.iter().enumerate() {
-            if r[0] > 0 && r[1] > 0 {
-                self.grad_norm_sum[i] += ndc_grad_norms[i].to_f64_exact();
-                self.visible_count[i] += 1;
-                self.max_screen_radius[i] = self.max_screen_radius[i].max(r[0].max(r[1]));
-            }
-        }
+        // Gaussian by Gaussian, so any split over threads gives the same sums.
+        self.grad_norm_sum
+            .par_chunks_mut(ACCUMULATE_CHUNK)
+            .zip(self.visible_count.par_chunks_mut(ACCUMULATE_CHUNK))
+            .zip(self.max_screen_radius.par_chunks_mut(ACCUMULATE_CHUNK))
+            .zip(radii.par_chunks(ACCUMULATE_CHUNK))
+            .zip(ndc_grad_norms.par_chunks(ACCUMULATE_CHUNK))
+            .for_each(|((((sums, counts), maxima), radii), norms)| {
+                for (i, r) in radii.iter().enumerate() {
+                    if r[0] > 0 && r[1] > 0 {
+                        sums[i] += norms[i].to_f64_exact();
+                        counts[i] += 1;
+                        maxima[i] = maxima[i].max(r[0].max(r[1]));
+                    }
+                }
+            });
         Ok(())
     }
 

@@ -229,7 +229,10 @@ impl TileBins {
             }
         }
         offsets.push(total);
-        let slots: Vec<AtomicU32> = (0..total).map(|_| AtomicU32::new(0)).collect();
+        let slots: Vec<AtomicU32> = (0..total)
+            .into_par_iter()
+            .map(|_| AtomicU32::new(0))
+            .collect();
         sorted
             .par_chunks(part_len)
             .zip(order.par_chunks(part_len))

@@ -3,7 +3,8 @@
 //! ([`write_atomic`], with [`remove_unfinished_writes`] for a process that must exit in the middle
 //! of one: it deletes the temporary files of the writes still in flight), the content hash
 //! that identifies inputs and outputs ([`Fnv1a`]), and the memory policy a program may install
-//! ([`memory`]; the libraries never do).
+//! ([`memory`]; the libraries never do), beside the one way the libraries fill their large
+//! buffers ([`memory::filled`], on the threads of the current rayon pool).
 //!
 //! It sits below every other crate of the workspace and depends on none of them.
 //!

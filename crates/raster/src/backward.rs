@@ -30,12 +30,13 @@
 //! forward pass kept the blended rows of every tile, one per intersection that blends somewhere
 //! (the others' records would be zero: a sum that starts at +0 is the same without zero
 //! terms, as it never becomes -0). Records are then summed per Gaussian in ascending
-//! intersection order (tile order), whatever the thread count.
+//! intersection order (tile order), whatever the thread count; after each batch only the
+//! Gaussians with records in it are visited (with one batch, all of them).
 //! Tiles are processed in consecutive batches whose records fit in a budget
 //! (`gradient_buffer_values`, default [`DEFAULT_GRADIENT_BUFFER_VALUES`]), so the peak memory is:
 //! the outputs, `N (7 + D)` reals of per-Gaussian accumulators, `min(budget, I (7 + D))` reals of
 //! records (`I` intersections, or the blending ones; a single tile larger than the budget gets a
-//! batch of its own),
+//! batch of its own), with more than one batch a bit per Gaussian,
 //! `D` reals per tile for the background gradient, and per thread one tile's working memory:
 //! for the scalar loops its packed Gaussians (7 reals each), its row lists (8 bytes per Gaussian
 //! and row it reaches, see [`crate::rows`]) and one pixel's blend list (4 reals and 2 words per
@@ -256,6 +257,7 @@ pub fn rasterize_backward_with<T: Real>(
     GaussianLists::check(record_ids)?;
     let mut lists: Option<GaussianLists> = None;
     let mut next = Vec::new();
+    let mut present: Vec<u64> = Vec::new();
 
     let mut first = 0;
     while first < tiles {
@@ -338,51 +340,77 @@ pub fn rasterize_backward_with<T: Real>(
         } else {
             (0..n.div_ceil(GATHER_CHUNK)).map(|_| &mut [][..]).collect()
         };
+        // With several batches, the Gaussians that have records in this one (a bit each), so
+        // that each batch visits those alone instead of every Gaussian; the others' sums would
+        // take no term from it. With one batch every Gaussian is visited.
+        let single = first == 0 && last == tiles;
+        if !single {
+            refill(&mut present, n.div_ceil(64), 0);
+            for &g in &record_ids[begin..end] {
+                present[g as usize / 64] |= 1 << (g % 64);
+            }
+        }
+        let present = (!single).then_some(&present[..]);
         geometry
             .par_chunks_mut(GATHER_CHUNK)
             .zip(channel_chunks)
             .zip(next.par_chunks_mut(GATHER_CHUNK))
             .enumerate()
-            .for_each(|(chunk, ((geo_chunk, channel_chunk), next_chunk))| {
-                let g0 = chunk * GATHER_CHUNK;
-                // With `d == 0` the channel chunks are empty.
-                let mut channel_rows = channel_chunk.chunks_exact_mut(d.max(1));
-                for (i, geo) in geo_chunk.iter_mut().enumerate() {
-                    let mut no_channels: [T; 0] = [];
-                    let dst_channels = if d > 0 {
-                        channel_rows.next().expect("one channel row per Gaussian")
-                    } else {
-                        &mut no_channels[..]
-                    };
-                    // The records of a Gaussian a few ahead, from its cursor on.
-                    if let Some(&from) = next_chunk.get(i + GATHER_AHEAD) {
-                        let ahead = g0 + i + GATHER_AHEAD;
-                        for &j in &lists.intersections[from..lists.start[ahead + 1]] {
-                            let j = j as usize;
+            .for_each_init(
+                Vec::new,
+                |members, (chunk, ((geo_chunk, channel_chunk), next_chunk))| {
+                    let g0 = chunk * GATHER_CHUNK;
+                    // The chunk's Gaussians to visit, ascending (positions in the chunk).
+                    members.clear();
+                    match present {
+                        None => members.extend(0..geo_chunk.len()),
+                        Some(bits) => {
+                            // GATHER_CHUNK is a multiple of 64: the chunk's words are whole.
+                            let words = &bits[g0 / 64..(g0 + geo_chunk.len()).div_ceil(64)];
+                            for (w, &word) in words.iter().enumerate() {
+                                let mut m = word;
+                                while m != 0 {
+                                    members.push(w * 64 + m.trailing_zeros() as usize);
+                                    m &= m - 1;
+                                }
+                            }
+                        }
+                    }
+                    for (at, &i) in members.iter().enumerate() {
+                        let geo = &mut geo_chunk[i];
+                        // With `d == 0` the channel chunks are empty.
+                        let dst_channels = &mut channel_chunk[i * d..(i + 1) * d];
+                        // The records of a Gaussian a few ahead, from its cursor on.
+                        if let Some(&i_ahead) = members.get(at + GATHER_AHEAD) {
+                            let from = next_chunk[i_ahead];
+                            let ahead = g0 + i_ahead;
+                            for &j in &lists.intersections[from..lists.start[ahead + 1]] {
+                                let j = j as usize;
+                                if j >= end {
+                                    break;
+                                }
+                                prefetch(&records[(j - begin) * stride..(j - begin + 1) * stride]);
+                            }
+                        }
+                        let cursor = &mut next_chunk[i];
+                        let stop = lists.start[g0 + i + 1];
+                        while *cursor < stop {
+                            let j = lists.intersections[*cursor] as usize;
                             if j >= end {
                                 break;
                             }
-                            prefetch(&records[(j - begin) * stride..(j - begin + 1) * stride]);
+                            let r = &records[(j - begin) * stride..(j - begin + 1) * stride];
+                            for (a, &v) in geo.iter_mut().zip(&r[..GEOMETRY]) {
+                                *a += v;
+                            }
+                            for (a, &v) in dst_channels.iter_mut().zip(&r[GEOMETRY..]) {
+                                *a += v;
+                            }
+                            *cursor += 1;
                         }
                     }
-                    let cursor = &mut next_chunk[i];
-                    let stop = lists.start[g0 + i + 1];
-                    while *cursor < stop {
-                        let j = lists.intersections[*cursor] as usize;
-                        if j >= end {
-                            break;
-                        }
-                        let r = &records[(j - begin) * stride..(j - begin + 1) * stride];
-                        for (a, &v) in geo.iter_mut().zip(&r[..GEOMETRY]) {
-                            *a += v;
-                        }
-                        for (a, &v) in dst_channels.iter_mut().zip(&r[GEOMETRY..]) {
-                            *a += v;
-                        }
-                        *cursor += 1;
-                    }
-                }
-            });
+                },
+            );
         first = last;
     }
 
@@ -394,7 +422,10 @@ pub fn rasterize_backward_with<T: Real>(
     }
     // Element-wise copies out of the records, written in place by the pool's threads.
     let grads = SplatGrads {
-        means2d: geometry.par_iter().map(|r| [r[MEAN_X], r[MEAN_Y]]).collect(),
+        means2d: geometry
+            .par_iter()
+            .map(|r| [r[MEAN_X], r[MEAN_Y]])
+            .collect(),
         conics: geometry
             .par_iter()
             .map(|r| [r[CONIC_A], r[CONIC_B], r[CONIC_C]])
@@ -407,8 +438,9 @@ pub fn rasterize_backward_with<T: Real>(
     Ok(grads)
 }
 
-/// Gaussians per task of the gradient gather (any value gives the same result).
+/// Gaussians per task of the gradient gather (any multiple of 64 gives the same result).
 const GATHER_CHUNK: usize = 2048;
+const _: () = assert!(GATHER_CHUNK.is_multiple_of(64));
 
 /// Gaussians ahead whose records the gather prefetches.
 const GATHER_AHEAD: usize = 8;

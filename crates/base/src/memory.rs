@@ -25,10 +25,10 @@ pub fn filled<T: Clone + Send + Sync>(len: usize, value: T) -> Vec<T> {
 }
 
 /// Makes `v` hold `len` copies of `value` (its old elements dropped, its allocation reused when
-/// large enough). From [`PARALLEL_FILL_BYTES`] on, the elements are written in parallel parts
-/// by the threads of the current rayon pool: a stage that calls this from its main thread
-/// (outside the pool) would otherwise clear tens of megabytes of gradients per iteration on one
-/// core while the pool's threads wait (`docs/performance.md`, "Buffers filled by the pool").
+/// large enough). From 1 MiB on, the elements are written in parallel parts by the threads of
+/// the current rayon pool: a stage that calls this from its main thread (outside the pool)
+/// would otherwise clear tens of megabytes of gradients per iteration on one core while the
+/// pool's threads wait (`docs/performance.md`, "Buffers filled by the pool").
 pub fn refill<T: Clone + Send + Sync>(v: &mut Vec<T>, len: usize, value: T) {
     v.clear();
     if len.saturating_mul(size_of::<T>()) < PARALLEL_FILL_BYTES {

@@ -298,13 +298,17 @@ pub fn sh_colors_backward<T: Real>(
     );
     let zero = T::zero();
     let k = coeffs_per_gaussian;
-    let mut d_sh = filled(sh.len(), [zero; 3]);
-    let mut d_means = filled(n, [zero; 3]);
     if k == 0 {
-        return (d_sh, d_means);
+        return (Vec::new(), filled(n, [zero; 3]));
     }
-    d_sh.par_chunks_mut(MIN_CHUNK * k)
-        .zip(d_means.par_chunks_mut(MIN_CHUNK))
+    // Every element is written once, by the loop below, instead of zeroed first and then
+    // overwritten: the coefficient gradients are the largest array of an iteration
+    // (`docs/performance.md`, "The SH gradients written once").
+    let mut d_sh: Vec<[T; 3]> = Vec::with_capacity(sh.len());
+    let mut d_means: Vec<[T; 3]> = Vec::with_capacity(n);
+    d_sh.spare_capacity_mut()[..sh.len()]
+        .par_chunks_mut(MIN_CHUNK * k)
+        .zip(d_means.spare_capacity_mut()[..n].par_chunks_mut(MIN_CHUNK))
         .zip(sh.par_chunks(MIN_CHUNK * k))
         .zip(
             means
@@ -312,22 +316,37 @@ pub fn sh_colors_backward<T: Real>(
                 .zip(v_colors.par_chunks(MIN_CHUNK)),
         )
         .for_each(|(((d_sh, d_means), sh), (means, v_colors))| {
+            let mut own = [[zero; 3]; 16];
             for i in 0..means.len() {
                 // A Gaussian the image does not depend on (culled, or blended nowhere) has a
                 // zero cotangent and so zero gradients: skip its bases.
-                if v_colors[i].iter().all(|&v| v == zero) {
-                    continue;
+                let (d_mean, active) = if v_colors[i].iter().all(|&v| v == zero) {
+                    ([zero; 3], 0)
+                } else {
+                    let d_mean = backward_one(
+                        nb,
+                        &sh[i * k..(i + 1) * k],
+                        &means[i],
+                        camera_center,
+                        v_colors[i],
+                        &mut own[..nb],
+                    );
+                    (d_mean, nb)
+                };
+                d_means[i].write(d_mean);
+                for (j, slot) in d_sh[i * k..(i + 1) * k].iter_mut().enumerate() {
+                    slot.write(if j < active { own[j] } else { [zero; 3] });
                 }
-                d_means[i] = backward_one(
-                    nb,
-                    &sh[i * k..(i + 1) * k],
-                    &means[i],
-                    camera_center,
-                    v_colors[i],
-                    &mut d_sh[i * k..(i + 1) * k],
-                );
             }
         });
+    // SAFETY: the chunks above cover the first `sh.len()` and `n` slots of the two buffers
+    // (the same chunking of both, `MIN_CHUNK` Gaussians and their `k` coefficients each), and
+    // every iteration writes Gaussian `i`'s mean gradient and all `k` of its coefficient slots;
+    // `for_each` returns only after every chunk is done.
+    unsafe {
+        d_sh.set_len(sh.len());
+        d_means.set_len(n);
+    }
     (d_sh, d_means)
 }
 

@@ -443,13 +443,25 @@ pub(crate) struct RowRef {
 /// The positions in the tile list of the Gaussians that `rows` (a tile's kept rows, in the
 /// walk's order) blend, ascending: a Gaussian's rows are consecutive in the walk, and the walk
 /// takes the list front to back.
+///
+/// Without a branch on the data: each row's position is written at the end of the list, which
+/// grows only where the position differs from the previous row's (`docs/performance.md`, "The
+/// SH gradients written once, and the blending positions without a branch").
 pub(crate) fn blending_positions(rows: &[RowRef]) -> Vec<u32> {
-    let mut positions: Vec<u32> = Vec::new();
-    for r in rows {
-        if positions.last() != Some(&r.k) {
-            positions.push(r.k);
-        }
+    let Some(first) = rows.first() else {
+        return Vec::new();
+    };
+    // At most one position per row.
+    let mut positions = vec![0u32; rows.len()];
+    let (mut len, mut last) = (1, first.k);
+    positions[0] = last;
+    for r in &rows[1..] {
+        // `len` is at most the index of `r` in `rows`: in bounds.
+        positions[len] = r.k;
+        len += usize::from(r.k != last);
+        last = r.k;
     }
+    positions.truncate(len);
     positions
 }
 
@@ -1164,6 +1176,28 @@ impl BackwardTile<'_, '_> {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    proptest! {
+        /// The positions are the distinct `k` of the rows, in their order, each once per run
+        /// of equal `k` (what a list that pushes every new `k` gives), for any run lengths,
+        /// including positions at the ends of the `u32` range.
+        #[test]
+        fn blending_positions_list_each_run_of_rows_once(
+            runs in proptest::collection::vec((any::<u32>(), 1usize..5), 0..40)
+        ) {
+            let rows: Vec<RowRef> = runs
+                .iter()
+                .flat_map(|&(k, n)| (0..n).map(move |i| RowRef { k, row: i as u16, blend: 1 }))
+                .collect();
+            let mut expected: Vec<u32> = Vec::new();
+            for r in &rows {
+                if expected.last() != Some(&r.k) {
+                    expected.push(r.k);
+                }
+            }
+            prop_assert_eq!(blending_positions(&rows), expected);
+        }
+    }
 
     /// Every falloff and alpha of a row evaluation, in every lane (those that blend and those
     /// that do not), for the portable lanes and each instruction set this machine has.

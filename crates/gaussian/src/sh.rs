@@ -408,11 +408,13 @@ mod fast {
                     b[kk][l] = bl[kk];
                 }
             }
-            for l in 0..LANES {
-                let row = &sh[(i0 + l) * k..(i0 + l) * k + NB];
-                for kk in 0..NB {
-                    for c in 0..3 {
-                        coef[kk][c][l] = row[kk][c];
+            if !transpose_full(k, sh, i0, coef.as_flattened_mut()) {
+                for l in 0..LANES {
+                    let row = &sh[(i0 + l) * k..(i0 + l) * k + NB];
+                    for kk in 0..NB {
+                        for c in 0..3 {
+                            coef[kk][c][l] = row[kk][c];
+                        }
                     }
                 }
             }
@@ -425,6 +427,79 @@ mod fast {
                 }
             }
         }
+    }
+
+    /// The coefficients of all 16 bases of the Gaussians `i0..i0 + LANES` as lane arrays,
+    /// `coef[3 * basis + channel][lane]`, moved by three 16 x 16 transposes in AVX-512
+    /// registers. The same values as the element-by-element copy, which the compiler turns
+    /// into scalar stores read back as vectors (each vector load then waits for its sixteen
+    /// stores). Returns `false`, doing nothing, unless `coef` holds all 16 bases and the
+    /// processor has AVX-512.
+    #[inline(always)]
+    fn transpose_full(k: usize, sh: &[[f32; 3]], i0: usize, coef: &mut [[f32; LANES]]) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if coef.len() == 48 {
+            if let Some(simd) = pulp::x86::V4::try_new() {
+                let rows: [&[f32]; LANES] =
+                    std::array::from_fn(|l| sh[(i0 + l) * k..(i0 + l) * k + 16].as_flattened());
+                simd.vectorize(|| {
+                    for q in 0..3 {
+                        let block: [[f32; LANES]; LANES] = std::array::from_fn(|l| {
+                            rows[l][q * LANES..(q + 1) * LANES]
+                                .try_into()
+                                .expect("16 coefficients")
+                        });
+                        let t = transpose16(simd, block);
+                        coef[q * LANES..(q + 1) * LANES].copy_from_slice(&t);
+                    }
+                });
+                return true;
+            }
+        }
+        let _ = (k, sh, i0, coef);
+        false
+    }
+
+    /// `out[j][l] = m[l][j]` for a 16 x 16 block: pairs of rows interleaved, then pairs of
+    /// pairs, then 128-bit quarters exchanged twice.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn transpose16(simd: pulp::x86::V4, m: [[f32; LANES]; LANES]) -> [[f32; LANES]; LANES] {
+        use std::arch::x86_64::__m512;
+        let f = simd.avx512f;
+        let r: [__m512; LANES] = m.map(pulp::cast);
+        // Per 128-bit quarter: (a0 b0 a1 b1) and (a2 b2 a3 b3) of rows a, b.
+        let t: [__m512; LANES] = std::array::from_fn(|i| {
+            let (a, b) = (r[i & !1], r[i | 1]);
+            if i % 2 == 0 {
+                f._mm512_unpacklo_ps(a, b)
+            } else {
+                f._mm512_unpackhi_ps(a, b)
+            }
+        });
+        // u[4g + j], quarter q: rows 4g..4g + 4 at column 4q + j.
+        let u: [__m512; LANES] = std::array::from_fn(|i| {
+            let (g, j) = (i / 4, i % 4);
+            let (a, b) = (t[4 * g + j / 2], t[4 * g + 2 + j / 2]);
+            if j % 2 == 0 {
+                f._mm512_shuffle_ps::<0x44>(a, b)
+            } else {
+                f._mm512_shuffle_ps::<0xEE>(a, b)
+            }
+        });
+        let mut out = [[0f32; LANES]; LANES];
+        for j in 0..4 {
+            // Quarters 0 and 2 (`_0`) or 1 and 3 (`_1`) of rows 0..8 and of rows 8..16.
+            let v_0 = f._mm512_shuffle_f32x4::<0x88>(u[j], u[4 + j]);
+            let v_1 = f._mm512_shuffle_f32x4::<0xDD>(u[j], u[4 + j]);
+            let w_0 = f._mm512_shuffle_f32x4::<0x88>(u[8 + j], u[12 + j]);
+            let w_1 = f._mm512_shuffle_f32x4::<0xDD>(u[8 + j], u[12 + j]);
+            out[j] = pulp::cast(f._mm512_shuffle_f32x4::<0x88>(v_0, w_0));
+            out[4 + j] = pulp::cast(f._mm512_shuffle_f32x4::<0x88>(v_1, w_1));
+            out[8 + j] = pulp::cast(f._mm512_shuffle_f32x4::<0xDD>(v_0, w_0));
+            out[12 + j] = pulp::cast(f._mm512_shuffle_f32x4::<0xDD>(v_1, w_1));
+        }
+        out
     }
 
     /// The colours of one work item when `T` is `f32` (returns `false`, doing nothing,

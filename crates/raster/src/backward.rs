@@ -213,6 +213,12 @@ pub fn rasterize_backward_with<T: Real>(
     } else {
         splats.packed()
     };
+    // The scalar forward pass's row lists, when it kept them in the bins for these same
+    // Gaussians (checked, as above).
+    let kept_rows = match lanes_in {
+        None => bins.kept_rows().and_then(|k| k.lists_for(&packed)),
+        Some(_) => None,
+    };
     // The records: one per tile list entry, or, when the forward pass kept the blended rows of
     // every tile, one per entry that blends somewhere in its tile (the others' records would
     // stay zero, and a sum that starts at +0 is the same without zero terms: it never becomes
@@ -308,6 +314,7 @@ pub fn rasterize_backward_with<T: Real>(
                             splats,
                             &packed,
                             bins,
+                            kept_rows.map(|lists| &lists[t]),
                             background,
                             cot,
                             t,

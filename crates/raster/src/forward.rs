@@ -287,7 +287,7 @@ pub fn rasterize_binned_with<T: Real>(
 
     // Keep the scalar loops' row lists only if all of them fit.
     let all_fit = lanes_in.is_none() && kept_bytes.into_inner() <= ROW_LIST_BUDGET_BYTES;
-    bins.keep_rows(all_fit.then_some(kept));
+    bins.keep_rows(all_fit.then(|| scalar::Kept::new(packed, kept)));
     if lanes_in.is_some() {
         bins.keep_lanes(Some(lanes::Kept {
             packed: packed32,

@@ -19,16 +19,16 @@ use std::sync::Arc;
 
 use crate::blend::TILE_SIZE;
 use crate::error::{check_len, RasterError};
-use crate::kernels::lanes::Kept;
-use crate::rows::RowLists;
+use crate::kernels::{lanes, scalar};
 
 /// The per-tile, depth-sorted lists of Gaussian indices for one image.
 ///
 /// After a forward pass ([`crate::rasterize`]) the bins also carry that pass's per-tile row
-/// lists ([`crate::rows`]), when they fit [`ROW_LIST_BUDGET_BYTES`], so that the backward pass
-/// does not build them again. Those depend on the Gaussians' means, conics and opacities: pass
-/// the bins only to the backward pass of the same Gaussians (as the backward pass requires
-/// anyway). Equality compares the binning only.
+/// lists ([`crate::rows`]) or blended rows, when they fit [`ROW_LIST_BUDGET_BYTES`], so that
+/// the backward pass does not build them again. Those depend on the Gaussians' means, conics
+/// and opacities; the backward pass uses them only after checking that they were kept for the
+/// Gaussians it is given, so its result never depends on what the bins carry. Equality compares
+/// the binning only.
 #[derive(Clone, Debug, Default)]
 pub struct TileBins {
     width: u32,
@@ -40,10 +40,10 @@ pub struct TileBins {
     offsets: Vec<usize>,
     /// Gaussian indices, tile-major, front to back within a tile.
     gaussian_ids: Vec<u32>,
-    /// The forward pass's row lists, one per tile.
-    row_lists: Option<Arc<Vec<RowLists>>>,
+    /// What a scalar forward pass kept: its packed Gaussians and the row lists of every tile.
+    row_lists: Option<Arc<scalar::Kept>>,
     /// What a lane forward pass kept: its packed Gaussians and the rows each tile blended.
-    lanes_kept: Option<Arc<Kept>>,
+    lanes_kept: Option<Arc<lanes::Kept>>,
 }
 
 /// Parts of the depth order binned in parallel (any number gives the same bins).
@@ -348,30 +348,34 @@ impl TileBins {
 
     /// Bytes held by the binning itself (not counting what a forward pass kept for the
     /// backward pass: row lists or blended rows, at most [`ROW_LIST_BUDGET_BYTES`], and the
-    /// lane kernels' packed Gaussians, 40 bytes each).
+    /// packed Gaussians they were made for, 40 bytes each for the lane kernels, 28 (`f32`) or
+    /// 56 (`f64`) for the scalar loops).
     pub fn memory_bytes(&self) -> usize {
         self.offsets.len() * std::mem::size_of::<usize>()
             + self.gaussian_ids.len() * std::mem::size_of::<u32>()
     }
 
-    /// The row lists of tile `t` kept by the forward pass, if any.
-    pub(crate) fn kept_rows(&self, t: usize) -> Option<&RowLists> {
-        self.row_lists.as_ref().map(|r| &r[t])
+    /// What the scalar forward pass kept, if it ran last on these bins.
+    pub(crate) fn kept_rows(&self) -> Option<&scalar::Kept> {
+        self.row_lists.as_deref()
     }
 
-    /// Keeps the forward pass's row lists (one per tile), or drops any when `None`.
-    pub(crate) fn keep_rows(&mut self, rows: Option<Vec<RowLists>>) {
-        self.row_lists = rows.filter(|r| r.len() == self.tile_count()).map(Arc::new);
+    /// Keeps what a scalar forward pass kept (its packed Gaussians and the row lists of every
+    /// tile), or drops it when `None`.
+    pub(crate) fn keep_rows(&mut self, kept: Option<scalar::Kept>) {
+        self.row_lists = kept
+            .filter(|k| k.tile_count() == self.tile_count())
+            .map(Arc::new);
     }
 
     /// What the lane forward pass kept, if it ran last on these bins.
-    pub(crate) fn kept_lanes(&self) -> Option<&Kept> {
+    pub(crate) fn kept_lanes(&self) -> Option<&lanes::Kept> {
         self.lanes_kept.as_deref()
     }
 
     /// Keeps what a lane forward pass kept (its packed Gaussians and, per tile, the rows it
     /// blended), or drops it when `None`.
-    pub(crate) fn keep_lanes(&mut self, kept: Option<Kept>) {
+    pub(crate) fn keep_lanes(&mut self, kept: Option<lanes::Kept>) {
         self.lanes_kept = kept
             .filter(|k| {
                 k.packed.len() == self.gaussian_count && k.blends.len() == self.tile_count()

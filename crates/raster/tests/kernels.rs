@@ -224,11 +224,10 @@ fn a_forward_pass_ignores_row_lists_kept_for_other_gaussians() {
         .all(|(x, y)| x.to_bits() == y.to_bits()));
 }
 
-#[test]
-fn a_backward_pass_ignores_rows_kept_for_other_gaussians() {
-    // A lane forward pass of one scene keeps its blended rows in its bins; a backward pass of
-    // the same means, depths and radii with other conics and opacities, given those bins, must
-    // give the bits of a backward pass given bins that kept nothing.
+/// A forward pass of one scene keeps its row lists or blended rows in its bins; a backward pass
+/// of the same means, depths and radii with other conics and opacities, given those bins, must
+/// give the bits of a backward pass given bins that kept nothing.
+fn backward_ignores_rows_kept_for_other_gaussians<T: gaussian::Real>(kernel: Kernel) {
     let mut rng = Rng(23);
     let a = random_scene(&mut rng, 600, 50, 40, 3);
     let mut b = a.clone();
@@ -236,14 +235,13 @@ fn a_backward_pass_ignores_rows_kept_for_other_gaussians() {
         *o = (*o * 1.5).min(0.99);
         *c = [c[0] * 0.25, c[1] * 0.25, c[2] * 0.25];
     }
-    let kernel = Kernel::auto().unwrap();
-    let (sa, sb) = (a.cast::<f32>(), b.cast::<f32>());
+    let (sa, sb) = (a.cast::<T>(), b.cast::<T>());
     let kept_from_a = rasterize_binned_with(&sa.splats(), sa.tile_bins(), &sa.background, kernel)
         .unwrap()
         .bins;
     let px = (b.width * b.height) as usize;
     let (vi, va, vd) = cotangents(&mut Rng(5), px, b.channel_count, 1.0);
-    let (vi, va, vd) = (cast::<f32>(&vi), cast::<f32>(&va), cast::<f32>(&vd));
+    let (vi, va, vd) = (cast::<T>(&vi), cast::<T>(&va), cast::<T>(&vd));
     let cot = Cotangents {
         image: &vi,
         alpha: Some(&va[..]),
@@ -260,7 +258,20 @@ fn a_backward_pass_ignores_rows_kept_for_other_gaussians() {
             g.channels,
             g.background,
         ]
-        .map(|v| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>())
+        .map(|v| {
+            v.iter()
+                .map(|x| x.to_f64_exact().to_bits())
+                .collect::<Vec<u64>>()
+        })
     };
     assert_eq!(grads(&kept_from_a), grads(&sb.tile_bins()));
+}
+
+#[test]
+fn a_backward_pass_ignores_rows_kept_for_other_gaussians() {
+    // f32 with this machine's kernel (the lane kernels' blended rows, or with DSGS_KERNEL=scalar
+    // the reference loops' row lists), and the f64 reference loops' row lists.
+    backward_ignores_rows_kept_for_other_gaussians::<f32>(Kernel::auto().unwrap());
+    backward_ignores_rows_kept_for_other_gaussians::<f64>(Kernel::auto().unwrap());
+    backward_ignores_rows_kept_for_other_gaussians::<f32>(Kernel::Scalar);
 }

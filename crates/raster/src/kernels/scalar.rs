@@ -8,7 +8,10 @@
 //! raster order; a record's geometry terms (and few channels' terms) are summed per tile column
 //! first, then column by column from the left, the order [`super::record`] sets.
 
+use std::any::Any;
+
 use gaussian::Real;
+use rayon::prelude::*;
 
 use super::record::{
     COLUMN_CHANNELS_MAX, CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY,
@@ -42,19 +45,62 @@ pub(crate) struct Scratch<T> {
     touched: Vec<u16>,
 }
 
+/// What a scalar forward pass keeps in its bins for the backward pass of the same Gaussians:
+/// every Gaussian packed (a `Vec<Splat<T>>` of the pass's real type) and per tile its row lists.
+#[derive(Debug)]
+pub(crate) struct Kept {
+    packed: Box<dyn Any + Send + Sync>,
+    lists: Vec<RowLists>,
+}
+
+impl Kept {
+    pub fn new<T: Real>(packed: Vec<Splat<T>>, lists: Vec<RowLists>) -> Self {
+        Kept {
+            packed: Box::new(packed),
+            lists,
+        }
+    }
+
+    /// The row lists, one per tile, if they were kept for `packed`: the same real type and,
+    /// bit for bit, the same packed Gaussians, which are all that building them reads (with
+    /// the tile rectangles, fixed by the bins).
+    pub fn lists_for<T: Real>(&self, packed: &[Splat<T>]) -> Option<&[RowLists]> {
+        let kept = self.packed.downcast_ref::<Vec<Splat<T>>>()?;
+        let same = |a: T, b: T| a.to_f64_exact().to_bits() == b.to_f64_exact().to_bits();
+        let matches = kept.len() == packed.len()
+            && kept.par_iter().zip(packed).all(|(k, s)| {
+                same(k.mx, s.mx)
+                    && same(k.my, s.my)
+                    && same(k.a, s.a)
+                    && same(k.b, s.b)
+                    && same(k.c, s.c)
+                    && same(k.opacity, s.opacity)
+                    && same(k.sigma_cut, s.sigma_cut)
+            });
+        matches.then_some(&self.lists[..])
+    }
+
+    /// The number of tiles whose row lists are kept.
+    pub fn tile_count(&self) -> usize {
+        self.lists.len()
+    }
+}
+
 /// Gathers tile `t`'s packed Gaussians (from `all`, one per Gaussian) and builds its row lists
-/// unless the bins kept them; returns its Gaussian ids and the row lists.
+/// unless `kept` has them (row lists kept for the same Gaussians, see [`Kept::lists_for`]);
+/// returns its Gaussian ids and the row lists.
 fn prepare<'b, T: Real>(
     all: &[Splat<T>],
     bins: &'b TileBins,
     t: usize,
+    kept: Option<&'b RowLists>,
     packed: &mut Vec<Splat<T>>,
     rows: &'b mut RowLists,
 ) -> (&'b [u32], &'b RowLists) {
     let ids = bins.tile(t);
     packed.clear();
     packed.extend(ids.iter().map(|&g| all[g as usize]));
-    let rows = match bins.kept_rows(t) {
+    let rows = match kept {
         Some(kept) => kept,
         None => {
             rows.build(packed, bins.pixel_rect(t));
@@ -83,7 +129,7 @@ pub(crate) fn forward_tile<T: Real>(
 ) {
     let d = splats.channel_count;
     let Scratch { packed, rows, .. } = scratch;
-    let (ids, rows) = prepare(all, bins, t, packed, rows);
+    let (ids, rows) = prepare(all, bins, t, None, packed, rows);
     let (x0, y0, x1, y1) = bins.pixel_rect(t);
     for py in y0..y1 {
         let cy = pixel_centre::<T>(py);
@@ -115,12 +161,14 @@ pub(crate) fn forward_tile<T: Real>(
 }
 
 /// Accumulates tile `t`'s gradient records (`GEOMETRY + D` reals per tile intersection, in tile
-/// order) into `rec` and its background gradient into `bg_grad`.
+/// order) into `rec` and its background gradient into `bg_grad`; `kept`: the tile's row lists
+/// kept by the forward pass of these Gaussians, if any.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn backward_tile<T: Real>(
     splats: &Splats<T>,
     all: &[Splat<T>],
     bins: &TileBins,
+    kept: Option<&RowLists>,
     background: &[T],
     cot: &Cotangents<T>,
     t: usize,
@@ -137,7 +185,7 @@ pub(crate) fn backward_tile<T: Real>(
         columns,
         touched,
     } = scratch;
-    let (ids, rows) = prepare(all, bins, t, packed, rows);
+    let (ids, rows) = prepare(all, bins, t, kept, packed, rows);
     let (x0, y0, x1, y1) = bins.pixel_rect(t);
     let width = bins.width() as usize;
     let half = T::lit(0.5);

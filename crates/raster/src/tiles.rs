@@ -201,21 +201,9 @@ impl TileBins {
             .collect();
         drop(rects);
         let part_len = sorted.len().div_ceil(BIN_PARTS).max(1);
-        let tiles_of = |r: &TileRect| {
-            let r = *r;
-            (r.y0..r.y1).flat_map(move |ty| {
-                (r.x0..r.x1).map(move |tx| ty as usize * tiles_x as usize + tx as usize)
-            })
-        };
         let mut cursors: Vec<Vec<usize>> = sorted
             .par_chunks(part_len)
-            .map(|part| {
-                let mut counts = vec![0usize; tile_count];
-                for r in part {
-                    tiles_of(r).for_each(|t| counts[t] += 1);
-                }
-                counts
-            })
+            .map(|part| tile_counts(part, tiles_x, tiles_y))
             .collect();
         // Tile offsets, and each part's first slot per tile.
         let mut offsets = Vec::with_capacity(tile_count + 1);
@@ -233,17 +221,20 @@ impl TileBins {
             .into_par_iter()
             .map(|_| AtomicU32::new(0))
             .collect();
+        let tx = tiles_x as usize;
         sorted
             .par_chunks(part_len)
             .zip(order.par_chunks(part_len))
             .zip(cursors.par_iter_mut())
             .for_each(|((part, ids), cursor)| {
                 for (r, &g) in part.iter().zip(ids) {
-                    tiles_of(r).for_each(|t| {
-                        // Every slot is written by exactly one part, once.
-                        slots[cursor[t]].store(g, Ordering::Relaxed);
-                        cursor[t] += 1;
-                    });
+                    for ty in r.y0 as usize..r.y1 as usize {
+                        for t in ty * tx + r.x0 as usize..ty * tx + r.x1 as usize {
+                            // Every slot is written by exactly one part, once.
+                            slots[cursor[t]].store(g, Ordering::Relaxed);
+                            cursor[t] += 1;
+                        }
+                    }
                 }
             });
         let gaussian_ids: Vec<u32> = slots.into_par_iter().map(AtomicU32::into_inner).collect();
@@ -394,6 +385,34 @@ impl TileBins {
             })
         }
     }
+}
+
+/// The number of rectangles of `rects` that cover each tile of a `tiles_x x tiles_y` grid
+/// (tiles row-major): four corner increments per rectangle, then the two-dimensional prefix
+/// sum (differences wrap, the sums are the exact counts).
+fn tile_counts(rects: &[TileRect], tiles_x: u32, tiles_y: u32) -> Vec<usize> {
+    let (tx, ty) = (tiles_x as usize, tiles_y as usize);
+    // Corners on the `(tx + 1) x (ty + 1)` grid.
+    let gx = tx + 1;
+    let mut corners = vec![0usize; gx * (ty + 1)];
+    for r in rects {
+        let (x0, x1, y0, y1) = (r.x0 as usize, r.x1 as usize, r.y0 as usize, r.y1 as usize);
+        corners[y0 * gx + x0] = corners[y0 * gx + x0].wrapping_add(1);
+        corners[y0 * gx + x1] = corners[y0 * gx + x1].wrapping_sub(1);
+        corners[y1 * gx + x0] = corners[y1 * gx + x0].wrapping_sub(1);
+        corners[y1 * gx + x1] = corners[y1 * gx + x1].wrapping_add(1);
+    }
+    let mut counts = vec![0usize; tx * ty];
+    let mut column = vec![0usize; tx];
+    for y in 0..ty {
+        let mut run = 0usize;
+        for x in 0..tx {
+            run = run.wrapping_add(corners[y * gx + x]);
+            column[x] = column[x].wrapping_add(run);
+            counts[y * tx + x] = column[x];
+        }
+    }
+    counts
 }
 
 /// `ids` sorted stably by ascending depth: numeric order (so `-0.0 == 0.0` and equal depths

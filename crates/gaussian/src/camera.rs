@@ -6,6 +6,8 @@
 
 use glam::{DMat3, DMat4, DVec3};
 
+use crate::Real;
+
 /// The largest image width or height, in pixels, that the project accepts for a camera read
 /// from a file.
 ///
@@ -100,6 +102,13 @@ impl Camera {
     /// The camera centre in world coordinates: `-R^T t`.
     pub fn center(&self) -> DVec3 {
         -(self.rotation().transpose() * self.translation())
+    }
+
+    /// [`Camera::center`] as an array of `T` (each coordinate rounded once from `f64`), the
+    /// form the SH colour functions take.
+    pub fn center_as<T: Real>(&self) -> [T; 3] {
+        let c = self.center();
+        [T::lit(c.x), T::lit(c.y), T::lit(c.z)]
     }
 
     /// The viewing direction (camera +z) in world coordinates.

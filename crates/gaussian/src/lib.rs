@@ -68,7 +68,7 @@ pub use dataset::{Dataset, DatasetError, LoadOptions, Resolution};
 pub use ply::{load_ply, save_ply, PlyError};
 pub use project::{project, project_backward, ProjectSettings, Projected, ProjectionGrads};
 pub use scene::{scene_extent_from_cameras, FeatureGaussians, SceneError};
-pub use sh::{sh_colors, sh_colors_backward};
+pub use sh::{sh_colors, sh_colors_backward, sh_colors_backward_rows};
 
 /// The text of an error followed by the text of each of its causes ([`std::error::Error::source`]),
 /// each cause appended after `": "` only when its text is not already part of what is written:

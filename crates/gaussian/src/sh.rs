@@ -20,6 +20,7 @@
 
 use base::memory::filled;
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 use crate::Real;
 
@@ -275,8 +276,8 @@ pub fn sh_colors<T: Real>(
 /// the view direction). A Gaussian whose colour cotangent is zero gets zero gradients without
 /// evaluating its bases (the image does not depend on it).
 ///
-/// Gaussian by Gaussian in every type: a lane version of this loop (as [`sh_colors`] has) ran
-/// slower than it, bound by the memory of the coefficients and their gradients.
+/// In `f32` this runs as vector code, as [`sh_colors`] does, with the scalar operations in the
+/// same order per lane, so every path and thread count gives the same bits.
 ///
 /// # Panics
 /// As [`sh_colors`], and if `v_colors.len() != means.len()`.
@@ -316,28 +317,7 @@ pub fn sh_colors_backward<T: Real>(
                 .zip(v_colors.par_chunks(MIN_CHUNK)),
         )
         .for_each(|(((d_sh, d_means), sh), (means, v_colors))| {
-            let mut own = [[zero; 3]; 16];
-            for i in 0..means.len() {
-                // A Gaussian the image does not depend on (culled, or blended nowhere) has a
-                // zero cotangent and so zero gradients: skip its bases.
-                let (d_mean, active) = if v_colors[i].iter().all(|&v| v == zero) {
-                    ([zero; 3], 0)
-                } else {
-                    let d_mean = backward_one(
-                        nb,
-                        &sh[i * k..(i + 1) * k],
-                        &means[i],
-                        camera_center,
-                        v_colors[i],
-                        &mut own[..nb],
-                    );
-                    (d_mean, nb)
-                };
-                d_means[i].write(d_mean);
-                for (j, slot) in d_sh[i * k..(i + 1) * k].iter_mut().enumerate() {
-                    slot.write(if j < active { own[j] } else { [zero; 3] });
-                }
-            }
+            backward_rows(nb, k, sh, means, camera_center, v_colors, d_sh, d_means);
         });
     // SAFETY: the chunks above cover the first `sh.len()` and `n` slots of the two buffers
     // (the same chunking of both, `MIN_CHUNK` Gaussians and their `k` coefficients each), and
@@ -350,12 +330,108 @@ pub fn sh_colors_backward<T: Real>(
     (d_sh, d_means)
 }
 
+/// [`sh_colors_backward`] of a run of Gaussians, one after the other on the calling thread,
+/// into buffers the caller owns: `d_sh` (laid out like `sh`) and `d_means` are overwritten,
+/// with the same bits [`sh_colors_backward`] gives those Gaussians. For callers that consume
+/// the gradients chunk by chunk while they are in cache (the geometry trainer applies Adam to
+/// each chunk's coefficients as soon as their gradients exist).
+///
+/// # Panics
+/// As [`sh_colors_backward`], and if `d_sh` or `d_means` do not match `sh` and `means`.
+#[allow(clippy::too_many_arguments)]
+pub fn sh_colors_backward_rows<T: Real>(
+    degree: usize,
+    coeffs_per_gaussian: usize,
+    sh: &[[T; 3]],
+    means: &[[T; 3]],
+    camera_center: [T; 3],
+    v_colors: &[[T; 3]],
+    d_sh: &mut [[T; 3]],
+    d_means: &mut [[T; 3]],
+) {
+    let n = means.len();
+    let nb = check_args(degree, coeffs_per_gaussian, sh.len(), n);
+    assert!(
+        v_colors.len() == n && d_means.len() == n && d_sh.len() == sh.len(),
+        "{} colour cotangents, {} mean and {} coefficient gradient slots for {n} Gaussians \
+         and {} coefficients",
+        v_colors.len(),
+        d_means.len(),
+        d_sh.len(),
+        sh.len()
+    );
+    if coeffs_per_gaussian == 0 {
+        d_means.fill([T::zero(); 3]);
+        return;
+    }
+    // SAFETY: `[T; 3]` and `MaybeUninit<[T; 3]>` have the same layout, and `backward_rows`
+    // only ever stores initialised values, so the slices stay initialised.
+    let (d_sh, d_means) = unsafe {
+        (
+            &mut *(d_sh as *mut [[T; 3]] as *mut [MaybeUninit<[T; 3]>]),
+            &mut *(d_means as *mut [[T; 3]] as *mut [MaybeUninit<[T; 3]>]),
+        )
+    };
+    backward_rows(
+        nb,
+        coeffs_per_gaussian,
+        sh,
+        means,
+        camera_center,
+        v_colors,
+        d_sh,
+        d_means,
+    );
+}
+
+/// The backward of the Gaussians of one chunk (`k > 0` coefficients each): writes every
+/// Gaussian's mean gradient and all `k` of its coefficient slots.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn backward_rows<T: Real>(
+    nb: usize,
+    k: usize,
+    sh: &[[T; 3]],
+    means: &[[T; 3]],
+    camera_center: [T; 3],
+    v_colors: &[[T; 3]],
+    d_sh: &mut [MaybeUninit<[T; 3]>],
+    d_means: &mut [MaybeUninit<[T; 3]>],
+) {
+    let zero = T::zero();
+    let done = fast::backward(nb, k, sh, means, camera_center, v_colors, d_sh, d_means);
+    let mut own = [[zero; 3]; 16];
+    for i in done..means.len() {
+        // A Gaussian the image does not depend on (culled, or blended nowhere) has a zero
+        // cotangent and so zero gradients: skip its bases.
+        let (d_mean, active) = if v_colors[i].iter().all(|&v| v == zero) {
+            ([zero; 3], 0)
+        } else {
+            let d_mean = backward_one(
+                nb,
+                &sh[i * k..(i + 1) * k],
+                &means[i],
+                camera_center,
+                v_colors[i],
+                &mut own[..nb],
+            );
+            (d_mean, nb)
+        };
+        d_means[i].write(d_mean);
+        for (j, slot) in d_sh[i * k..(i + 1) * k].iter_mut().enumerate() {
+            slot.write(if j < active { own[j] } else { [zero; 3] });
+        }
+    }
+}
+
 /// The `f32` vector code of [`sh_colors`]: blocks of [`fast::LANES`] Gaussians whose
 /// per-Gaussian scalar operations (those of [`color_one`]) run stage by stage across lane
 /// arrays; the last partial block runs Gaussian by Gaussian. Compiled for the instruction set
 /// `pulp` picks at run time.
 mod fast {
-    use super::{color_one, eval_bases, normalize_dir, v3};
+    use std::mem::MaybeUninit;
+
+    use super::{bases_vjp, color_one, eval_bases, normalize_dir, v3};
     use crate::Real;
 
     pub(super) const LANES: usize = 16;
@@ -464,29 +540,37 @@ mod fast {
     /// pairs, then 128-bit quarters exchanged twice.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
+    #[allow(clippy::needless_range_loop)] // the index picks the rows each step combines
     fn transpose16(simd: pulp::x86::V4, m: [[f32; LANES]; LANES]) -> [[f32; LANES]; LANES] {
         use std::arch::x86_64::__m512;
         let f = simd.avx512f;
-        let r: [__m512; LANES] = m.map(pulp::cast);
+        // Plain loops, not `array::from_fn`: a closure the compiler leaves out of line is
+        // compiled without AVX-512 and calls each intrinsic as a function.
+        let mut r: [__m512; LANES] = [f._mm512_setzero_ps(); LANES];
+        for i in 0..LANES {
+            r[i] = pulp::cast(m[i]);
+        }
         // Per 128-bit quarter: (a0 b0 a1 b1) and (a2 b2 a3 b3) of rows a, b.
-        let t: [__m512; LANES] = std::array::from_fn(|i| {
+        let mut t = r;
+        for i in 0..LANES {
             let (a, b) = (r[i & !1], r[i | 1]);
-            if i % 2 == 0 {
+            t[i] = if i % 2 == 0 {
                 f._mm512_unpacklo_ps(a, b)
             } else {
                 f._mm512_unpackhi_ps(a, b)
-            }
-        });
+            };
+        }
         // u[4g + j], quarter q: rows 4g..4g + 4 at column 4q + j.
-        let u: [__m512; LANES] = std::array::from_fn(|i| {
+        let mut u = t;
+        for i in 0..LANES {
             let (g, j) = (i / 4, i % 4);
             let (a, b) = (t[4 * g + j / 2], t[4 * g + 2 + j / 2]);
-            if j % 2 == 0 {
+            u[i] = if j % 2 == 0 {
                 f._mm512_shuffle_ps::<0x44>(a, b)
             } else {
                 f._mm512_shuffle_ps::<0xEE>(a, b)
-            }
-        });
+            };
+        }
         let mut out = [[0f32; LANES]; LANES];
         for j in 0..4 {
             // Quarters 0 and 2 (`_0`) or 1 and 3 (`_1`) of rows 0..8 and of rows 8..16.
@@ -576,6 +660,203 @@ mod fast {
             }
         }
     }
+
+    /// The mean and coefficient gradients of the whole blocks of [`LANES`] Gaussians of one
+    /// chunk when `T` is `f32` (the stages of [`super::backward_one`] on lane arrays, each lane
+    /// with the scalar operations in their order, and zeros for a Gaussian whose colour
+    /// cotangent is zero, as the scalar loop writes); returns how many Gaussians it did (0 in
+    /// `f64`), the caller doing the rest.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn backward<T: Real>(
+        nb: usize,
+        k: usize,
+        sh: &[[T; 3]],
+        means: &[[T; 3]],
+        center: [T; 3],
+        v_colors: &[[T; 3]],
+        d_sh: &mut [MaybeUninit<[T; 3]>],
+        d_means: &mut [MaybeUninit<[T; 3]>],
+    ) -> usize {
+        let (Some(sh), Some(means), Some(center), Some(v_colors)) = (
+            T::as_f32_slice(sh.as_flattened()),
+            T::as_f32_slice(means.as_flattened()),
+            T::as_f32_slice(&center),
+            T::as_f32_slice(v_colors.as_flattened()),
+        ) else {
+            return 0;
+        };
+        // SAFETY: `Real` is sealed and only `f32` returns `Some` from `as_f32_slice` (just
+        // checked), so `T` is `f32` and the slices keep their layout.
+        let (d_sh, d_means) = unsafe {
+            (
+                &mut *(d_sh as *mut [MaybeUninit<[T; 3]>] as *mut [MaybeUninit<[f32; 3]>]),
+                &mut *(d_means as *mut [MaybeUninit<[T; 3]>] as *mut [MaybeUninit<[f32; 3]>]),
+            )
+        };
+        let op = Backward {
+            k,
+            sh: sh.as_chunks::<3>().0,
+            means: means.as_chunks::<3>().0,
+            center: [center[0], center[1], center[2]],
+            v_colors: v_colors.as_chunks::<3>().0,
+            d_sh,
+            d_means,
+        };
+        let arch = pulp::Arch::new();
+        match nb {
+            1 => arch.dispatch(BackwardNb::<1>(op)),
+            4 => arch.dispatch(BackwardNb::<4>(op)),
+            9 => arch.dispatch(BackwardNb::<9>(op)),
+            _ => arch.dispatch(BackwardNb::<16>(op)),
+        }
+    }
+
+    struct Backward<'a> {
+        k: usize,
+        sh: &'a [[f32; 3]],
+        means: &'a [[f32; 3]],
+        center: [f32; 3],
+        v_colors: &'a [[f32; 3]],
+        d_sh: &'a mut [MaybeUninit<[f32; 3]>],
+        d_means: &'a mut [MaybeUninit<[f32; 3]>],
+    }
+
+    struct BackwardNb<'a, const NB: usize>(Backward<'a>);
+
+    impl<const NB: usize> pulp::WithSimd for BackwardNb<'_, NB> {
+        type Output = usize;
+
+        #[inline(always)]
+        fn with_simd<S: pulp::Simd>(self, _: S) -> usize {
+            let Backward {
+                k,
+                sh,
+                means,
+                center,
+                v_colors,
+                d_sh,
+                d_means,
+            } = self.0;
+            let blocks = means.len() / LANES;
+            let mut block = Block::<NB>::zeros();
+            // Coefficient gradients `dc[3 * basis + channel][lane]` (zero beyond `NB`).
+            let mut dc = [[0.0f32; LANES]; 48];
+            for blk in 0..blocks {
+                let i0 = blk * LANES;
+                block.fill(k, sh, means, center, i0);
+                let Block { u, b, coef, raw } = &block;
+                // The colour cotangent where the clamp at 0 passes it.
+                let mut v = [[0.0f32; LANES]; 3];
+                let mut active = [false; LANES];
+                for l in 0..LANES {
+                    let vc = v_colors[i0 + l];
+                    active[l] = !vc.iter().all(|&x| x == 0.0);
+                    for c in 0..3 {
+                        v[c][l] = if raw[c][l] + 0.5 >= 0.0 { vc[c] } else { 0.0 };
+                    }
+                }
+                let mut g_basis = [[0.0f32; LANES]; 16];
+                for kk in 0..NB {
+                    for l in 0..LANES {
+                        for c in 0..3 {
+                            dc[3 * kk + c][l] = b[kk][l] * v[c][l];
+                        }
+                        g_basis[kk][l] = coef[kk][0][l] * v[0][l]
+                            + coef[kk][1][l] * v[1][l]
+                            + coef[kk][2][l] * v[2][l];
+                    }
+                }
+                let mut g_mean = [[0.0f32; LANES]; 3];
+                for l in 0..LANES {
+                    let mut gb = [0.0f32; 16];
+                    for kk in 0..NB {
+                        gb[kk] = g_basis[kk][l];
+                    }
+                    let ul = [u[0][l], u[1][l], u[2][l]];
+                    let g_u = bases_vjp(NB, ul, &gb);
+                    let m = &means[i0 + l];
+                    let (_, denom, clamped) = normalize_dir(v3(|a| m[a] - center[a]));
+                    let d = if clamped {
+                        v3(|a| g_u[a] / denom)
+                    } else {
+                        let dot = ul[0] * g_u[0] + ul[1] * g_u[1] + ul[2] * g_u[2];
+                        v3(|a| (g_u[a] - ul[a] * dot) / denom)
+                    };
+                    for a in 0..3 {
+                        g_mean[a][l] = d[a];
+                    }
+                }
+                for l in 0..LANES {
+                    let i = i0 + l;
+                    d_means[i].write(if active[l] {
+                        v3(|a| g_mean[a][l])
+                    } else {
+                        [0.0; 3]
+                    });
+                }
+                store_rows::<NB>(k, &dc, &active, i0, d_sh);
+            }
+            blocks * LANES
+        }
+    }
+
+    /// Writes the `k` coefficient gradient slots of the Gaussians `i0..i0 + LANES` from the
+    /// lane arrays `dc` (the first `NB` bases; zeros after them, and everywhere for an inactive
+    /// lane): three 16 x 16 transposes in AVX-512 registers when all 16 bases are there.
+    #[inline(always)]
+    fn store_rows<const NB: usize>(
+        k: usize,
+        dc: &[[f32; LANES]; 48],
+        active: &[bool; LANES],
+        i0: usize,
+        d_sh: &mut [MaybeUninit<[f32; 3]>],
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if NB == 16 {
+            if let Some(simd) = pulp::x86::V4::try_new() {
+                simd.vectorize(|| {
+                    for q in 0..3 {
+                        let mut block = [[0.0f32; LANES]; LANES];
+                        block.copy_from_slice(&dc[q * LANES..(q + 1) * LANES]);
+                        let t = transpose16(simd, block);
+                        for l in 0..LANES {
+                            // Floats `16 q .. 16 (q + 1)` of the 48 of the first 16 slots.
+                            let row = &mut d_sh[(i0 + l) * k..(i0 + l) * k + 16];
+                            let vals = if active[l] { t[l] } else { [0.0; LANES] };
+                            // SAFETY: `row` is 16 slots of three floats each
+                            // (`MaybeUninit<[f32; 3]>` has the layout of `[f32; 3]`), so floats
+                            // `16 q .. 16 q + 16` with `q < 3` lie inside it.
+                            unsafe {
+                                let flat = row.as_mut_ptr().cast::<f32>();
+                                std::ptr::copy_nonoverlapping(
+                                    vals.as_ptr(),
+                                    flat.add(q * LANES),
+                                    LANES,
+                                );
+                            }
+                        }
+                    }
+                });
+                for l in 0..LANES {
+                    let row = &mut d_sh[(i0 + l) * k..(i0 + l + 1) * k];
+                    for slot in &mut row[16..] {
+                        slot.write([0.0; 3]);
+                    }
+                }
+                return;
+            }
+        }
+        for l in 0..LANES {
+            let row = &mut d_sh[(i0 + l) * k..(i0 + l + 1) * k];
+            for (j, slot) in row.iter_mut().enumerate() {
+                slot.write(if active[l] && j < NB {
+                    v3(|c| dc[3 * j + c][l])
+                } else {
+                    [0.0; 3]
+                });
+            }
+        }
+    }
 }
 
 #[cfg(test)]
@@ -619,8 +900,7 @@ mod tests {
     fn chunked_and_vector_paths_give_the_bits_of_the_gaussian_by_gaussian_reference() {
         // sizes with partial lane blocks and several parallel work items
         for n in [1, 17, 2 * MIN_CHUNK + 37] {
-            for degree in 0..=3 {
-                let k = 16;
+            for (degree, k) in (0..=3).flat_map(|d| [(d, 16), (d, num_bases(d))]) {
                 let nb = num_bases(degree);
                 let (means, sh, v_colors, center) = case(n, k);
                 let colors = sh_colors(degree, k, &sh, &means, center);
@@ -654,6 +934,29 @@ mod tests {
                     bits(&d_means),
                     bits(&ref_means),
                     "d_means, n {n} degree {degree}"
+                );
+
+                // The same bits from the calling thread into buffers of earlier values, in two
+                // runs split off a lane block.
+                let split = n.min(21);
+                let mut rows_sh = vec![[f32::NAN; 3]; n * k];
+                let mut rows_means = vec![[-7.0f32; 3]; n];
+                let (sh_a, sh_b) = rows_sh.split_at_mut(split * k);
+                let (m_a, m_b) = rows_means.split_at_mut(split);
+                let (v_a, v_b) = v_colors.split_at(split);
+                let (s_a, s_b) = sh.split_at(split * k);
+                let (p_a, p_b) = means.split_at(split);
+                sh_colors_backward_rows(degree, k, s_a, p_a, center, v_a, sh_a, m_a);
+                sh_colors_backward_rows(degree, k, s_b, p_b, center, v_b, sh_b, m_b);
+                assert_eq!(
+                    bits(&rows_sh),
+                    bits(&ref_sh),
+                    "rows d_sh, n {n} degree {degree}"
+                );
+                assert_eq!(
+                    bits(&rows_means),
+                    bits(&ref_means),
+                    "rows d_means, n {n} degree {degree}"
                 );
             }
         }

@@ -9,7 +9,8 @@
 //! * [`render()`] and [`render_backward`] chain projection, SH colour and/or features, and the
 //!   rasterizer, from a camera and a [`gaussian::FeatureGaussians`] scene to gradients of every
 //!   scene parameter; [`render_backward_features`] gives the features' gradient alone, for
-//!   frozen geometry.
+//!   frozen geometry, and [`render_backward_before_sh`] stops at the colour cotangent for a
+//!   caller that runs the SH backward itself.
 //! * [`stats`] computes the densification statistics (screen radii, NDC gradient norms).
 //!
 //! Conventions are those of the oracle (`gen_fixtures.py`), documented in [`blend`] and [`tiles`].
@@ -92,8 +93,9 @@ pub use error::RasterError;
 pub use forward::{rasterize, rasterize_binned, rasterize_binned_with, Rasterized, Splats};
 pub use kernels::{Isa, Kernel};
 pub use render::{
-    render, render_backward, render_backward_features, render_window, Channels, PixelWindow,
-    Render, RenderOptions, SceneGrads,
+    add_view_direction_term, render, render_backward, render_backward_before_sh,
+    render_backward_features, render_window, Channels, GradsBeforeSh, PixelWindow, Render,
+    RenderOptions, SceneGrads,
 };
 pub use stats::{ndc_grad_norms, screen_radii, DensificationStats};
 pub use tiles::{tile_grid, tile_rect, TileBins, TileRect};

@@ -243,11 +243,6 @@ fn validate<T: Real>(
     Ok(d)
 }
 
-fn camera_center<T: Real>(camera: &Camera) -> [T; 3] {
-    let c = camera.center();
-    [T::lit(c.x), T::lit(c.y), T::lit(c.z)]
-}
-
 fn sigmoid<T: Real>(x: T) -> T {
     T::one() / (T::one() + (-x).exp())
 }
@@ -316,7 +311,7 @@ pub fn render_window<T: Real>(
             scene.sh_coeffs_per_gaussian(),
             &scene.sh,
             &scene.means,
-            camera_center(camera),
+            camera.center_as(),
         )
     });
     let rows = channel_rows(opts.channels, scene, colors.as_deref().unwrap_or(&[]));
@@ -447,6 +442,58 @@ pub fn render_backward<T: Real>(
     v_alpha: Option<&[T]>,
     v_depth: Option<&[T]>,
 ) -> Result<SceneGrads<T>, RasterError> {
+    let (mut grads, v_colors) =
+        render_backward_before_sh(camera, scene, opts, render, v_image, v_alpha, v_depth)?;
+    grads.sh = match (v_colors, opts.channels.sh_degree()) {
+        (Some(v_colors), Some(degree)) => {
+            let (d_sh, d_means) = sh_colors_backward(
+                degree,
+                scene.sh_coeffs_per_gaussian(),
+                &scene.sh,
+                &scene.means,
+                camera.center_as(),
+                &v_colors,
+            );
+            add_view_direction_term(&mut grads.means, &d_means);
+            d_sh
+        }
+        _ => filled(scene.sh.len(), [T::zero(); 3]),
+    };
+    Ok(grads)
+}
+
+/// Adds the SH view direction's mean gradients `d_means` (from
+/// [`gaussian::sh_colors_backward`] or [`gaussian::sh_colors_backward_rows`]) to the
+/// projection's `means`, as [`render_backward`] does: together they are the gradients with
+/// respect to the means.
+pub fn add_view_direction_term<T: Real>(means: &mut [[T; 3]], d_means: &[[T; 3]]) {
+    for (m, dm) in means.iter_mut().zip(d_means) {
+        for a in 0..3 {
+            m[a] += dm[a];
+        }
+    }
+}
+
+/// What [`render_backward_before_sh`] returns: the gradients without the SH coefficients' (and
+/// the means' without the view direction's term), and the colour cotangent when colour was
+/// rendered.
+pub type GradsBeforeSh<T> = (SceneGrads<T>, Option<Vec<[T; 3]>>);
+
+/// [`render_backward`] stopped before the SH colour backward, for a caller that runs that step
+/// itself (the geometry trainer applies Adam to each chunk of SH coefficients as soon as their
+/// gradients exist). The returned gradients' `sh` is empty and their `means` lack the view
+/// direction's term; the second value is the colour cotangent, one RGB triple per Gaussian
+/// (`None` when colour was not rendered). [`gaussian::sh_colors_backward`] on it, with
+/// [`add_view_direction_term`], gives the rest of [`render_backward`], bit for bit.
+pub fn render_backward_before_sh<T: Real>(
+    camera: &Camera,
+    scene: &FeatureGaussians<T>,
+    opts: &RenderOptions<T>,
+    render: &Render<T>,
+    v_image: &[T],
+    v_alpha: Option<&[T]>,
+    v_depth: Option<&[T]>,
+) -> Result<GradsBeforeSh<T>, RasterError> {
     let (g, d) = splat_grads(camera, scene, opts, render, v_image, v_alpha, v_depth)?;
     let n = scene.len();
     let p = &render.projected;
@@ -458,10 +505,6 @@ pub fn render_backward<T: Real>(
         .collect();
 
     let features = feature_grads(scene, opts, &g.channels, d);
-    let color_offset = match opts.channels {
-        Channels::Features => None,
-        _ => Some(0),
-    };
     let proj = project_backward(
         camera,
         &scene.means,
@@ -473,39 +516,21 @@ pub fn render_backward<T: Real>(
         &g.conics,
         &g.depths,
     );
-    let mut means = proj.means;
-    let sh = match (color_offset, opts.channels.sh_degree()) {
-        (Some(off), Some(degree)) => {
-            let v_colors: Cow<'_, [[T; 3]]> = if d == 3 {
-                // colour only: the channel gradients are the colour gradients
-                Cow::Borrowed(g.channels.as_chunks::<3>().0)
-            } else {
-                Cow::Owned(
-                    (0..n)
-                        .map(|i| std::array::from_fn(|c| g.channels[i * d + off + c]))
-                        .collect(),
-                )
-            };
-            let (d_sh, d_means) = sh_colors_backward(
-                degree,
-                scene.sh_coeffs_per_gaussian(),
-                &scene.sh,
-                &scene.means,
-                camera_center(camera),
-                &v_colors,
-            );
-            for (m, dm) in means.iter_mut().zip(&d_means) {
-                for a in 0..3 {
-                    m[a] += dm[a];
-                }
-            }
-            d_sh
+    let means = proj.means;
+    // The colour channels come first whenever colour is rendered.
+    let v_colors = opts.channels.sh_degree().map(|_| {
+        if d == 3 {
+            g.channels.as_chunks::<3>().0.to_vec()
+        } else {
+            (0..n)
+                .map(|i| std::array::from_fn(|c| g.channels[i * d + c]))
+                .collect()
         }
-        _ => filled(scene.sh.len(), [T::zero(); 3]),
-    };
+    });
+    let sh = Vec::new();
     let k = &camera.intrinsics;
     let ndc_grad_norms = ndc_grad_norms(&g.means2d, k.width, k.height);
-    Ok(SceneGrads {
+    let grads = SceneGrads {
         means,
         quats: proj.quats,
         log_scales: proj.log_scales,
@@ -515,5 +540,6 @@ pub fn render_backward<T: Real>(
         background: g.background,
         means2d: g.means2d,
         ndc_grad_norms,
-    })
+    };
+    Ok((grads, v_colors))
 }

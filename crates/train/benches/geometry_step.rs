@@ -1,6 +1,8 @@
 //! The per-Gaussian work of one geometry iteration outside the rasterizer, on 100,000 f32
-//! Gaussians of SH degree 3: the Adam step of every group, and the loss (L1 + D-SSIM with its
-//! gradient) of a 200x200 render.
+//! Gaussians of SH degree 3: the Adam step of every group; the SH colour backward followed by
+//! that step (`sh_backward_then_adam`, the trainer's path before `step_from_colours`) against
+//! the backward inside the SH groups' Adam pass (`sh_backward_in_adam`); and the loss (L1 +
+//! D-SSIM with its gradient) of a 200x200 render.
 //!
 //! Inputs are generated deterministically (a 64-bit LCG).
 
@@ -8,7 +10,7 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use gaussian::FeatureGaussians;
 use std::hint::black_box;
 use train::loss::photometric_loss_with_grad;
-use train::{AdamConfig, GaussianGrads, GaussianModel, ImageShape, LearningRates};
+use train::{AdamConfig, ColourGrads, GaussianGrads, GaussianModel, ImageShape, LearningRates};
 
 const N: usize = 100_000;
 
@@ -63,6 +65,43 @@ fn bench(c: &mut Criterion) {
     g.sample_size(30);
     g.bench_function("adam_step", |b| {
         b.iter(|| model.step(black_box(&grads)).unwrap())
+    });
+
+    // Colour cotangents with a zero row in four (Gaussians outside the view), seen from a
+    // camera outside the unit cube.
+    let center = [0.3f32, -2.5, 1.7];
+    let mut colours: Vec<[f32; 3]> = r.vec(N, -1e-2, 1e-2);
+    for c in colours.iter_mut().step_by(4) {
+        *c = [0.0; 3];
+    }
+    g.bench_function("sh_backward_then_adam", |b| {
+        b.iter(|| {
+            let s = &model.scene;
+            let (d_sh, d_means) =
+                gaussian::sh_colors_backward(3, 16, &s.sh, &s.means, center, &colours);
+            let mut all_means = means.clone();
+            raster::add_view_direction_term(&mut all_means, &d_means);
+            let grads = GaussianGrads {
+                means: &all_means,
+                sh: &d_sh,
+                ..grads
+            };
+            model.step(black_box(&grads)).unwrap()
+        })
+    });
+    g.bench_function("sh_backward_in_adam", |b| {
+        b.iter(|| {
+            let grads = ColourGrads {
+                means: &means,
+                quats: &quats,
+                log_scales: &log_scales,
+                opacity_logits: &opacity_logits,
+                colours: &colours,
+                sh_degree: 3,
+                camera_center: center,
+            };
+            model.step_from_colours(black_box(&grads), &[]).unwrap()
+        })
     });
 
     let shape = ImageShape::new(200, 200, 3);

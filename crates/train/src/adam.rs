@@ -24,6 +24,8 @@
 //! performs exactly those operations per lane, so every path and every thread count gives the
 //! same bits.
 
+use std::ops::Range;
+
 use gaussian::Real;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -298,34 +300,86 @@ impl<T: Real> Adam<T> {
         params: &mut [T],
         grads: &[T],
     ) -> Result<(), TrainError> {
+        let stride = self.side_by_side_stride(indices)?;
+        if grads.len() != params.len() {
+            return Err(TrainError::Shape(format!(
+                "Adam step side by side of groups {indices:?}: params have {} and grads {} \
+                 elements",
+                params.len(),
+                grads.len()
+            )));
+        }
+        let mut no_rows = vec![(); params.len() / stride];
+        self.side_by_side(
+            indices,
+            params,
+            &mut no_rows,
+            Grads::<T, fn(Range<usize>, &[T], &mut [()], &mut [T])>::Slice(grads),
+        )
+    }
+
+    /// [`Adam::step_side_by_side`] with the gradients made chunk by chunk, just before the update
+    /// of those rows and while they are in cache, instead of read from an array of the whole
+    /// tensor: `grads(rows, params_rows, per_row_rows, out)` must overwrite `out`
+    /// (`rows.len() * stride` elements, a buffer kept per thread) with the gradients of `rows`,
+    /// laid out like `params_rows`, which holds those rows' parameters before the update.
+    /// `per_row` has one element per row, handed to the call for the same rows (e.g. an output
+    /// the gradients' producer writes alongside). The chunks are fixed, so the result does not
+    /// depend on the thread count; it has the bits of [`Adam::step_side_by_side`] with the same
+    /// gradients.
+    pub fn step_side_by_side_with<U, F>(
+        &mut self,
+        indices: &[usize],
+        params: &mut [T],
+        per_row: &mut [U],
+        grads: F,
+    ) -> Result<(), TrainError>
+    where
+        U: Send,
+        F: Fn(Range<usize>, &[T], &mut [U], &mut [T]) + Sync,
+    {
+        self.side_by_side(indices, params, per_row, Grads::Fill(grads))
+    }
+
+    /// The side-by-side step, with the gradients from either source.
+    fn side_by_side<U, F>(
+        &mut self,
+        indices: &[usize],
+        params: &mut [T],
+        per_row: &mut [U],
+        grads: Grads<'_, T, F>,
+    ) -> Result<(), TrainError>
+    where
+        U: Send,
+        F: Fn(Range<usize>, &[T], &mut [U], &mut [T]) + Sync,
+    {
+        let stride = self.side_by_side_stride(indices)?;
         let shared = Shared::new(&self.config);
         let cfg = self.config;
         let mut slots: Vec<Option<&mut ParamState<T>>> = self.params.iter_mut().map(Some).collect();
-        // `None` when an index repeats or is out of range.
-        let states: Option<Vec<&mut ParamState<T>>> = indices
+        let mut states: Vec<&mut ParamState<T>> = indices
             .iter()
-            .map(|&i| slots.get_mut(i).and_then(Option::take))
+            .map(|&i| {
+                slots[i]
+                    .take()
+                    .expect("checked distinct by side_by_side_stride")
+            })
             .collect();
-        let Some(mut states) = states.filter(|s| !s.is_empty()) else {
-            return Err(TrainError::Shape(format!(
-                "Adam step side by side of groups {indices:?}: not distinct existing groups"
-            )));
-        };
-        let stride: usize = states.iter().map(|s| s.width).sum();
         let rows = states[0].rows();
         if states.iter().any(|s| s.rows() != rows)
             || params.len() != rows * stride
-            || grads.len() != rows * stride
+            || per_row.len() != rows
         {
             let shapes: Vec<String> = states
                 .iter()
                 .map(|s| format!("`{}` {} x {}", s.name, s.rows(), s.width))
                 .collect();
             return Err(TrainError::Shape(format!(
-                "Adam step side by side of {}: params have {} and grads {} elements",
+                "Adam step side by side of {}: params have {} elements and the per-row outputs \
+                 {} rows",
                 shapes.join(", "),
                 params.len(),
-                grads.len()
+                per_row.len()
             )));
         }
         let widths: Vec<usize> = states.iter().map(|s| s.width).collect();
@@ -347,9 +401,19 @@ impl<T: Real> Adam<T> {
         }
         params
             .par_chunks_mut(rows_per_chunk * stride)
-            .zip(grads.par_chunks(rows_per_chunk * stride))
+            .zip(per_row.par_chunks_mut(rows_per_chunk))
             .zip(items.into_par_iter())
-            .for_each(|((p, g), mut mv)| {
+            .enumerate()
+            .for_each_init(Vec::new, |scratch, (item, ((p, u), mut mv))| {
+                let first = item * rows_per_chunk;
+                let g: &[T] = match &grads {
+                    Grads::Slice(g) => &g[first * stride..first * stride + p.len()],
+                    Grads::Fill(fill) => {
+                        scratch.resize(p.len(), T::zero());
+                        fill(first..first + u.len(), p, u, scratch);
+                        scratch
+                    }
+                };
                 if let (Some(p32), Some(g32)) = (T::as_f32_slice_mut(p), T::as_f32_slice(g)) {
                     let sizes32 = StepSize::as_f32(&sizes);
                     let shared32 = shared.as_f32();
@@ -369,6 +433,28 @@ impl<T: Real> Adam<T> {
             });
         Ok(())
     }
+
+    /// The row width of a side-by-side step of `indices`: an error unless they are distinct
+    /// existing groups.
+    fn side_by_side_stride(&self, indices: &[usize]) -> Result<usize, TrainError> {
+        let distinct = indices
+            .iter()
+            .enumerate()
+            .all(|(j, &i)| i < self.params.len() && !indices[..j].contains(&i));
+        if indices.is_empty() || !distinct {
+            return Err(TrainError::Shape(format!(
+                "Adam step side by side of groups {indices:?}: not distinct existing groups"
+            )));
+        }
+        Ok(indices.iter().map(|&i| self.params[i].width).sum())
+    }
+}
+
+/// Where a side-by-side step takes its gradients from: an array of the whole tensor, or a
+/// function that makes each chunk's.
+enum Grads<'g, T, F> {
+    Slice(&'g [T]),
+    Fill(F),
 }
 
 /// The constants of a step shared by every tensor, in `T`.
@@ -777,6 +863,40 @@ mod tests {
                 assert_eq!(bits(x.exp_avg()), bits(y.exp_avg()), "{}", x.name);
                 assert_eq!(bits(x.exp_avg_sq()), bits(y.exp_avg_sq()), "{}", x.name);
             }
+        }
+    }
+
+    #[test]
+    fn gradients_made_per_chunk_give_the_bits_of_a_gradient_array() {
+        // The producer sees each chunk's rows before the update and writes its per-row output;
+        // rows that leave a partial parallel chunk, on one thread and on the default pool.
+        for threads in [1, 3] {
+            let widths = [3, 45];
+            let (rows, stride) = (700, 48);
+            let (mut a, mut pa) = warmed_up(&widths, rows, 5);
+            let (mut b, mut pb) = (a.clone(), pa.clone());
+            let grads = random(&mut StdRng::seed_from_u64(13), rows * stride, 0.1);
+            let before = pa.clone();
+            a.step_side_by_side(&[0, 1], &mut pa, &grads).unwrap();
+            let mut seen = vec![0.0f32; rows];
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                b.step_side_by_side_with(&[0, 1], &mut pb, &mut seen, |r, p, seen, out| {
+                    assert_eq!(p, &before[r.start * stride..r.end * stride]);
+                    out.copy_from_slice(&grads[r.start * stride..r.end * stride]);
+                    for (s, row) in seen.iter_mut().zip(p.chunks_exact(stride)) {
+                        *s = row[0];
+                    }
+                })
+                .unwrap()
+            });
+            assert_eq!(bits(&pa), bits(&pb), "params, {threads} threads");
+            let first: Vec<f32> = before.chunks_exact(stride).map(|row| row[0]).collect();
+            assert_eq!(bits(&seen), bits(&first));
+            assert_eq!(a, b, "states, {threads} threads");
         }
     }
 

@@ -70,8 +70,8 @@ use crate::error::TrainError;
 use crate::event::{Event, Metric, Sink, Stage};
 use crate::init::{gaussians_from_points, random_points_in_box, PointCloud};
 use crate::loss::{photometric_loss_with_grad, psnr, LossTerms};
-use crate::model::{GaussianGrads, GaussianModel, LearningRates, OPACITY};
-use crate::render::{render_color, render_color_backward};
+use crate::model::{ColourGrads, GaussianModel, LearningRates, OPACITY};
+use crate::render::{render_color, render_color_backward_before_sh};
 use crate::ssim::{ssim, ImageShape};
 
 /// Settings of a geometry run. Defaults are those of the original 3DGS code.
@@ -504,7 +504,9 @@ impl GeometryTrainer {
         let (loss, v_image) =
             photometric_loss_with_grad(image, &view.image, shape, self.config.lambda_dssim)?;
         let train_psnr = psnr(image, &view.image, shape)?;
-        let grads = render_color_backward(
+        // The SH colour backward runs inside the SH groups' Adam pass (`step_from_colours`),
+        // and not at all on the steps that skip Adam.
+        let (grads, v_colours) = render_color_backward_before_sh(
             &view.camera,
             &self.model.scene,
             self.model.active_sh_degree,
@@ -535,16 +537,17 @@ impl GeometryTrainer {
             }
         }
         if it < self.config.iterations && densified.is_none() {
-            let g = GaussianGrads {
+            let g = ColourGrads {
                 means: &grads.means,
                 quats: &grads.quats,
                 log_scales: &grads.log_scales,
                 opacity_logits: &grads.opacity_logits,
-                sh: &grads.sh,
-                coeffs_per_gaussian: self.model.scene.sh_coeffs_per_gaussian(),
+                colours: &v_colours,
+                sh_degree: self.model.active_sh_degree,
+                camera_center: view.camera.center_as(),
             };
             let skip: &[&str] = if opacity_reset { &[OPACITY] } else { &[] };
-            self.model.step_except(&g, skip)?;
+            self.model.step_from_colours(&g, skip)?;
         }
         self.step = it;
         if it == 1 {

@@ -126,7 +126,7 @@ pub use features::{FeatureEvaluation, FeatureInputs, FeatureTrainConfig, Feature
 pub use geometry::{Evaluation, GeometryConfig, GeometryTrainer, StepReport, TrainSummary, View};
 pub use image_folder::ImageSet;
 pub use init::{gaussians_from_points, random_points_in_box, PointCloud};
-pub use model::{GaussianGrads, GaussianModel, LearningRates};
+pub use model::{ColourGrads, GaussianGrads, GaussianModel, LearningRates};
 pub use schedule::ExponentialLr;
 pub use ssim::ImageShape;
 pub use style::FeatureNorm;

@@ -101,7 +101,8 @@ impl LearningRates {
 /// active degree), in which case the missing ones are zero.
 #[derive(Clone, Copy, Debug)]
 pub struct GaussianGrads<'a> {
-    /// `dL/d(means)`, one `[x, y, z]` per Gaussian.
+    /// `dL/d(means)`, one `[x, y, z]` per Gaussian (through the projection and the SH view
+    /// direction).
     pub means: &'a [[f32; 3]],
     /// `dL/d(quats)`, one `(w, x, y, z)` per Gaussian.
     pub quats: &'a [[f32; 4]],
@@ -113,6 +114,29 @@ pub struct GaussianGrads<'a> {
     pub sh: &'a [[f32; 3]],
     /// SH coefficients per Gaussian in `sh`, `(d + 1)^2` for some degree `d` up to the scene's.
     pub coeffs_per_gaussian: usize,
+}
+
+/// The gradients of a colour render before its SH colour backward
+/// ([`raster::render_backward_before_sh`]): [`GaussianModel::step_from_colours`] runs that
+/// backward inside the SH groups' Adam pass, chunk by chunk, so the coefficient gradients never
+/// make a whole array.
+#[derive(Clone, Copy, Debug)]
+pub struct ColourGrads<'a> {
+    /// `dL/d(means)` through the projection only (the view direction's term is added in the
+    /// step).
+    pub means: &'a [[f32; 3]],
+    /// `dL/d(quats)`, one `(w, x, y, z)` per Gaussian.
+    pub quats: &'a [[f32; 4]],
+    /// `dL/d(log_scales)`, one `[x, y, z]` per Gaussian.
+    pub log_scales: &'a [[f32; 3]],
+    /// `dL/d(opacity_logits)`, one per Gaussian.
+    pub opacity_logits: &'a [f32],
+    /// `dL/d(colour)`, one RGB triple per Gaussian.
+    pub colours: &'a [[f32; 3]],
+    /// The SH degree the colours were evaluated at.
+    pub sh_degree: usize,
+    /// The centre of the camera the colours were seen from.
+    pub camera_center: [f32; 3],
 }
 
 /// A scene with its optimiser state and densification statistics.
@@ -227,22 +251,29 @@ impl GaussianModel {
                 "gradient has {kg} SH coefficients per Gaussian, the model stores {k_all}"
             )));
         }
+        self.step_sh(grads.sh, kg, skip)?;
+        self.step_except_sh(
+            grads.means,
+            grads.quats,
+            grads.log_scales,
+            grads.opacity_logits,
+            skip,
+        )
+    }
+
+    /// The Adam steps of the SH groups not in `skip`, from coefficient gradients with `kg`
+    /// coefficients per Gaussian (checked by the caller).
+    fn step_sh(&mut self, sh: &[[f32; 3]], kg: usize, skip: &[&str]) -> Result<(), TrainError> {
+        let n = self.len();
+        let k_all = self.scene.sh_coeffs_per_gaussian();
         let run = |name: &str| !skip.contains(&name);
-        if run(XYZ) {
-            let g = self.group(XYZ)?;
-            self.adam.step(
-                g,
-                self.scene.means.as_flattened_mut(),
-                grads.means.as_flattened(),
-            )?;
-        }
         // SH gradients at the stored width (zeros above the active degree)
         let padded;
         let sh_grad: &[[f32; 3]] = if kg == k_all {
-            grads.sh
+            sh
         } else {
             let mut p = vec![[0.0f32; 3]; n * k_all];
-            for (dst, src) in p.chunks_exact_mut(k_all).zip(grads.sh.chunks_exact(kg)) {
+            for (dst, src) in p.chunks_exact_mut(k_all).zip(sh.chunks_exact(kg)) {
                 dst[..kg].copy_from_slice(src);
             }
             padded = p;
@@ -280,22 +311,124 @@ impl GaussianModel {
                 )?;
             }
         }
-        let g = self.group(OPACITY)?;
-        self.adam
-            .step(g, &mut self.scene.opacity_logits, grads.opacity_logits)?;
-        let g = self.group(SCALING)?;
-        self.adam.step(
-            g,
-            self.scene.log_scales.as_flattened_mut(),
-            grads.log_scales.as_flattened(),
-        )?;
-        let g = self.group(ROTATION)?;
-        self.adam.step(
-            g,
-            self.scene.quats.as_flattened_mut(),
-            grads.quats.as_flattened(),
-        )?;
         Ok(())
+    }
+
+    /// The Adam steps of the groups other than SH that are not in `skip`, from gradients of
+    /// the model's length (checked by the caller).
+    fn step_except_sh(
+        &mut self,
+        means: &[[f32; 3]],
+        quats: &[[f32; 4]],
+        log_scales: &[[f32; 3]],
+        opacity_logits: &[f32],
+        skip: &[&str],
+    ) -> Result<(), TrainError> {
+        let run = |name: &str| !skip.contains(&name);
+        if run(XYZ) {
+            let g = self.group(XYZ)?;
+            self.adam
+                .step(g, self.scene.means.as_flattened_mut(), means.as_flattened())?;
+        }
+        if run(OPACITY) {
+            let g = self.group(OPACITY)?;
+            self.adam
+                .step(g, &mut self.scene.opacity_logits, opacity_logits)?;
+        }
+        if run(SCALING) {
+            let g = self.group(SCALING)?;
+            self.adam.step(
+                g,
+                self.scene.log_scales.as_flattened_mut(),
+                log_scales.as_flattened(),
+            )?;
+        }
+        if run(ROTATION) {
+            let g = self.group(ROTATION)?;
+            self.adam
+                .step(g, self.scene.quats.as_flattened_mut(), quats.as_flattened())?;
+        }
+        Ok(())
+    }
+
+    /// The step of [`GaussianModel::step_except`] from the gradients of a colour render before
+    /// its SH colour backward: with both SH groups stepped, that backward runs chunk by chunk
+    /// inside their Adam pass (`gaussian::sh_colors_backward_rows` into a per-thread buffer,
+    /// updated at once), so the coefficient gradients are written and read in cache instead of
+    /// through an array of every Gaussian's; its view-direction term joins `grads.means` before
+    /// the position step. The result has the bits of [`raster::render_backward`] followed by
+    /// [`GaussianModel::step_except`]. If an SH group is skipped, the coefficient gradients are
+    /// made first, as [`raster::render_backward`] makes them.
+    pub fn step_from_colours(
+        &mut self,
+        grads: &ColourGrads<'_>,
+        skip: &[&str],
+    ) -> Result<(), TrainError> {
+        let n = self.len();
+        let k = self.scene.sh_coeffs_per_gaussian();
+        let lens = [
+            ("means", grads.means.len()),
+            ("quats", grads.quats.len()),
+            ("log_scales", grads.log_scales.len()),
+            ("opacity_logits", grads.opacity_logits.len()),
+            ("colours", grads.colours.len()),
+        ];
+        for (what, got) in lens {
+            if got != n {
+                return Err(TrainError::Shape(format!(
+                    "gradient of `{what}` has {got} rows, the model has {n}"
+                )));
+            }
+        }
+        let degree = grads.sh_degree;
+        if degree > 3 || (degree + 1) * (degree + 1) > k {
+            return Err(TrainError::Shape(format!(
+                "colours at SH degree {degree}, the model stores {k} coefficients per Gaussian"
+            )));
+        }
+        let mut means = grads.means.to_vec();
+        if k > 1 && !skip.contains(&F_DC) && !skip.contains(&F_REST) {
+            let groups = [self.group(F_DC)?, self.group(F_REST)?];
+            let mut d_means = vec![[0.0f32; 3]; n];
+            let scene_means = &self.scene.means;
+            let (colours, center) = (grads.colours, grads.camera_center);
+            self.adam.step_side_by_side_with(
+                &groups,
+                self.scene.sh.as_flattened_mut(),
+                &mut d_means,
+                |rows, sh, d_means, out| {
+                    gaussian::sh_colors_backward_rows(
+                        degree,
+                        k,
+                        sh.as_chunks::<3>().0,
+                        &scene_means[rows.clone()],
+                        center,
+                        &colours[rows],
+                        out.as_chunks_mut::<3>().0,
+                        d_means,
+                    );
+                },
+            )?;
+            raster::add_view_direction_term(&mut means, &d_means);
+        } else {
+            let (d_sh, d_means) = gaussian::sh_colors_backward(
+                degree,
+                k,
+                &self.scene.sh,
+                &self.scene.means,
+                grads.camera_center,
+                grads.colours,
+            );
+            raster::add_view_direction_term(&mut means, &d_means);
+            self.step_sh(&d_sh, k, skip)?;
+        }
+        self.step_except_sh(
+            &means,
+            grads.quats,
+            grads.log_scales,
+            grads.opacity_logits,
+            skip,
+        )
     }
 
     /// Checks that scene, optimiser state and statistics agree on the number of Gaussians.

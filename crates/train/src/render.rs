@@ -2,7 +2,9 @@
 //! `render_backward` with RGB channels from SH evaluated to the active degree, over a background.
 
 use gaussian::{Camera, FeatureGaussians};
-use raster::{render, render_backward, Channels, Render, RenderOptions, SceneGrads};
+use raster::{
+    render, render_backward, render_backward_before_sh, Channels, Render, RenderOptions, SceneGrads,
+};
 
 use crate::error::TrainError;
 
@@ -44,4 +46,29 @@ pub fn render_color_backward(
         None,
         None,
     )?)
+}
+
+/// [`render_color_backward`] stopped before the SH colour backward
+/// ([`raster::render_backward_before_sh`]): the gradients without the SH coefficients' and
+/// with the means' through the projection only, and the colour cotangent, one RGB triple per
+/// Gaussian.
+pub fn render_color_backward_before_sh(
+    camera: &Camera,
+    scene: &FeatureGaussians<f32>,
+    sh_degree: usize,
+    background: [f32; 3],
+    fwd: &Render<f32>,
+    v_image: &[f32],
+) -> Result<(SceneGrads<f32>, Vec<[f32; 3]>), TrainError> {
+    let (grads, colours) = render_backward_before_sh(
+        camera,
+        scene,
+        &color_options(sh_degree, background),
+        fwd,
+        v_image,
+        None,
+        None,
+    )?;
+    let colours = colours.expect("colour renders have a colour cotangent");
+    Ok((grads, colours))
 }

@@ -13,7 +13,9 @@
 //! 6. Adam steps every group whose tensor was not replaced in step 5: in 3DGS, density control
 //!    replaces every optimised tensor (which then has no gradient and is skipped by
 //!    `optimizer.step()`), and an opacity reset replaces the opacity tensor. The last iteration
-//!    takes no optimiser step (`if iteration < opt.iterations`).
+//!    takes no optimiser step (`if iteration < opt.iterations`). The SH colour backward runs
+//!    inside the SH groups' Adam pass ([`GaussianModel::step_from_colours`], the bits of the
+//!    full gradients followed by the step), so it is skipped with them.
 //!
 //! # Run length
 //!

@@ -527,7 +527,6 @@ pub fn render_backward_before_sh<T: Real>(
                 .collect()
         }
     });
-    let sh = Vec::new();
     let k = &camera.intrinsics;
     let ndc_grad_norms = ndc_grad_norms(&g.means2d, k.width, k.height);
     let grads = SceneGrads {
@@ -535,7 +534,8 @@ pub fn render_backward_before_sh<T: Real>(
         quats: proj.quats,
         log_scales: proj.log_scales,
         opacity_logits,
-        sh,
+        // made by the caller's SH step
+        sh: Vec::new(),
         features,
         background: g.background,
         means2d: g.means2d,

@@ -1013,7 +1013,17 @@ fn parse() -> Cli {
 
 fn main() -> ExitCode {
     base::memory::keep_freed_memory();
-    match run(parse()) {
+    let cli = parse();
+    // The viewer's server blocks on its socket: it keeps the calling thread. Every other command
+    // runs on a thread of rayon's pool, so that its parallel loops start from a worker (a join
+    // on the worker's own queue) rather than from outside the pool (a job handed to the pool
+    // and the calling thread put to sleep until it is done, at every loop).
+    let outcome = if matches!(cli.command, Command::View(_)) {
+        run(cli)
+    } else {
+        rayon::scope(|_| run(cli))
+    };
+    match outcome {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) if is_interrupted(&e) => {
             eprintln!("{e}");

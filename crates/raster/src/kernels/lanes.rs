@@ -530,13 +530,8 @@ fn for_each_bit(mut m: Mask, mut f: impl FnMut(usize)) {
 
 /// Evaluates `s` at the pixel centres `cx` of the row with centre `cy`: the scalar loops'
 /// `evaluate`, lane by lane, for the lanes of `lanes`. Writes every lane's falloff and alpha and
-/// returns the lanes where the Gaussian is not skipped. The exponential is evaluated on every
-/// lane, so no branch depends on the data; outside the lanes whose `sigma` passes the skip test
-/// it is taken at `sigma` clamped to `[0, cut]`, a value that is never used.
-///
-/// The skip tests are the scalar loops' negated: `!(sigma.is_nan() || sigma < 0 || sigma > cut)`
-/// is `0 <= sigma && sigma <= cut` and `!(alpha.is_nan() || alpha < ALPHA_MIN)` is
-/// `ALPHA_MIN <= alpha`, as ordered comparisons are false on NaN.
+/// returns the lanes where the Gaussian is not skipped: [`row_sigma`], then (unless no lane
+/// passes its test and `EVERY_ROW` is off) [`row_falloff`].
 #[inline(always)]
 fn evaluate_row<const EVERY_ROW: bool, I: LaneIsa>(
     isa: I,
@@ -547,25 +542,58 @@ fn evaluate_row<const EVERY_ROW: bool, I: LaneIsa>(
     falloff: &mut [f32; LANES],
     alpha: &mut [f32; LANES],
 ) -> Mask {
+    let mut sigma = [0f32; LANES];
+    let hit = row_sigma(isa, s, lanes, cx, cy, &mut sigma);
+    if !EVERY_ROW && hit == 0 {
+        return 0;
+    }
+    hit & row_falloff(isa, s, &sigma, falloff, alpha)
+}
+
+/// The first half of [`evaluate_row`]: every lane's `sigma` (the exponent of the falloff), and
+/// the lanes of `lanes` whose `sigma` passes the skip test.
+///
+/// The skip test is the scalar loops' negated: `!(sigma.is_nan() || sigma < 0 || sigma > cut)`
+/// is `0 <= sigma && sigma <= cut`, as ordered comparisons are false on NaN.
+#[inline(always)]
+fn row_sigma<I: LaneIsa>(
+    isa: I,
+    s: &Splat<f32>,
+    lanes: Mask,
+    cx: &[f32; LANES],
+    cy: f32,
+    sigma: &mut [f32; LANES],
+) -> Mask {
     let dy = s.my - cy;
     let c_dy2 = s.c * (dy * dy);
-    let mut sigma = [0f32; LANES];
     for l in 0..LANES {
         let dx = s.mx - cx[l];
         sigma[l] = 0.5 * (s.a * (dx * dx) + c_dy2) + s.b * dx * dy;
     }
-    let hit = isa.le(&[0.0; LANES], &sigma) & isa.le(&sigma, &[s.sigma_cut; LANES]) & lanes;
-    if !EVERY_ROW && hit == 0 {
-        return 0;
-    }
-    // The exponential of `-sigma` clamped to `[0, cut]`: in the lanes of `hit` that is `-sigma`
-    // itself (`-0.0` becomes `+0.0`, whose exponential is the same 1). The other lanes' values
-    // are never used; clamped, they cannot be subnormal (far from the centre `exp(-sigma)` is,
-    // which makes every vector instruction that touches it, here and in the blend and gradient
-    // arithmetic of the row, take a slow microcode path on some processors): the falloff is at
-    // least `exp(-cut)`, so for a positive opacity the alpha is about `ALPHA_MIN` or more.
-    // Clamping rather than selecting by `hit` keeps the mask operations off the exponential's
-    // long dependency chain.
+    isa.le(&[0.0; LANES], sigma) & isa.le(sigma, &[s.sigma_cut; LANES]) & lanes
+}
+
+/// The second half of [`evaluate_row`]: every lane's falloff and alpha from its `sigma`, and
+/// the lanes whose alpha passes the skip test (`!(alpha.is_nan() || alpha < ALPHA_MIN)` is
+/// `ALPHA_MIN <= alpha`). The exponential is evaluated on every lane, so no branch depends on
+/// the data; outside the lanes whose `sigma` passes its test it is taken at `sigma` clamped to
+/// `[0, cut]`, a value that is never used.
+#[inline(always)]
+fn row_falloff<I: LaneIsa>(
+    isa: I,
+    s: &Splat<f32>,
+    sigma: &[f32; LANES],
+    falloff: &mut [f32; LANES],
+    alpha: &mut [f32; LANES],
+) -> Mask {
+    // The exponential of `-sigma` clamped to `[0, cut]`: in the lanes that pass the test that
+    // is `-sigma` itself (`-0.0` becomes `+0.0`, whose exponential is the same 1). The other
+    // lanes' values are never used; clamped, they cannot be subnormal (far from the centre
+    // `exp(-sigma)` is, which makes every vector instruction that touches it, here and in the
+    // blend and gradient arithmetic of the row, take a slow microcode path on some
+    // processors): the falloff is at least `exp(-cut)`, so for a positive opacity the alpha is
+    // about `ALPHA_MIN` or more. Clamping rather than selecting by the test's lanes keeps the
+    // mask operations off the exponential's long dependency chain.
     // With a cut in `[-EXP_F32_HIGH, -EXP_F32_LOW]` every argument lies in the range where
     // `exp_f32_in_range` gives `exp_f32`'s bits, without its range handling on the chain.
     // Plain loops: `array::from_fn` with this body is not always inlined, and out of line it
@@ -584,7 +612,7 @@ fn evaluate_row<const EVERY_ROW: bool, I: LaneIsa>(
         }
     }
     (*alpha, _) = alphas(isa, s.opacity, falloff);
-    hit & isa.le(&[ALPHA_MIN as f32; LANES], alpha)
+    isa.le(&[ALPHA_MIN as f32; LANES], alpha)
 }
 
 /// `min(ALPHA_MAX, opacity falloff)` of every lane as the scalar loops compute it
@@ -673,6 +701,7 @@ impl Walk {
         // first row is used, for the row being evaluated). Every entry read was written for the
         // same Gaussian first: a row's falloff and alpha are read only when its hit is not
         // empty, and its hit only when the row is in that Gaussian's rows.
+        let mut sigma = Aligned([[0f32; LANES]; LANES]);
         let mut falloff = Aligned([[0f32; LANES]; LANES]);
         let mut alpha = Aligned([[0f32; LANES]; LANES]);
         let mut hit = [0 as Mask; LANES];
@@ -699,18 +728,17 @@ impl Walk {
                 }};
             }
             if EVERY_ROW {
+                // The rows some lane of which passes the `sigma` test; only they take the
+                // exponential (the other rows' hits are empty either way).
+                let mut tested: Mask = 0;
                 for_each_bit(rows, |r| {
-                    hit[r] = evaluate_row::<true, I>(
-                        isa,
-                        &ls.s,
-                        self.live[r],
-                        &cx,
-                        cy[r],
-                        &mut falloff[r],
-                        &mut alpha[r],
-                    );
+                    hit[r] = row_sigma(isa, &ls.s, self.live[r], &cx, cy[r], &mut sigma[r]);
+                    tested |= ((hit[r] != 0) as Mask) << r;
                 });
-                for_each_bit(rows, |r| {
+                for_each_bit(tested, |r| {
+                    hit[r] &= row_falloff(isa, &ls.s, &sigma[r], &mut falloff[r], &mut alpha[r]);
+                });
+                for_each_bit(tested, |r| {
                     if hit[r] != 0 {
                         step!(r, hit[r], &alpha[r], &falloff[r]);
                     }

@@ -31,7 +31,8 @@
 //! Gaussians; only IEEE operations without fused multiply-adds are involved, so every
 //! instruction set gives the bits of the generic code (a unit test compares them).
 
-use base::memory::filled;
+use std::mem::MaybeUninit;
+
 use rayon::prelude::*;
 
 use crate::camera::Camera;
@@ -337,17 +338,19 @@ pub fn project<T: Real>(
     let n = means.len();
     check_lengths(n, quats.len(), log_scales.len());
     let cam = CamT::<T>::new(camera, settings);
+    // Every element is written once, by the loop below, instead of zeroed first and then
+    // overwritten.
     let mut out = Projected {
-        means2d: filled(n, [T::zero(); 2]),
-        conics: filled(n, [T::zero(); 3]),
-        depths: filled(n, T::zero()),
-        radii: filled(n, [0u32; 2]),
+        means2d: Vec::with_capacity(n),
+        conics: Vec::with_capacity(n),
+        depths: Vec::with_capacity(n),
+        radii: Vec::with_capacity(n),
     };
-    out.means2d
+    out.means2d.spare_capacity_mut()[..n]
         .par_chunks_mut(MIN_CHUNK)
-        .zip(out.conics.par_chunks_mut(MIN_CHUNK))
-        .zip(out.depths.par_chunks_mut(MIN_CHUNK))
-        .zip(out.radii.par_chunks_mut(MIN_CHUNK))
+        .zip(out.conics.spare_capacity_mut()[..n].par_chunks_mut(MIN_CHUNK))
+        .zip(out.depths.spare_capacity_mut()[..n].par_chunks_mut(MIN_CHUNK))
+        .zip(out.radii.spare_capacity_mut()[..n].par_chunks_mut(MIN_CHUNK))
         .enumerate()
         .for_each(|(c, (((means2d, conics), depths), radii))| {
             let r = c * MIN_CHUNK..c * MIN_CHUNK + means2d.len();
@@ -362,6 +365,15 @@ pub fn project<T: Real>(
                 radii,
             });
         });
+    // SAFETY: the chunks above cover the first `n` slots of the four buffers (the same
+    // chunking of each), `ForwardChunk` writes every slot of its chunks, and `for_each`
+    // returns only after every chunk is done.
+    unsafe {
+        out.means2d.set_len(n);
+        out.conics.set_len(n);
+        out.depths.set_len(n);
+        out.radii.set_len(n);
+    }
     out
 }
 
@@ -377,16 +389,16 @@ fn in_isa<T: Real, Op: pulp::WithSimd<Output = ()>>(op: Op) {
     }
 }
 
-/// The projection of a run of Gaussians, one at a time.
+/// The projection of a run of Gaussians, one at a time: writes every slot of the outputs.
 struct ForwardChunk<'a, T> {
     cam: &'a CamT<T>,
     means: &'a [[T; 3]],
     quats: &'a [[T; 4]],
     log_scales: &'a [[T; 3]],
-    means2d: &'a mut [[T; 2]],
-    conics: &'a mut [[T; 3]],
-    depths: &'a mut [T],
-    radii: &'a mut [[u32; 2]],
+    means2d: &'a mut [MaybeUninit<[T; 2]>],
+    conics: &'a mut [MaybeUninit<[T; 3]>],
+    depths: &'a mut [MaybeUninit<T>],
+    radii: &'a mut [MaybeUninit<[u32; 2]>],
 }
 
 impl<T: Real> pulp::WithSimd for ForwardChunk<'_, T> {
@@ -398,15 +410,16 @@ impl<T: Real> pulp::WithSimd for ForwardChunk<'_, T> {
         for i in 0..self.means.len() {
             let cov = covariance(&self.quats[i], &self.log_scales[i]);
             let sc = screen(cam, &self.means[i], &cov.sigma);
-            self.means2d[i] = sc.mean2d;
-            self.conics[i] = sc.conic;
-            self.depths[i] = sc.p[2];
-            self.radii[i] = radii_of(cam, &sc);
+            self.means2d[i] = MaybeUninit::new(sc.mean2d);
+            self.conics[i] = MaybeUninit::new(sc.conic);
+            self.depths[i] = MaybeUninit::new(sc.p[2]);
+            self.radii[i] = MaybeUninit::new(radii_of(cam, &sc));
         }
     }
 }
 
-/// The gradients of a run of Gaussians, one at a time; culled ones keep zero gradients.
+/// The gradients of a run of Gaussians, one at a time, into every slot of the outputs; culled
+/// ones get zero gradients.
 struct BackwardChunk<'a, T> {
     cam: &'a CamT<T>,
     means: &'a [[T; 3]],
@@ -416,9 +429,9 @@ struct BackwardChunk<'a, T> {
     v_means2d: &'a [[T; 2]],
     v_conics: &'a [[T; 3]],
     v_depths: &'a [T],
-    g_means: &'a mut [[T; 3]],
-    g_quats: &'a mut [[T; 4]],
-    g_log_scales: &'a mut [[T; 3]],
+    g_means: &'a mut [MaybeUninit<[T; 3]>],
+    g_quats: &'a mut [MaybeUninit<[T; 4]>],
+    g_log_scales: &'a mut [MaybeUninit<[T; 3]>],
 }
 
 impl<T: Real> pulp::WithSimd for BackwardChunk<'_, T> {
@@ -441,9 +454,9 @@ impl<T: Real> pulp::WithSimd for BackwardChunk<'_, T> {
                 &self.v_conics[i],
                 self.v_depths[i],
             );
-            self.g_means[i] = gm.map(|x| if culled { zero } else { x });
-            self.g_quats[i] = gq.map(|x| if culled { zero } else { x });
-            self.g_log_scales[i] = gs.map(|x| if culled { zero } else { x });
+            self.g_means[i] = MaybeUninit::new(gm.map(|x| if culled { zero } else { x }));
+            self.g_quats[i] = MaybeUninit::new(gq.map(|x| if culled { zero } else { x }));
+            self.g_log_scales[i] = MaybeUninit::new(gs.map(|x| if culled { zero } else { x }));
         }
     }
 }
@@ -601,17 +614,16 @@ pub fn project_backward<T: Real>(
     assert_eq!(v_conics.len(), n, "project_backward: v_conics length");
     assert_eq!(v_depths.len(), n, "project_backward: v_depths length");
     let cam = CamT::<T>::new(camera, settings);
-    let zero = T::zero();
+    // Every element is written once, by the loop below, instead of zeroed first.
     let mut grads = ProjectionGrads {
-        means: filled(n, [zero; 3]),
-        quats: filled(n, [zero; 4]),
-        log_scales: filled(n, [zero; 3]),
+        means: Vec::with_capacity(n),
+        quats: Vec::with_capacity(n),
+        log_scales: Vec::with_capacity(n),
     };
-    grads
-        .means
+    grads.means.spare_capacity_mut()[..n]
         .par_chunks_mut(MIN_CHUNK)
-        .zip(grads.quats.par_chunks_mut(MIN_CHUNK))
-        .zip(grads.log_scales.par_chunks_mut(MIN_CHUNK))
+        .zip(grads.quats.spare_capacity_mut()[..n].par_chunks_mut(MIN_CHUNK))
+        .zip(grads.log_scales.spare_capacity_mut()[..n].par_chunks_mut(MIN_CHUNK))
         .enumerate()
         .for_each(|(c, ((g_means, g_quats), g_log_scales))| {
             let r = c * MIN_CHUNK..c * MIN_CHUNK + g_means.len();
@@ -629,6 +641,14 @@ pub fn project_backward<T: Real>(
                 g_log_scales,
             });
         });
+    // SAFETY: the chunks above cover the first `n` slots of the three buffers (the same
+    // chunking of each), `BackwardChunk` writes every slot of its chunks, and `for_each`
+    // returns only after every chunk is done.
+    unsafe {
+        grads.means.set_len(n);
+        grads.quats.set_len(n);
+        grads.log_scales.set_len(n);
+    }
     grads
 }
 

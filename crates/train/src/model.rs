@@ -20,6 +20,7 @@
 //! rasterizer but stay in the optimiser).
 
 use gaussian::FeatureGaussians;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::adam::{Adam, AdamConfig};
@@ -386,17 +387,21 @@ impl GaussianModel {
                 "colours at SH degree {degree}, the model stores {k} coefficients per Gaussian"
             )));
         }
-        let mut means = grads.means.to_vec();
+        // Written by the threads of the pool: a copy on one core would keep the other idle.
+        let mut means = Vec::with_capacity(n);
+        means.par_extend(grads.means.par_iter().copied());
         if k > 1 && !skip.contains(&F_DC) && !skip.contains(&F_REST) {
             let groups = [self.group(F_DC)?, self.group(F_REST)?];
-            let mut d_means = vec![[0.0f32; 3]; n];
             let scene_means = &self.scene.means;
             let (colours, center) = (grads.colours, grads.camera_center);
+            // Each chunk's view-direction term joins its rows of `means` while in cache
+            // (`raster::add_view_direction_term` on those rows).
             self.adam.step_side_by_side_with(
                 &groups,
                 self.scene.sh.as_flattened_mut(),
-                &mut d_means,
-                |rows, sh, d_means, out| {
+                &mut means,
+                |rows, sh, means, out| {
+                    let mut d_means = vec![[0.0f32; 3]; rows.len()];
                     gaussian::sh_colors_backward_rows(
                         degree,
                         k,
@@ -405,11 +410,11 @@ impl GaussianModel {
                         center,
                         &colours[rows],
                         out.as_chunks_mut::<3>().0,
-                        d_means,
+                        &mut d_means,
                     );
+                    raster::add_view_direction_term(means, &d_means);
                 },
             )?;
-            raster::add_view_direction_term(&mut means, &d_means);
         } else {
             let (d_sh, d_means) = gaussian::sh_colors_backward(
                 degree,

@@ -44,8 +44,10 @@ pub fn refill<T: Clone + Send + Sync>(v: &mut Vec<T>, len: usize, value: T) {
 /// is 64 MiB); by default each is mapped afresh, and the kernel faults in and clears every page
 /// again. Measured on a 256->256 convolution at 256x256: 1.15x to 1.35x faster with this
 /// setting, and the munmap calls of a benchmark run fell from 79 to 6 (`docs/performance.md`).
-/// The cost is that the process keeps its peak heap until it exits. Call it at start-up, before
-/// the large allocations; elsewhere than with glibc it does nothing.
+/// The cost is that the process keeps its peak heap until it exits. It also puts every thread
+/// on the one heap (glibc's `M_ARENA_MAX` of 1), so that blocks freed on rayon's threads are
+/// kept too. Call it at start-up, before the large allocations and the threads; elsewhere than
+/// with glibc it does nothing.
 pub fn keep_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only changes allocator parameters (under glibc's own lock), and a value
@@ -53,6 +55,10 @@ pub fn keep_freed_memory() {
     unsafe {
         libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 30);
         libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
+        // One arena for every thread: a rayon pool thread's own arena cannot keep blocks
+        // above 64 MiB (glibc's heap size for threads), so it would map and unmap them at
+        // every call, whatever the threshold above.
+        libc::mallopt(libc::M_ARENA_MAX, 1);
     }
 }
 

@@ -23,7 +23,7 @@
 # one glibc arena: criterion calls each pass inside `ThreadPool::install`, on a pool thread,
 # whose own arena cannot hold blocks above 64 MiB, so glibc maps and unmaps them at every call
 # (page faults and TLB shootdowns took a third of the 1M-Gaussian backward passes); the dsgs
-# binary calls the rasterizer from its main thread, whose arena keeps them.
+# binary runs its commands on a pool thread too, and sets one arena at start-up.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 what="${1:-nets}"

@@ -1017,11 +1017,12 @@ fn main() -> ExitCode {
     // The viewer's server blocks on its socket: it keeps the calling thread. Every other command
     // runs on a thread of rayon's pool, so that its parallel loops start from a worker (a join
     // on the worker's own queue) rather than from outside the pool (a job handed to the pool
-    // and the calling thread put to sleep until it is done, at every loop).
+    // and the calling thread put to sleep until it is done, at every loop), with the pool's
+    // other workers polling for work rather than sleeping between loops.
     let outcome = if matches!(cli.command, Command::View(_)) {
         run(cli)
     } else {
-        rayon::scope(|_| run(cli))
+        base::pool::with_workers_awake(|| run(cli))
     };
     match outcome {
         Ok(()) => ExitCode::SUCCESS,

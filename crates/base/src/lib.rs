@@ -4,7 +4,9 @@
 //! of one: it deletes the temporary files of the writes still in flight), the content hash
 //! that identifies inputs and outputs ([`Fnv1a`]), and the memory policy a program may install
 //! ([`memory`]; the libraries never do), beside the one way the libraries fill their large
-//! buffers ([`memory::filled`], on the threads of the current rayon pool).
+//! buffers ([`memory::filled`], on the threads of the current rayon pool), and the scheduling
+//! policy a program may run its long commands under ([`pool::with_workers_awake`]; the
+//! libraries never do).
 //!
 //! It sits below every other crate of the workspace and depends on none of them.
 //!
@@ -41,6 +43,7 @@
 pub mod fs;
 pub mod hash;
 pub mod memory;
+pub mod pool;
 pub mod real;
 
 pub use fs::{

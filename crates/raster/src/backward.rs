@@ -223,28 +223,33 @@ pub fn rasterize_backward_with<T: Real>(
     // every tile, one per entry that blends somewhere in its tile (the others' records would
     // stay zero, and a sum that starts at +0 is the same without zero terms: it never becomes
     // -0). `record_ids` lists the Gaussian of each record, tile by tile, in list order.
+    // Per tile, the Gaussians of its records (its blending positions mapped to their ids).
     let compact: Option<Vec<Vec<u32>>> =
         kept.filter(|k| k.blends.iter().all(Option::is_some))
             .map(|k| {
                 k.blends
                     .par_iter()
-                    .map(|rows| lanes::blending_positions(rows.as_deref().unwrap_or_default()))
+                    .enumerate()
+                    .map(|(t, rows)| {
+                        let ids = bins.tile(t);
+                        let mut tile_ids =
+                            lanes::blending_positions(rows.as_deref().unwrap_or_default());
+                        for k in &mut tile_ids {
+                            *k = ids[*k as usize];
+                        }
+                        tile_ids
+                    })
                     .collect()
             });
     let compact_ids: Vec<u32>;
     let (record_ids, record_start): (&[u32], Vec<usize>) = match &compact {
-        Some(positions) => {
-            compact_ids = (0..tiles)
-                .flat_map(|t| {
-                    let ids = bins.tile(t);
-                    positions[t].iter().map(move |&k| ids[k as usize])
-                })
-                .collect();
+        Some(tile_ids) => {
+            compact_ids = tile_ids.concat();
             let mut start = Vec::with_capacity(tiles + 1);
             let mut total = 0;
-            for p in positions {
+            for ids in tile_ids {
                 start.push(total);
-                total += p.len();
+                total += ids.len();
             }
             start.push(total);
             (&compact_ids, start)
@@ -427,21 +432,39 @@ pub fn rasterize_backward_with<T: Real>(
             *b += v;
         }
     }
-    // Element-wise copies out of the records, written in place by the pool's threads.
-    let grads = SplatGrads {
-        means2d: geometry
-            .par_iter()
-            .map(|r| [r[MEAN_X], r[MEAN_Y]])
-            .collect(),
-        conics: geometry
-            .par_iter()
-            .map(|r| [r[CONIC_A], r[CONIC_B], r[CONIC_C]])
-            .collect(),
-        opacities: geometry.par_iter().map(|r| r[OPACITY]).collect(),
-        depths: geometry.par_iter().map(|r| r[DEPTH]).collect(),
+    // Element-wise copies out of the sums, in one pass of the pool's threads that writes each
+    // output element once (into the vectors' spare capacity).
+    let mut grads = SplatGrads {
+        means2d: Vec::with_capacity(n),
+        conics: Vec::with_capacity(n),
+        opacities: Vec::with_capacity(n),
+        depths: Vec::with_capacity(n),
         channels,
         background: background_grad,
     };
+    geometry
+        .par_chunks(GATHER_CHUNK)
+        .zip(grads.means2d.spare_capacity_mut()[..n].par_chunks_mut(GATHER_CHUNK))
+        .zip(grads.conics.spare_capacity_mut()[..n].par_chunks_mut(GATHER_CHUNK))
+        .zip(grads.opacities.spare_capacity_mut()[..n].par_chunks_mut(GATHER_CHUNK))
+        .zip(grads.depths.spare_capacity_mut()[..n].par_chunks_mut(GATHER_CHUNK))
+        .for_each(|((((geo, means2d), conics), opacities), depths)| {
+            for (i, r) in geo.iter().enumerate() {
+                means2d[i].write([r[MEAN_X], r[MEAN_Y]]);
+                conics[i].write([r[CONIC_A], r[CONIC_B], r[CONIC_C]]);
+                opacities[i].write(r[OPACITY]);
+                depths[i].write(r[DEPTH]);
+            }
+        });
+    // SAFETY: the chunks above cover the first `n` slots of the four vectors (the same
+    // chunking of each, matching `geometry`'s `n` rows), every slot of a chunk is written, and
+    // `for_each` returns only after every chunk is done.
+    unsafe {
+        grads.means2d.set_len(n);
+        grads.conics.set_len(n);
+        grads.opacities.set_len(n);
+        grads.depths.set_len(n);
+    }
     Ok(grads)
 }
 

@@ -302,39 +302,53 @@ pub fn rasterize_binned_with<T: Real>(
     let ts = TILE_SIZE as usize;
     let staged =
         |x: usize, y: usize| (y / ts * tiles_x + x / ts) * TILE_PIXELS + (y % ts) * ts + x % ts;
-    let mut alpha = filled(h * w, T::zero());
-    let mut depth = filled(h * w, T::zero());
-    let mut blended = filled(h * w, 0u32);
-    alpha
+    // Each output element is written once, row by row, into the vectors' spare capacity: the
+    // per-pixel outputs in one pass, the channel image in another.
+    let mut alpha = Vec::with_capacity(h * w);
+    let mut depth = Vec::with_capacity(h * w);
+    let mut blended = Vec::with_capacity(h * w);
+    let mut normalized_depth = Vec::with_capacity(h * w);
+    alpha.spare_capacity_mut()[..h * w]
         .par_chunks_mut(w)
-        .zip(depth.par_chunks_mut(w))
-        .zip(blended.par_chunks_mut(w))
+        .zip(depth.spare_capacity_mut()[..h * w].par_chunks_mut(w))
+        .zip(blended.spare_capacity_mut()[..h * w].par_chunks_mut(w))
+        .zip(normalized_depth.spare_capacity_mut()[..h * w].par_chunks_mut(w))
         .enumerate()
-        .for_each(|(y, ((a_row, z_row), n_row))| {
+        .for_each(|(y, (((a_row, z_row), n_row), nz_row))| {
             for x in 0..w {
                 let lp = staged(x, y);
-                a_row[x] = t_alpha[lp];
-                z_row[x] = t_depth[lp];
-                n_row[x] = t_count[lp];
+                let (a, z) = (t_alpha[lp], t_depth[lp]);
+                a_row[x].write(a);
+                z_row[x].write(z);
+                n_row[x].write(t_count[lp]);
+                nz_row[x].write(if a > T::zero() { z / a } else { T::zero() });
             }
         });
-    let mut image = filled(h * w * d, T::zero());
+    // SAFETY: the rows above cover the first `h * w` slots of the four vectors (`w > 0`, the
+    // same chunking of each), every slot of a row is written, and `for_each` returns only
+    // after every row is done.
+    unsafe {
+        alpha.set_len(h * w);
+        depth.set_len(h * w);
+        blended.set_len(h * w);
+        normalized_depth.set_len(h * w);
+    }
+    let mut image = Vec::with_capacity(h * w * d);
     if d > 0 {
-        image
+        image.spare_capacity_mut()[..h * w * d]
             .par_chunks_mut(w * d)
             .enumerate()
             .for_each(|(y, row)| {
                 for x in 0..w {
                     let lp = staged(x, y) * d_stage;
-                    row[x * d..(x + 1) * d].copy_from_slice(&t_image[lp..lp + d]);
+                    for (o, &v) in row[x * d..(x + 1) * d].iter_mut().zip(&t_image[lp..lp + d]) {
+                        o.write(v);
+                    }
                 }
             });
+        // SAFETY: as above, for the `h * w * d` slots of the image (rows of `w * d > 0`).
+        unsafe { image.set_len(h * w * d) };
     }
-    let normalized_depth = depth
-        .par_iter()
-        .zip(alpha.par_iter())
-        .map(|(&z, &a)| if a > T::zero() { z / a } else { T::zero() })
-        .collect();
     Ok(Rasterized {
         width,
         height,

@@ -11,6 +11,7 @@
 //! per Gaussian its tile rectangle (16 bytes) and a key and index twice for the radix sort (16
 //! bytes for `f32` depths, 32 for `f64`), and three `u32`/`usize` per tile.
 
+use base::memory::filled;
 use gaussian::Real;
 use rayon::prelude::*;
 
@@ -160,6 +161,71 @@ pub fn tile_rect<T: Real>(
     }
 }
 
+/// [`tile_rect`] without branches, for loops over many Gaussians that the compiler vectorises:
+/// the same rectangle, and an empty one (all zero) where [`tile_rect`] gives `None`.
+#[inline(always)]
+fn tile_rect_or_empty<T: Real>(
+    mean2d: [T; 2],
+    radii: [u32; 2],
+    tiles_x: u32,
+    tiles_y: u32,
+) -> TileRect {
+    let tile = T::lit(TILE_SIZE as f64);
+    // `v` clamped to `[0, n]` (0 for NaN: the comparison is false), then `floor`/`ceil` as
+    // `floor_clamped`/`ceil_clamped` take them: on `[0, n]` the floor is the truncation.
+    let clamp = |v: T, n: u32| -> f64 {
+        let (v, n) = (v.to_f64_exact(), f64::from(n));
+        let v = if v > 0.0 { v } else { 0.0 };
+        if v < n {
+            v
+        } else {
+            n
+        }
+    };
+    let range = |m: T, r: u32, n: u32| -> (u32, u32) {
+        let tm = m / tile;
+        let tr = T::lit(r as f64) / tile;
+        let lo = clamp(tm - tr, n) as u32;
+        let hi = clamp(tm + tr, n);
+        let t = hi as u32;
+        (lo, t + u32::from(f64::from(t) < hi))
+    };
+    let (x0, x1) = range(mean2d[0], radii[0], tiles_x);
+    let (y0, y1) = range(mean2d[1], radii[1], tiles_y);
+    let keep = radii[0] != 0 && radii[1] != 0 && x0 < x1 && y0 < y1;
+    let pick = |v: u32| if keep { v } else { 0 };
+    TileRect {
+        x0: pick(x0),
+        x1: pick(x1),
+        y0: pick(y0),
+        y1: pick(y1),
+    }
+}
+
+/// Gaussians per parallel block of tile rectangles.
+const RECT_BLOCK: usize = 4096;
+
+/// The tile rectangles ([`tile_rect_or_empty`]) of a block of Gaussians, as vector code for the
+/// instruction set `pulp` picks at run time.
+struct RectBlock<'a, T> {
+    means2d: &'a [[T; 2]],
+    radii: &'a [[u32; 2]],
+    out: &'a mut [TileRect],
+    tiles: (u32, u32),
+}
+
+impl<T: Real> pulp::WithSimd for RectBlock<'_, T> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, _: S) {
+        let (tx, ty) = self.tiles;
+        for ((o, &m), &r) in self.out.iter_mut().zip(self.means2d).zip(self.radii) {
+            *o = tile_rect_or_empty(m, r, tx, ty);
+        }
+    }
+}
+
 impl TileBins {
     /// Bins `means2d`/`radii` for a `width x height` image, ordering each tile by `depths`.
     pub fn new<T: Real>(
@@ -181,11 +247,26 @@ impl TileBins {
         let (tiles_x, tiles_y) = tile_grid(width, height);
         let tile_count = tiles_x as usize * tiles_y as usize;
 
-        let rects: Vec<Option<TileRect>> = means2d
-            .par_iter()
-            .zip(radii.par_iter())
-            .map(|(&m, &r)| tile_rect(m, r, tiles_x, tiles_y))
-            .collect();
+        // Every Gaussian's rectangle, empty where it touches no tile.
+        let empty = TileRect {
+            x0: 0,
+            x1: 0,
+            y0: 0,
+            y1: 0,
+        };
+        let mut rects = filled(n, empty);
+        rects
+            .par_chunks_mut(RECT_BLOCK)
+            .zip(means2d.par_chunks(RECT_BLOCK))
+            .zip(radii.par_chunks(RECT_BLOCK))
+            .for_each(|((out, means2d), radii)| {
+                pulp::Arch::new().dispatch(RectBlock {
+                    means2d,
+                    radii,
+                    out,
+                    tiles: (tiles_x, tiles_y),
+                })
+            });
 
         // Stable depth order of the Gaussians that touch any tile (ties: ascending index).
         // Each block lists its binned Gaussians, and the lists are joined in block order
@@ -198,7 +279,7 @@ impl TileBins {
                 let first = (b * FILTER_BLOCK) as u32;
                 (first..)
                     .zip(block)
-                    .filter_map(|(g, r)| r.map(|_| g))
+                    .filter_map(|(g, r)| (r.count() > 0).then_some(g))
                     .collect::<Vec<u32>>()
             })
             .collect::<Vec<_>>()
@@ -209,10 +290,7 @@ impl TileBins {
         // part counts its intersections per tile, the counts give every part its own slots in
         // each tile (parts in order), and the parts fill their slots in parallel. The result
         // is the same for any number of parts.
-        let sorted: Vec<TileRect> = order
-            .par_iter()
-            .map(|&g| rects[g as usize].expect("only binned Gaussians are in the depth order"))
-            .collect();
+        let sorted: Vec<TileRect> = order.par_iter().map(|&g| rects[g as usize]).collect();
         drop(rects);
         let part_len = sorted.len().div_ceil(BIN_PARTS).max(1);
         let mut cursors: Vec<Vec<usize>> = sorted
@@ -613,6 +691,30 @@ mod tests {
                 prop_assert!(bins.schedule_key(pair[0]) < bins.schedule_key(pair[1]));
                 prop_assert!(bins.tile(pair[0]).len() >= bins.tile(pair[1]).len());
             }
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(2000))]
+
+        // The branch-free rectangle is `tile_rect`'s, or empty where that is `None`, in f32 and
+        // f64: means anywhere (non-finite ones included), zero and huge radii, any grid.
+        #[test]
+        fn the_branch_free_rectangle_is_tile_rect(
+            pick in 0usize..6, raw in -1e4f64..1e4, whole in -3i64..300,
+            frac in prop::sample::select(vec![0.0, 1e-7, 0.5, 0.999_99, -1e-7]),
+            my in -400.0f64..400.0,
+            rx in prop::sample::select(vec![0u32, 1, 7, 16, 17, 100, 4_000_000_000]),
+            ry in 0u32..70, tx in 0u32..40, ty in 0u32..40,
+        ) {
+            let mx = [f64::NAN, f64::INFINITY, f64::NEG_INFINITY, raw, (whole * 16) as f64 + frac,
+                whole as f64 + frac][pick];
+            let empty = TileRect { x0: 0, x1: 0, y0: 0, y1: 0 };
+            let r64 = tile_rect([mx, my], [rx, ry], tx, ty).unwrap_or(empty);
+            prop_assert_eq!(tile_rect_or_empty([mx, my], [rx, ry], tx, ty), r64);
+            let m32 = [mx as f32, my as f32];
+            let r32 = tile_rect(m32, [rx, ry], tx, ty).unwrap_or(empty);
+            prop_assert_eq!(tile_rect_or_empty(m32, [rx, ry], tx, ty), r32);
         }
     }
 

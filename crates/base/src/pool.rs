@@ -19,12 +19,14 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 /// Runs `f` on the current rayon pool (on one of its workers) while each other worker of the
 /// pool polls for work: it runs, through [`rayon::yield_now`], every job it can take (the
-/// parts of `f`'s parallel loops it steals) and spins when there is none, instead of falling
+/// parts of `f`'s parallel loops it steals), and when there is none it yields its core to the
+/// operating system's other runnable threads (`std::thread::yield_now`) instead of falling
 /// asleep. The workers return to rayon's usual sleeping when `f` returns (or unwinds).
 ///
-/// The polling workers keep their cores busy while `f` runs, also through `f`'s serial parts:
-/// it suits a command that keeps the pool busy (training, rendering a sequence), not a
-/// program that waits for input. With one thread it is `f` itself.
+/// The polling workers keep their cores busy while `f` runs, also through `f`'s serial parts
+/// (though never ahead of another runnable thread): it suits a command that keeps the pool
+/// busy (training, rendering a sequence), not a program that waits for input. With one thread
+/// it is `f` itself.
 pub fn with_workers_awake<R: Send>(f: impl FnOnce() -> R + Send) -> R {
     let others = rayon::current_num_threads().saturating_sub(1);
     if others == 0 {
@@ -38,7 +40,9 @@ pub fn with_workers_awake<R: Send>(f: impl FnOnce() -> R + Send) -> R {
                 polling.fetch_add(1, Ordering::AcqRel);
                 while !done.load(Ordering::Acquire) {
                     if rayon::yield_now() != Some(rayon::Yield::Executed) {
-                        std::hint::spin_loop();
+                        // Nothing to take: let any other runnable thread of the machine have
+                        // the core (on an otherwise idle core this returns at once).
+                        std::thread::yield_now();
                     }
                 }
             });

@@ -350,9 +350,12 @@ impl<T: Real, F: Fn(T, T, T) -> T> pulp::WithSimd for GradientRow<'_, T, F> {
 /// half.
 ///
 /// Each output value of either half starts at zero and adds `tap * input` tap by tap in window
-/// order, skipping taps outside the image; the passes loop over taps outside and pixels inside,
-/// which keeps that order and lets the pixel loop run as vector code (compiled for the
-/// instruction set `pulp` picks at run time; the same bits whichever it is).
+/// order, skipping taps outside the image. The passes keep [`BLOCK`] outputs in registers while
+/// they add all their taps (vector code compiled for the instruction set `pulp` picks at run
+/// time; the same bits whichever it is). The horizontal pass reads its row from a buffer with
+/// [`HALF`] zeros on either side: a tap outside the image then adds `+0` to a sum that started
+/// at `+0`, which leaves the sum's bits as they are (in round-to-nearest a sum is `-0` only when
+/// both terms are, so a sum started at `+0` never is), so padding and skipping agree.
 fn horizontal_passes<T: Real, const M: usize>(
     rows: usize,
     w: usize,
@@ -364,15 +367,11 @@ fn horizontal_passes<T: Real, const M: usize>(
         return out;
     }
     out.par_chunks_mut(M * w).enumerate().for_each_init(
-        || vec![T::zero(); w],
-        |src, (r, maps)| {
+        || vec![T::zero(); w + 2 * HALF],
+        |padded, (r, maps)| {
             for (m, out) in maps.chunks_mut(w).enumerate() {
-                fill(r, m, src);
-                pulp::Arch::new().dispatch(HorizontalPass {
-                    out,
-                    row: src,
-                    taps,
-                });
+                fill(r, m, &mut padded[HALF..HALF + w]);
+                pulp::Arch::new().dispatch(HorizontalPass { out, padded, taps });
             }
         },
     );
@@ -391,15 +390,22 @@ fn vertical_passes<T: Real, const M: usize>(
 ) {
     let (plane, y) = (r / h, r % h);
     let plane_rows = &horiz[plane * h * M * w..(plane + 1) * h * M * w];
-    out.fill(T::zero());
-    for (m, out) in out.chunks_mut(w).enumerate() {
+    // The taps whose source row lies inside the plane.
+    let first = HALF.saturating_sub(y);
+    let end = WINDOW_SIZE.min(h + HALF - y);
+    for (m, out) in out.chunks_mut(w.max(1)).enumerate() {
+        let rows: [&[T]; WINDOW_SIZE] = std::array::from_fn(|k| {
+            if (first..end).contains(&k) {
+                let at = (y + k - HALF) * M * w + m * w;
+                &plane_rows[at..at + w]
+            } else {
+                &[][..]
+            }
+        });
         pulp::Arch::new().dispatch(VerticalPass {
             out,
-            plane: &plane_rows[m * w..],
-            row_stride: M * w,
-            h,
-            y,
-            taps,
+            rows: &rows[first..end],
+            taps: &taps[first..end],
         });
     }
 }
@@ -422,25 +428,14 @@ fn blur<T: Real>(src: &[T], w: usize, h: usize, rows: usize, taps: &[T; WINDOW_S
     out
 }
 
-/// `out[x] += tap * src[x + shift]` over the `x` where `src` has that index.
-#[inline(always)]
-fn add_shifted<T: Real>(out: &mut [T], src: &[T], tap: T, shift: isize) {
-    let n = out.len().min(src.len()) as isize;
-    let lo = (-shift).clamp(0, n) as usize;
-    let hi = (n - shift).clamp(0, n) as usize;
-    if lo >= hi {
-        return;
-    }
-    let src = &src[(lo as isize + shift) as usize..(hi as isize + shift) as usize];
-    for (o, &s) in out[lo..hi].iter_mut().zip(src) {
-        *o += tap * s;
-    }
-}
+/// Outputs per block of the passes (one AVX-512 register of `f32`).
+const BLOCK: usize = 16;
 
-/// The horizontal pass over one row (`out` starts at zero).
+/// The horizontal pass over one row: `out[x] = sum over k of taps[k] * padded[x + k]`, from
+/// zero in tap order, with `padded` the row with [`HALF`] zeros on either side.
 struct HorizontalPass<'a, T> {
     out: &'a mut [T],
-    row: &'a [T],
+    padded: &'a [T],
     taps: &'a [T; WINDOW_SIZE],
 }
 
@@ -449,21 +444,35 @@ impl<T: Real> pulp::WithSimd for HorizontalPass<'_, T> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _: S) {
-        for (k, &t) in self.taps.iter().enumerate() {
-            add_shifted(self.out, self.row, t, k as isize - HALF as isize);
+        let HorizontalPass { out, padded, taps } = self;
+        for x0 in block_starts(out.len()) {
+            let mut acc = [T::zero(); BLOCK];
+            for (k, &t) in taps.iter().enumerate() {
+                let src = &padded[x0 + k..x0 + k + BLOCK];
+                for l in 0..BLOCK {
+                    acc[l] += t * src[l];
+                }
+            }
+            out[x0..x0 + BLOCK].copy_from_slice(&acc);
+        }
+        if out.len() < BLOCK {
+            for (x, o) in out.iter_mut().enumerate() {
+                let mut acc = T::zero();
+                for (k, &t) in taps.iter().enumerate() {
+                    acc += t * padded[x + k];
+                }
+                *o = acc;
+            }
         }
     }
 }
 
-/// The vertical pass for row `y` of one `H x W` plane whose row `sy` starts at
-/// `plane[sy * row_stride]` (`out` starts at zero).
+/// The vertical pass for one row: `out[x] = sum over k of taps[k] * rows[k][x]`, from zero in
+/// tap order (`rows` and `taps` cut to the taps whose source row is inside the plane).
 struct VerticalPass<'a, T> {
     out: &'a mut [T],
-    plane: &'a [T],
-    row_stride: usize,
-    h: usize,
-    y: usize,
-    taps: &'a [T; WINDOW_SIZE],
+    rows: &'a [&'a [T]],
+    taps: &'a [T],
 }
 
 impl<T: Real> pulp::WithSimd for VerticalPass<'_, T> {
@@ -471,16 +480,37 @@ impl<T: Real> pulp::WithSimd for VerticalPass<'_, T> {
 
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _: S) {
-        let w = self.out.len();
-        for (k, &t) in self.taps.iter().enumerate() {
-            let sy = self.y as isize + k as isize - HALF as isize;
-            if sy >= 0 && (sy as usize) < self.h {
-                let at = sy as usize * self.row_stride;
-                let srow = &self.plane[at..at + w];
-                add_shifted(self.out, srow, t, 0);
+        let VerticalPass { out, rows, taps } = self;
+        for x0 in block_starts(out.len()) {
+            let mut acc = [T::zero(); BLOCK];
+            for (row, &t) in rows.iter().zip(taps) {
+                let src = &row[x0..x0 + BLOCK];
+                for l in 0..BLOCK {
+                    acc[l] += t * src[l];
+                }
+            }
+            out[x0..x0 + BLOCK].copy_from_slice(&acc);
+        }
+        if out.len() < BLOCK {
+            for (x, o) in out.iter_mut().enumerate() {
+                let mut acc = T::zero();
+                for (row, &t) in rows.iter().zip(taps) {
+                    acc += t * row[x];
+                }
+                *o = acc;
             }
         }
     }
+}
+
+/// The starts of blocks `x0..x0 + BLOCK` covering `0..n` (none when `n < BLOCK`): every
+/// multiple of [`BLOCK`] that fits, then `n - BLOCK` if a tail is left (that last block overlaps
+/// the one before and computes their shared outputs again, with the same operations and bits).
+#[inline(always)]
+fn block_starts(n: usize) -> impl Iterator<Item = usize> {
+    let full = if n < BLOCK { 0 } else { n / BLOCK };
+    let last = (n >= BLOCK && !n.is_multiple_of(BLOCK)).then(|| n - BLOCK);
+    (0..full).map(|b| b * BLOCK).chain(last)
 }
 
 #[cfg(test)]
@@ -610,10 +640,22 @@ mod tests {
     #[test]
     fn vector_blur_gives_the_bits_of_the_pixel_by_pixel_sums() {
         let taps = taps::<f32>();
-        // narrower and wider than the window, several planes
-        for (w, h, planes) in [(1, 1, 1), (3, 14, 2), (13, 9, 3), (40, 23, 3)] {
+        // narrower and wider than the window and the vector block, rows of whole blocks and
+        // with a tail, several planes; negative values and negative zeros (a tap outside the
+        // image must leave a sum's sign of zero as skipping it would)
+        for (w, h, planes) in [
+            (1, 1, 1),
+            (3, 14, 2),
+            (13, 9, 3),
+            (16, 5, 1),
+            (40, 23, 3),
+            (57, 7, 2),
+        ] {
             let src: Vec<f32> = (0..w * h * planes)
-                .map(|i| ((i * 7919 % 1013) as f32) / 1013.0 - 0.4)
+                .map(|i| match i % 5 {
+                    0 => -0.0,
+                    _ => ((i * 7919 % 1013) as f32) / 1013.0 - 0.4,
+                })
                 .collect();
             let fast = blur(&src, w, h, h * planes, &taps);
             let slow = blur_pixel_by_pixel(&src, w, h, &taps);

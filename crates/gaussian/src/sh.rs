@@ -505,6 +505,21 @@ mod fast {
         }
     }
 
+    /// Gaussians ahead of the current block whose coefficients are prefetched: the loads of a
+    /// block's 48 cache lines of coefficients otherwise wait for memory one after the other
+    /// (one and two blocks ahead measured alike, four and eight slower; `docs/performance.md`,
+    /// "SSIM blocks and SH prefetch").
+    const AHEAD: usize = 2 * LANES;
+
+    /// Asks for the coefficients of the block [`AHEAD`] Gaussians after `i0` (a hint: no effect
+    /// on any result).
+    #[inline(always)]
+    fn prefetch_ahead(k: usize, sh: &[[f32; 3]], i0: usize) {
+        let start = ((i0 + AHEAD) * k).min(sh.len());
+        let end = ((i0 + AHEAD + LANES) * k).min(sh.len());
+        base::memory::prefetch(&sh[start..end]);
+    }
+
     /// The coefficients of all 16 bases of the Gaussians `i0..i0 + LANES` as lane arrays,
     /// `coef[3 * basis + channel][lane]`, moved by three 16 x 16 transposes in AVX-512
     /// registers. The same values as the element-by-element copy, which the compiler turns
@@ -649,6 +664,7 @@ mod fast {
                 let i0 = blk * LANES;
                 // color_one across lanes, stage by stage on lane arrays
                 let half = 0.5f32;
+                prefetch_ahead(k, sh, i0);
                 block.fill(k, sh, means, center, i0);
                 let raw = &block.raw;
                 for l in 0..LANES {
@@ -743,6 +759,7 @@ mod fast {
             let mut dc = [[0.0f32; LANES]; 48];
             for blk in 0..blocks {
                 let i0 = blk * LANES;
+                prefetch_ahead(k, sh, i0);
                 block.fill(k, sh, means, center, i0);
                 let Block { u, b, coef, raw } = &block;
                 // The colour cotangent where the clamp at 0 passes it.

@@ -26,6 +26,8 @@ pub(crate) mod scalar;
 
 use std::sync::OnceLock;
 
+pub(crate) use base::memory::prefetch;
+
 use crate::error::RasterError;
 
 /// An instruction set for the lane kernels.
@@ -199,33 +201,6 @@ impl<I: lanes::LaneIsa, Op: lanes::LaneOp> pulp::WithSimd for InIsa<I, Op> {
     fn with_simd<S: pulp::Simd>(self, _: S) -> Op::Output {
         self.op.run(self.isa)
     }
-}
-
-/// Asks the processor to bring the cache lines of `data` closer (a hint: no effect on any
-/// result). Loops that visit Gaussians scattered over memory (a tile list in depth order, the
-/// records of one Gaussian) prefetch a few ahead to overlap those accesses with their work.
-#[inline(always)]
-pub(crate) fn prefetch<T>(data: &[T]) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let start = data.as_ptr() as *const i8;
-        let end = start.wrapping_add(std::mem::size_of_val(data));
-        let mut line = start;
-        while line < end {
-            // SAFETY: a prefetch never faults and changes no architectural state; the address
-            // lies inside `data`.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(line) };
-            line = line.wrapping_add(64);
-        }
-        // The last line, when `data` ends past a multiple of 64 bytes from its start.
-        if end > start {
-            // SAFETY: as above.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(end.wrapping_sub(1)) };
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = data;
 }
 
 /// Layout of a backward gradient record: one per tile intersection, `GEOMETRY + D` reals, and

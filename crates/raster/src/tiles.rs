@@ -50,9 +50,6 @@ pub struct TileBins {
 /// Parts of the depth order binned in parallel (any number gives the same bins).
 const BIN_PARTS: usize = 16;
 
-/// Gaussians per parallel block when listing the binned ones (any size gives the same list).
-const FILTER_BLOCK: usize = 8192;
-
 /// At most this many bytes of row lists (scalar loops), or of blended rows (lane kernels, tile
 /// by tile), are kept in the bins from the forward pass for the backward pass; beyond it the
 /// backward pass builds them again (same values either way).
@@ -202,15 +199,25 @@ fn tile_rect_or_empty<T: Real>(
     }
 }
 
-/// Gaussians per parallel block of tile rectangles.
+/// Gaussians per parallel block of tile rectangles (any size gives the same bins).
 const RECT_BLOCK: usize = 4096;
 
-/// The tile rectangles ([`tile_rect_or_empty`]) of a block of Gaussians, as vector code for the
+/// Gaussians per step of the `f32` rectangle lanes (one AVX-512 register of `f32`).
+const RECT_LANES: usize = 16;
+
+/// The largest tile grid side for which [`rect_lanes_f32`] computes in `f32`: every tile
+/// coordinate up to it, and so every clamped bound and truncation, is exact in `f32`.
+const F32_EXACT_TILES: u32 = 1 << 24;
+
+/// The tile rectangles ([`tile_rect_or_empty`]) of a block of Gaussians, and the indices of
+/// those that touch a tile (ascending, starting at `first`), as vector code for the
 /// instruction set `pulp` picks at run time.
 struct RectBlock<'a, T> {
+    first: u32,
     means2d: &'a [[T; 2]],
     radii: &'a [[u32; 2]],
     out: &'a mut [TileRect],
+    binned: &'a mut Vec<u32>,
     tiles: (u32, u32),
 }
 
@@ -220,9 +227,88 @@ impl<T: Real> pulp::WithSimd for RectBlock<'_, T> {
     #[inline(always)]
     fn with_simd<S: pulp::Simd>(self, _: S) {
         let (tx, ty) = self.tiles;
-        for ((o, &m), &r) in self.out.iter_mut().zip(self.means2d).zip(self.radii) {
-            *o = tile_rect_or_empty(m, r, tx, ty);
+        let means32 = T::as_f32_slice(self.means2d.as_flattened());
+        match means32 {
+            Some(m) if tx <= F32_EXACT_TILES && ty <= F32_EXACT_TILES => {
+                rect_lanes_f32(m.as_chunks::<2>().0, self.radii, self.out, tx, ty)
+            }
+            _ => {
+                for ((o, &m), &r) in self.out.iter_mut().zip(self.means2d).zip(self.radii) {
+                    *o = tile_rect_or_empty(m, r, tx, ty);
+                }
+            }
         }
+        // The binned ones, without a branch per Gaussian: every index is written, and the
+        // length moves past it only where the rectangle is not empty.
+        let binned = self.binned;
+        binned.clear();
+        binned.resize(self.out.len(), 0);
+        let mut len = 0;
+        for (g, r) in (self.first..).zip(self.out.iter()) {
+            binned[len] = g;
+            len += usize::from(r.x0 < r.x1);
+        }
+        binned.truncate(len);
+    }
+}
+
+/// [`tile_rect_or_empty`] for `f32` means on a grid of at most [`F32_EXACT_TILES`] tiles a
+/// side, [`RECT_LANES`] Gaussians at a time, each stage on lane arrays. The same rectangles:
+/// the bounds are the same `f32` values (`r as f32` is the rounding of `r` that
+/// `T::lit(r as f64)` makes), and the clamp to `[0, n]`, the truncation and the comparison that
+/// `tile_rect_or_empty` makes in `f64` are exact in `f32` for `n <= 2^24`.
+#[inline(always)]
+fn rect_lanes_f32(
+    means2d: &[[f32; 2]],
+    radii: &[[u32; 2]],
+    out: &mut [TileRect],
+    tiles_x: u32,
+    tiles_y: u32,
+) {
+    let (nx, ny) = (tiles_x as f32, tiles_y as f32);
+    let range = |m: f32, r: u32, n: f32| -> (u32, u32) {
+        let tm = m / TILE_SIZE as f32;
+        let tr = r as f32 / TILE_SIZE as f32;
+        let clamp = |v: f32| {
+            let v = if v > 0.0 { v } else { 0.0 };
+            if v < n {
+                v
+            } else {
+                n
+            }
+        };
+        let lo = clamp(tm - tr) as u32;
+        let hi = clamp(tm + tr);
+        let t = hi as u32;
+        (lo, t + u32::from((t as f32) < hi))
+    };
+    let n = out.len().min(means2d.len()).min(radii.len());
+    let body = n - n % RECT_LANES;
+    for i0 in (0..body).step_by(RECT_LANES) {
+        let m = &means2d[i0..i0 + RECT_LANES];
+        let r = &radii[i0..i0 + RECT_LANES];
+        let mut rect = [[0u32; RECT_LANES]; 4];
+        for l in 0..RECT_LANES {
+            let (x0, x1) = range(m[l][0], r[l][0], nx);
+            let (y0, y1) = range(m[l][1], r[l][1], ny);
+            let keep = r[l][0] != 0 && r[l][1] != 0 && x0 < x1 && y0 < y1;
+            let pick = |v: u32| if keep { v } else { 0 };
+            rect[0][l] = pick(x0);
+            rect[1][l] = pick(x1);
+            rect[2][l] = pick(y0);
+            rect[3][l] = pick(y1);
+        }
+        for (l, o) in out[i0..i0 + RECT_LANES].iter_mut().enumerate() {
+            *o = TileRect {
+                x0: rect[0][l],
+                x1: rect[1][l],
+                y0: rect[2][l],
+                y1: rect[3][l],
+            };
+        }
+    }
+    for i in body..n {
+        out[i] = tile_rect_or_empty(means2d[i], radii[i], tiles_x, tiles_y);
     }
 }
 
@@ -255,35 +341,28 @@ impl TileBins {
             y1: 0,
         };
         let mut rects = filled(n, empty);
+        // Stable depth order of the Gaussians that touch any tile (ties: ascending index).
+        // Each block lists its binned Gaussians as it computes their rectangles, and the lists
+        // are joined in block order (rayon's `filter().collect()` joins per-split lists
+        // through a linked list, a few times slower here).
+        let mut binned: Vec<Vec<u32>> = (0..n.div_ceil(RECT_BLOCK)).map(|_| Vec::new()).collect();
         rects
             .par_chunks_mut(RECT_BLOCK)
             .zip(means2d.par_chunks(RECT_BLOCK))
             .zip(radii.par_chunks(RECT_BLOCK))
-            .for_each(|((out, means2d), radii)| {
+            .zip(binned.par_iter_mut())
+            .enumerate()
+            .for_each(|(b, (((out, means2d), radii), binned))| {
                 pulp::Arch::new().dispatch(RectBlock {
+                    first: (b * RECT_BLOCK) as u32,
                     means2d,
                     radii,
                     out,
+                    binned,
                     tiles: (tiles_x, tiles_y),
                 })
             });
-
-        // Stable depth order of the Gaussians that touch any tile (ties: ascending index).
-        // Each block lists its binned Gaussians, and the lists are joined in block order
-        // (rayon's `filter().collect()` joins per-split lists through a linked list, a few
-        // times slower here).
-        let order: Vec<u32> = rects
-            .par_chunks(FILTER_BLOCK)
-            .enumerate()
-            .map(|(b, block)| {
-                let first = (b * FILTER_BLOCK) as u32;
-                (first..)
-                    .zip(block)
-                    .filter_map(|(g, r)| (r.count() > 0).then_some(g))
-                    .collect::<Vec<u32>>()
-            })
-            .collect::<Vec<_>>()
-            .concat();
+        let order = binned.concat();
         let order = depth_order(order, depths);
 
         // The rectangles in depth order, then the intersections in parts of that order: each
@@ -718,12 +797,83 @@ mod tests {
         }
     }
 
-    /// With more Gaussians than one listing block ([`FILTER_BLOCK`]) and culled ones in every
+    /// One [`RectBlock`] (the lanes in `f32` on grids they take, the generic loop otherwise).
+    fn rect_block<T: Real>(
+        first: u32,
+        means2d: &[[T; 2]],
+        radii: &[[u32; 2]],
+        tiles: (u32, u32),
+    ) -> (Vec<TileRect>, Vec<u32>) {
+        let mut out = vec![
+            TileRect {
+                x0: 9,
+                x1: 9,
+                y0: 9,
+                y1: 9
+            };
+            means2d.len()
+        ];
+        let mut binned = vec![7; 3];
+        pulp::Arch::new().dispatch(RectBlock {
+            first,
+            means2d,
+            radii,
+            out: &mut out,
+            binned: &mut binned,
+            tiles,
+        });
+        (out, binned)
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(500))]
+
+        // A block's rectangles are `tile_rect`'s (empty where that is `None`) and it lists the
+        // Gaussians with one, for f32 means on grids the f32 lanes take and on larger ones
+        // (the generic loop), lane blocks and a tail, means anywhere (non-finite ones too).
+        #[test]
+        fn a_rectangle_block_gives_tile_rect_and_lists_the_binned(
+            gaussians in prop::collection::vec(
+                (0usize..6, -1e4f64..1e4, -3i64..300,
+                 prop::sample::select(vec![0.0, 1e-7, 0.5, 0.999_99, -1e-7]), -400.0f64..400.0,
+                 prop::sample::select(vec![0u32, 1, 7, 16, 17, 100, 4_000_000_000]), 0u32..70),
+                0..80),
+            tx in prop::sample::select(vec![0u32, 1, 13, 40, F32_EXACT_TILES, F32_EXACT_TILES + 1]),
+            ty in prop::sample::select(vec![0u32, 1, 13, 40, F32_EXACT_TILES, u32::MAX]),
+            first in 0u32..1000,
+        ) {
+            let means: Vec<[f32; 2]> = gaussians
+                .iter()
+                .map(|&(pick, raw, whole, frac, my, _, _)| {
+                    let mx = [f64::NAN, f64::INFINITY, f64::NEG_INFINITY, raw,
+                        (whole * 16) as f64 + frac, whole as f64 + frac][pick];
+                    [mx as f32, my as f32]
+                })
+                .collect();
+            let radii: Vec<[u32; 2]> = gaussians.iter().map(|g| [g.5, g.6]).collect();
+            let empty = TileRect { x0: 0, x1: 0, y0: 0, y1: 0 };
+            let expected: Vec<TileRect> = means
+                .iter()
+                .zip(&radii)
+                .map(|(&m, &r)| tile_rect(m, r, tx, ty).unwrap_or(empty))
+                .collect();
+            let expected_binned: Vec<u32> = (first..)
+                .zip(&expected)
+                .filter(|(_, r)| r.count() > 0)
+                .map(|(g, _)| g)
+                .collect();
+            let (rects, binned) = rect_block(first, &means, &radii, (tx, ty));
+            prop_assert_eq!(rects, expected);
+            prop_assert_eq!(binned, expected_binned);
+        }
+    }
+
+    /// With more Gaussians than one rectangle block ([`RECT_BLOCK`]) and culled ones in every
     /// block, each tile still lists exactly the Gaussians covering it, in the stable depth
     /// order (a reference built one tile at a time).
     #[test]
     fn gaussians_listed_in_several_blocks_bin_as_one_list() {
-        let n = 3 * FILTER_BLOCK + 123;
+        let n = 3 * RECT_BLOCK + 123;
         // A fixed pseudo-random scene: a linear congruential sequence, no fixture.
         let mut state = 0x2545_f491_4f6c_dd1du64;
         let mut next = move || {

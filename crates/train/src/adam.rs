@@ -634,6 +634,13 @@ mod fast {
     /// Elements per vector step.
     const LANES: usize = 16;
 
+    /// Elements ahead of a flat run's step whose parameters, gradients and moments are
+    /// prefetched.
+    const AHEAD: usize = 16 * LANES;
+
+    /// Rows ahead of a side-by-side step whose moments are prefetched.
+    const AHEAD_ROWS: usize = 4;
+
     /// A flat run of one tensor.
     pub(super) fn run(
         c: &Shared<f32>,
@@ -667,12 +674,14 @@ mod fast {
             let (g, g_tail) = g[..n].split_at(body);
             let (m, m_tail) = m[..n].split_at_mut(body);
             let (v, v_tail) = v[..n].split_at_mut(body);
-            for (((p, g), m), v) in p
-                .chunks_exact_mut(LANES)
-                .zip(g.chunks_exact(LANES))
-                .zip(m.chunks_exact_mut(LANES))
-                .zip(v.chunks_exact_mut(LANES))
-            {
+            for at in (0..body).step_by(LANES) {
+                let (ahead, end) = ((at + AHEAD).min(body), (at + AHEAD + LANES).min(body));
+                base::memory::prefetch(&p[ahead..end]);
+                base::memory::prefetch(&g[ahead..end]);
+                base::memory::prefetch(&m[ahead..end]);
+                base::memory::prefetch(&v[ahead..end]);
+                let (p, g) = (&mut p[at..at + LANES], &g[at..at + LANES]);
+                let (m, v) = (&mut m[at..at + LANES], &mut v[at..at + LANES]);
                 for l in 0..LANES {
                     update_one(
                         c,
@@ -754,6 +763,11 @@ mod fast {
             );
             let (m_b, v_b) = (&mut m_b[..rows * (W - A)], &mut v_b[..rows * (W - A)]);
             for r in 0..rows {
+                let ahead = (r + AHEAD_ROWS).min(rows - 1);
+                base::memory::prefetch(&m_a[ahead]);
+                base::memory::prefetch(&v_a[ahead]);
+                base::memory::prefetch(&m_b[ahead * (W - A)..(ahead + 1) * (W - A)]);
+                base::memory::prefetch(&v_b[ahead * (W - A)..(ahead + 1) * (W - A)]);
                 let (p, g) = (&mut p[r], &g[r]);
                 let mb = &mut m_b[r * (W - A)..(r + 1) * (W - A)];
                 let vb = &mut v_b[r * (W - A)..(r + 1) * (W - A)];

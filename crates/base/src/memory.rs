@@ -7,7 +7,8 @@
 //! It also has the one way the libraries create their large initialised buffers (gradients of
 //! every Gaussian, per-intersection records): [`filled`] and [`refill`], which write the
 //! elements on the threads of the current rayon pool instead of the calling thread alone.
-//! And the one cache hint of the libraries, [`prefetch`].
+//! Also [`clear_with_capacity`], to empty a reused buffer and grow it without copying its old
+//! contents, and the one cache hint of the libraries, [`prefetch`].
 
 use std::alloc::{GlobalAlloc, Layout, System};
 
@@ -36,6 +37,16 @@ pub fn refill<T: Clone + Send + Sync>(v: &mut Vec<T>, len: usize, value: T) {
         v.resize(len, value);
     } else {
         v.par_extend(rayon::iter::repeat_n(value, len));
+    }
+}
+
+/// Empties `v` and makes room for at least `capacity` elements. Unlike `clear` and then
+/// `reserve`, which reallocates and so copies the whole old buffer (the allocator does not know
+/// that none of it is in use), a buffer too small is dropped and a new one allocated.
+pub fn clear_with_capacity<T>(v: &mut Vec<T>, capacity: usize) {
+    v.clear();
+    if v.capacity() < capacity {
+        *v = Vec::with_capacity(capacity);
     }
 }
 
@@ -183,6 +194,19 @@ mod tests {
             refill(&mut v, len, -2.0);
             assert_eq!(v, vec![-2.0; len], "refill to {len}");
         }
+    }
+
+    /// `clear_with_capacity` leaves an empty vector with room for what was asked, keeping a
+    /// buffer that is large enough.
+    #[test]
+    fn cleared_vectors_have_the_capacity_asked_for() {
+        let mut v: Vec<u64> = (0..10).collect();
+        let kept = v.as_ptr();
+        clear_with_capacity(&mut v, 4);
+        assert!(v.is_empty() && v.capacity() >= 10 && v.as_ptr() == kept);
+        v.extend(0..3);
+        clear_with_capacity(&mut v, 1000);
+        assert!(v.is_empty() && v.capacity() >= 1000);
     }
 
     /// The advised allocator hands out blocks that hold what is written to them, zeroed ones

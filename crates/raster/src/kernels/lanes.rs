@@ -791,8 +791,8 @@ fn replay<I: LaneIsa>(
     let mut trans = Aligned([[1f32; LANES]; LANES]);
     let mut falloff = [0f32; LANES];
     let mut alpha = [0f32; LANES];
-    // One row each: no reallocation (and copy) while pushing.
-    blended.reserve(rows.len());
+    // One row each: no reallocation (and copy) while pushing, nor of what the buffer held.
+    base::memory::clear_with_capacity(blended, rows.len());
     for (i, rr) in rows.iter().enumerate() {
         if let Some(ahead) = rows.get(i + PREFETCH_AHEAD) {
             prefetch(std::slice::from_ref(

@@ -231,13 +231,7 @@ pub fn rasterize_backward_with<T: Real>(
                     .par_iter()
                     .enumerate()
                     .map(|(t, rows)| {
-                        let ids = bins.tile(t);
-                        let mut tile_ids =
-                            lanes::blending_positions(rows.as_deref().unwrap_or_default());
-                        for k in &mut tile_ids {
-                            *k = ids[*k as usize];
-                        }
-                        tile_ids
+                        lanes::blending_ids(rows.as_deref().unwrap_or_default(), bins.tile(t))
                     })
                     .collect()
             });

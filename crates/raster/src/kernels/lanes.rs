@@ -440,29 +440,31 @@ pub(crate) struct RowRef {
     blend: u16,
 }
 
-/// The positions in the tile list of the Gaussians that `rows` (a tile's kept rows, in the
-/// walk's order) blend, ascending: a Gaussian's rows are consecutive in the walk, and the walk
-/// takes the list front to back.
+/// The Gaussians that `rows` (a tile's kept rows, in the walk's order) blend, in the order of
+/// the tile list `ids` (which the rows' positions index): a Gaussian's rows are consecutive in
+/// the walk, and the walk takes the list front to back.
 ///
-/// Without a branch on the data: each row's position is written at the end of the list, which
-/// grows only where the position differs from the previous row's (`docs/performance.md`, "The
-/// SH gradients written once, and the blending positions without a branch").
-pub(crate) fn blending_positions(rows: &[RowRef]) -> Vec<u32> {
+/// Without a branch on the data: each row's Gaussian is written at the end of the result, which
+/// grows only where the row's position differs from the previous row's (`docs/performance.md`,
+/// "The SH gradients written once, and the blending positions without a branch"). The result
+/// holds at most one entry per list position, so its buffer is the list's length plus the one
+/// slot that a row of the last Gaussian writes past the end, not one per row.
+pub(crate) fn blending_ids(rows: &[RowRef], ids: &[u32]) -> Vec<u32> {
     let Some(first) = rows.first() else {
         return Vec::new();
     };
-    // At most one position per row.
-    let mut positions = vec![0u32; rows.len()];
+    let mut out = vec![0u32; rows.len().min(ids.len() + 1)];
     let (mut len, mut last) = (1, first.k);
-    positions[0] = last;
+    out[0] = ids[last as usize];
     for r in &rows[1..] {
-        // `len` is at most the index of `r` in `rows`: in bounds.
-        positions[len] = r.k;
+        // `len` is the number of distinct positions before `r`: at most the index of `r` in
+        // `rows`, and at most the list's length.
+        out[len] = ids[r.k as usize];
         len += usize::from(r.k != last);
         last = r.k;
     }
-    positions.truncate(len);
-    positions
+    out.truncate(len);
+    out
 }
 
 /// What a lane forward pass keeps in its bins for the backward pass of the same Gaussians:
@@ -1209,24 +1211,35 @@ mod tests {
     use proptest::prelude::*;
 
     proptest! {
-        /// The positions are the distinct `k` of the rows, in their order, each once per run
-        /// of equal `k` (what a list that pushes every new `k` gives), for any run lengths,
-        /// including positions at the ends of the `u32` range.
+        /// The Gaussians are those of the distinct `k` of the rows, in their order, each once
+        /// per run of equal `k` (what a list that pushes every new `k` gives), for any run
+        /// lengths, the list's last position included, and list entries anywhere in `u32`.
         #[test]
-        fn blending_positions_list_each_run_of_rows_once(
-            runs in proptest::collection::vec((any::<u32>(), 1usize..5), 0..40)
+        fn blending_ids_list_each_run_of_rows_once(
+            list in proptest::collection::vec(any::<u32>(), 1..40),
+            runs in proptest::collection::vec((any::<u32>(), 1usize..5), 0..40),
         ) {
-            let rows: Vec<RowRef> = runs
+            // Distinct positions in ascending order, as the walk takes them.
+            let mut positions: Vec<u32> =
+                runs.iter().map(|&(k, _)| k % list.len() as u32).collect();
+            positions.sort_unstable();
+            positions.dedup();
+            let rows: Vec<RowRef> = positions
                 .iter()
-                .flat_map(|&(k, n)| (0..n).map(move |i| RowRef { k, row: i as u16, blend: 1 }))
+                .zip(&runs)
+                .flat_map(|(&k, &(_, n))| {
+                    (0..n).map(move |i| RowRef { k, row: i as u16, blend: 1 })
+                })
                 .collect();
             let mut expected: Vec<u32> = Vec::new();
+            let mut last = None;
             for r in &rows {
-                if expected.last() != Some(&r.k) {
-                    expected.push(r.k);
+                if last != Some(r.k) {
+                    expected.push(list[r.k as usize]);
+                    last = Some(r.k);
                 }
             }
-            prop_assert_eq!(blending_positions(&rows), expected);
+            prop_assert_eq!(blending_ids(&rows, &list), expected);
         }
     }
 

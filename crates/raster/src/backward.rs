@@ -42,7 +42,8 @@
 //! and row it reaches, see [`crate::rows`]) and one pixel's blend list (4 reals and 2 words per
 //! blended Gaussian); for the lane kernels every (Gaussian, tile row) it blends in (140 bytes
 //! each) and the tile's image cotangents (`256 D` reals). The bins of a lane forward pass hold
-//! its packed Gaussians (40 bytes each) and its blended rows (8 bytes each, while they fit
+//! its packed Gaussians (40 bytes each) and its blended rows (4 bytes each, a few more for
+//! large steps along a tile list, while they fit
 //! [`crate::tiles::ROW_LIST_BUDGET_BYTES`]; tiles beyond it are walked again).
 
 use base::memory::{filled, refill};
@@ -231,7 +232,8 @@ pub fn rasterize_backward_with<T: Real>(
                     .par_iter()
                     .enumerate()
                     .map(|(t, rows)| {
-                        lanes::blending_ids(rows.as_deref().unwrap_or_default(), bins.tile(t))
+                        let none = lanes::KeptRows::default();
+                        lanes::blending_ids(rows.as_ref().unwrap_or(&none), bins.tile(t))
                     })
                     .collect()
             });
@@ -306,7 +308,7 @@ pub fn rasterize_backward_with<T: Real>(
                                 scratch: lane_scratch,
                                 rec,
                                 bg_grad,
-                                kept: kept.and_then(|k| k.blends[t].as_deref()),
+                                kept: kept.and_then(|k| k.blends[t].as_ref()),
                                 compact: compact.is_some(),
                             }),
                         _ => scalar::backward_tile(

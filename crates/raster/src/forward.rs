@@ -218,7 +218,7 @@ pub fn rasterize_binned_with<T: Real>(
     let mut kept: Vec<RowLists> = (0..tiles).map(|_| RowLists::default()).collect();
     // The rows each tile's lane kernel blends, kept for the backward pass while they fit the
     // same budget (tile by tile: a tile without them is walked again).
-    let mut kept_blends: Vec<Option<Vec<lanes::RowRef>>> = (0..tiles).map(|_| None).collect();
+    let mut kept_blends: Vec<Option<lanes::KeptRows>> = (0..tiles).map(|_| None).collect();
     let kept_bytes = AtomicUsize::new(0);
     // Tiles handed out one at a time, longest lists first (each tile's results do not depend
     // on the order or the thread).
@@ -232,7 +232,7 @@ pub fn rasterize_binned_with<T: Real>(
         .collect();
     work.sort_unstable_by_key(|&(t, _)| bins.schedule_key(t));
     work.into_iter().par_bridge().for_each_init(
-        <(scalar::Scratch<T>, lanes::Scratch, Vec<lanes::RowRef>)>::default,
+        <(scalar::Scratch<T>, lanes::Scratch, lanes::KeptRows)>::default,
         |(scalar_scratch, lane_scratch, rows),
          (t, ((((image, alpha), depth), count), (keep, keep_blends)))| {
             let mut out = TileOut {
@@ -256,11 +256,11 @@ pub fn rasterize_binned_with<T: Real>(
                         out,
                         keep: Some(rows),
                     });
-                    let bytes = std::mem::size_of_val(rows.as_slice());
+                    let bytes = rows.bytes();
                     if kept_bytes.fetch_add(bytes, Ordering::Relaxed) + bytes
                         <= ROW_LIST_BUDGET_BYTES
                     {
-                        *keep_blends = Some(rows.to_vec());
+                        *keep_blends = Some(rows.to_owned_exact());
                     }
                 }
                 _ => {

@@ -170,6 +170,25 @@ fn a_busy_scene_of_small_gaussians_is_bit_identical() {
     }
 }
 
+/// A tile list of 12,000 Gaussians of which only six blend (the others' alphas stay below the
+/// skip threshold), with runs of thousands of entries between them: the forward pass's kept
+/// rows then hold steps along the list too long for a row's word (escaped ones), and the
+/// backward pass's replay of them must still give the scalar loops' bits.
+#[test]
+fn long_runs_of_entries_that_blend_nowhere_are_bit_identical() {
+    let mut rng = Rng(9);
+    let n = 12_000;
+    let mut s = random_scene(&mut rng, n, 16, 16, 3);
+    let blending = [0, 1, 2, 6000, 6001, 11_999];
+    for g in 0..n {
+        s.means2d[g] = [rng.uniform(4.0, 12.0), rng.uniform(4.0, 12.0)];
+        // Depth order is list order.
+        s.depths[g] = 1.0 + g as f64 * 1e-3;
+        s.opacities[g] = if blending.contains(&g) { 0.6 } else { 0.003 };
+    }
+    check_all_kernels(&s, 10, true);
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(48))]
 

@@ -22,7 +22,8 @@
 //! and adding them to per-column sums of the Gaussian's record, all lanes at once (the channel
 //! terms of more than a few channels lane by lane in ascending pixel order), in the order of
 //! [`super::record`]. The forward
-//! pass keeps the (Gaussian, row, lanes) it blends ([`RowRef`], in the bins); when the backward
+//! pass keeps the (Gaussian, row, lanes) it blends ([`RowRef`], 4 bytes each in [`KeptRows`], in
+//! the bins); when the backward
 //! pass gets them for the same Gaussians, its first walk becomes a replay of those rows
 //! ([`replay`]): the same evaluations and transmittance products, skipping the Gaussians and
 //! rows that blend nowhere.
@@ -431,13 +432,110 @@ impl<T> std::ops::DerefMut for Aligned<T> {
 }
 
 /// A (Gaussian, tile row) the forward pass blended: its position in the tile list, the row and
-/// the lanes that blend it, in the walk's order. Kept for the backward pass ([`Kept`]), which
-/// then replays these rows instead of walking the tile again.
-#[derive(Clone, Copy, Debug)]
+/// the lanes that blend it, in the walk's order. Kept for the backward pass ([`Kept`]) as
+/// [`KeptRows`], which then replays these rows instead of walking the tile again.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) struct RowRef {
     k: u32,
     row: u16,
     blend: u16,
+}
+
+/// A tile's blended rows ([`RowRef`]), in the walk's order, in one 32-bit word each: the lanes
+/// in bits 0 to 15, the tile row in bits 16 to 19, and in bits 20 to 31 the step from the
+/// previous row's list position (from 0 before the first row). The walk takes the list front to
+/// back, so the steps are never negative; a step of [`KeptRows::ESCAPE`] or more is written as
+/// `ESCAPE` followed by a word holding the position itself.
+///
+/// Half the bytes of a [`RowRef`]: a frame of a million Gaussians at 800x800 blends about 12
+/// million rows, which at 8 bytes a row passed the 64 MiB budget of kept rows
+/// ([`crate::tiles::ROW_LIST_BUDGET_BYTES`]), so that its last tiles were walked again and its
+/// records kept per intersection.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub(crate) struct KeptRows {
+    words: Vec<u32>,
+    /// The position of the last row pushed.
+    last: u32,
+}
+
+impl KeptRows {
+    /// The step field's escape value, and the largest step it cannot hold.
+    const ESCAPE: u32 = (1 << 12) - 1;
+
+    /// No rows, keeping the buffer.
+    pub fn clear(&mut self) {
+        self.words.clear();
+        self.last = 0;
+    }
+
+    /// Appends the row `row` (below 16) of list position `k` (no smaller than the last row's),
+    /// blended by the lanes `blend`.
+    #[inline(always)]
+    pub fn push(&mut self, k: u32, row: u32, blend: u32) {
+        debug_assert!(k >= self.last && row < 16 && blend <= 0xffff);
+        let step = k - self.last;
+        let head = blend | row << 16;
+        if step < Self::ESCAPE {
+            self.words.push(head | step << 20);
+        } else {
+            self.words.extend([head | Self::ESCAPE << 20, k]);
+        }
+        self.last = k;
+    }
+
+    /// A copy holding exactly its words.
+    pub fn to_owned_exact(&self) -> KeptRows {
+        KeptRows {
+            words: self.words.to_vec(),
+            last: self.last,
+        }
+    }
+
+    /// The bytes its words take.
+    pub fn bytes(&self) -> usize {
+        std::mem::size_of_val(self.words.as_slice())
+    }
+
+    /// At least the number of rows (the words: one per row, two for an escaped step).
+    pub fn len_bound(&self) -> usize {
+        self.words.len()
+    }
+
+    /// The rows, in the order they were pushed.
+    pub fn iter(&self) -> KeptRowsIter<'_> {
+        KeptRowsIter {
+            words: self.words.iter(),
+            k: 0,
+        }
+    }
+}
+
+/// The rows of a [`KeptRows`], decoded.
+#[derive(Clone)]
+pub(crate) struct KeptRowsIter<'a> {
+    words: std::slice::Iter<'a, u32>,
+    k: u32,
+}
+
+impl Iterator for KeptRowsIter<'_> {
+    type Item = RowRef;
+
+    #[inline(always)]
+    fn next(&mut self) -> Option<RowRef> {
+        let w = *self.words.next()?;
+        let step = w >> 20;
+        self.k = if step == KeptRows::ESCAPE {
+            // An escape is always followed by its position: `push` writes both words.
+            *self.words.next().unwrap_or(&self.k)
+        } else {
+            self.k + step
+        };
+        Some(RowRef {
+            k: self.k,
+            row: (w >> 16 & 0xf) as u16,
+            blend: w as u16,
+        })
+    }
 }
 
 /// The Gaussians that `rows` (a tile's kept rows, in the walk's order) blend, in the order of
@@ -449,16 +547,19 @@ pub(crate) struct RowRef {
 /// "The SH gradients written once, and the blending positions without a branch"). The result
 /// holds at most one entry per list position, so its buffer is the list's length plus the one
 /// slot that a row of the last Gaussian writes past the end, not one per row.
-pub(crate) fn blending_ids(rows: &[RowRef], ids: &[u32]) -> Vec<u32> {
-    let Some(first) = rows.first() else {
+pub(crate) fn blending_ids(rows: &KeptRows, ids: &[u32]) -> Vec<u32> {
+    // At least one word per row.
+    let bound = rows.len_bound();
+    let mut rows = rows.iter();
+    let Some(first) = rows.next() else {
         return Vec::new();
     };
-    let mut out = vec![0u32; rows.len().min(ids.len() + 1)];
+    let mut out = vec![0u32; bound.min(ids.len() + 1)];
     let (mut len, mut last) = (1, first.k);
     out[0] = ids[last as usize];
-    for r in &rows[1..] {
-        // `len` is the number of distinct positions before `r`: at most the index of `r` in
-        // `rows`, and at most the list's length.
+    for r in rows {
+        // `len` is the number of distinct positions before `r`: at most the index of `r` among
+        // the rows, and at most the list's length.
         out[len] = ids[r.k as usize];
         len += usize::from(r.k != last);
         last = r.k;
@@ -468,12 +569,12 @@ pub(crate) fn blending_ids(rows: &[RowRef], ids: &[u32]) -> Vec<u32> {
 }
 
 /// What a lane forward pass keeps in its bins for the backward pass of the same Gaussians:
-/// every Gaussian packed, and per tile the rows it blended ([`RowRef`]), for the tiles whose
+/// every Gaussian packed, and per tile the rows it blended ([`KeptRows`]), for the tiles whose
 /// lists fit the budget.
 #[derive(Debug, Default)]
 pub(crate) struct Kept {
     pub packed: Vec<LaneSplat>,
-    pub blends: Vec<Option<Vec<RowRef>>>,
+    pub blends: Vec<Option<KeptRows>>,
 }
 
 impl Kept {
@@ -506,6 +607,8 @@ pub(crate) struct Scratch {
     acc: Vec<f32>,
     /// Backward: the rows blended, in the front-to-back walk's order.
     blended: Vec<RowBlend>,
+    /// Backward: the tile's kept rows, decoded.
+    decoded: Vec<RowRef>,
     /// Backward: where each Gaussian's rows start in `blended`, then `blended.len()`.
     starts: Vec<usize>,
     /// Backward: the tile's image cotangents, channel-major per row: `[(r * D + c) * LANES + l]`.
@@ -864,7 +967,7 @@ pub(crate) struct ForwardTile<'a, 'b> {
     pub scratch: &'b mut Scratch,
     pub out: TileOut<'b, f32>,
     /// Receives the rows the tile blends, for the backward pass (when given).
-    pub keep: Option<&'b mut Vec<RowRef>>,
+    pub keep: Option<&'b mut KeptRows>,
 }
 
 impl LaneOp for ForwardTile<'_, '_> {
@@ -912,11 +1015,7 @@ impl ForwardTile<'_, '_> {
             |k, g, r, lanes, alpha, _, front| {
                 if let Some(keep) = keep.as_deref_mut() {
                     // k < 2^32 (bins hold u32 ids), r < 16 and lanes < 2^16.
-                    keep.push(RowRef {
-                        k: k as u32,
-                        row: r as u16,
-                        blend: lanes as u16,
-                    });
+                    keep.push(k as u32, r as u32, lanes);
                 }
                 let depth = packed[g].depth;
                 let col = splats.channels_of(g);
@@ -976,7 +1075,7 @@ pub(crate) struct BackwardTile<'a, 'b> {
     pub rec: &'b mut [f32],
     pub bg_grad: &'b mut [f32],
     /// The rows the forward pass of the same Gaussians blended in this tile, when it kept them.
-    pub kept: Option<&'a [RowRef]>,
+    pub kept: Option<&'a KeptRows>,
     /// Whether `rec` holds records only for the Gaussians `kept` blends, in list order
     /// ([`blending_positions`]); otherwise one per tile list entry.
     pub compact: bool,
@@ -1014,6 +1113,7 @@ impl BackwardTile<'_, '_> {
         let ids = bins.tile(t);
         let Scratch {
             blended,
+            decoded,
             starts,
             v_image_t,
             columns,
@@ -1030,7 +1130,13 @@ impl BackwardTile<'_, '_> {
         // rows it kept, or found by walking the tile again.
         blended.clear();
         let final_trans = match kept {
-            Some(rows) => replay(isa, packed, ids, x0, y0, rows, blended),
+            Some(kept) => {
+                // Decoded once into the thread's buffer (a tile's rows, in cache), so that the
+                // replay can look ahead for its prefetches.
+                decoded.clear();
+                decoded.extend(kept.iter());
+                replay(isa, packed, ids, x0, y0, decoded, blended)
+            }
             None => {
                 let mut walk = Walk::new(width, height);
                 walk.run::<false, I>(
@@ -1231,6 +1337,10 @@ mod tests {
                     (0..n).map(move |i| RowRef { k, row: i as u16, blend: 1 })
                 })
                 .collect();
+            let mut kept = KeptRows::default();
+            for r in &rows {
+                kept.push(r.k, r.row as u32, r.blend as u32);
+            }
             let mut expected: Vec<u32> = Vec::new();
             let mut last = None;
             for r in &rows {
@@ -1239,7 +1349,43 @@ mod tests {
                     last = Some(r.k);
                 }
             }
-            prop_assert_eq!(blending_ids(&rows, &list), expected);
+            prop_assert_eq!(blending_ids(&kept, &list), expected);
+        }
+
+        /// Kept rows read back as pushed, for any steps between positions (those that need an
+        /// escape word, up to the whole `u32` range, among them), rows and lanes; and after
+        /// `clear`, the buffer holds only what is pushed next.
+        #[test]
+        fn kept_rows_read_back_as_pushed(
+            steps in proptest::collection::vec(
+                prop_oneof![0u32..3, 4090u32..4100, any::<u32>()],
+                0..60,
+            ),
+            rows in proptest::collection::vec((0u16..16, any::<u16>()), 60),
+            first in proptest::collection::vec((any::<u32>(), 0u16..16, any::<u16>()), 0..3),
+        ) {
+            let mut kept = KeptRows::default();
+            for &(k, row, blend) in &first {
+                kept.push(k.min(5), row as u32, blend as u32);
+            }
+            kept.clear();
+            let mut k = 0u32;
+            let pushed: Vec<RowRef> = steps
+                .iter()
+                .zip(&rows)
+                .map_while(|(&step, &(row, blend))| {
+                    k = k.checked_add(step)?;
+                    Some(RowRef { k, row, blend })
+                })
+                .collect();
+            for r in &pushed {
+                kept.push(r.k, r.row as u32, r.blend as u32);
+            }
+            prop_assert!(kept.len_bound() >= pushed.len());
+            prop_assert!(kept.bytes() <= 8 * pushed.len());
+            let copy = kept.to_owned_exact();
+            prop_assert_eq!(copy.iter().collect::<Vec<_>>(), pushed.clone());
+            prop_assert_eq!(kept.iter().collect::<Vec<_>>(), pushed);
         }
     }
 

@@ -41,10 +41,11 @@
 //! for the scalar loops its packed Gaussians (7 reals each), its row lists (8 bytes per Gaussian
 //! and row it reaches, see [`crate::rows`]) and one pixel's blend list (4 reals and 2 words per
 //! blended Gaussian); for the lane kernels every (Gaussian, tile row) it blends in (140 bytes
-//! each) and the tile's image cotangents (`256 D` reals). The bins of a lane forward pass hold
-//! its packed Gaussians (40 bytes each) and its blended rows (4 bytes each, a few more for
-//! large steps along a tile list, while they fit
-//! [`crate::tiles::ROW_LIST_BUDGET_BYTES`]; tiles beyond it are walked again).
+//! each, and 8 for the row decoded from the forward pass's kept rows) and the tile's image
+//! cotangents (`256 D` reals). The bins of a lane forward pass hold its packed Gaussians (40
+//! bytes each) and its blended rows (4 bytes each, 8 after a step of 4,095 or more along the
+//! tile list, while they fit [`crate::tiles::ROW_LIST_BUDGET_BYTES`]; tiles beyond it are walked
+//! again).
 
 use base::memory::{filled, refill};
 use gaussian::Real;
@@ -232,8 +233,8 @@ pub fn rasterize_backward_with<T: Real>(
                     .par_iter()
                     .enumerate()
                     .map(|(t, rows)| {
-                        let none = lanes::KeptRows::default();
-                        lanes::blending_ids(rows.as_ref().unwrap_or(&none), bins.tile(t))
+                        rows.as_ref()
+                            .map_or_else(Vec::new, |rows| lanes::blending_ids(rows, bins.tile(t)))
                     })
                     .collect()
             });

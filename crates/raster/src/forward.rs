@@ -260,7 +260,8 @@ pub fn rasterize_binned_with<T: Real>(
                     if kept_bytes.fetch_add(bytes, Ordering::Relaxed) + bytes
                         <= ROW_LIST_BUDGET_BYTES
                     {
-                        *keep_blends = Some(rows.to_owned_exact());
+                        // A clone holds exactly the words (the thread's buffer keeps its room).
+                        *keep_blends = Some(rows.clone());
                     }
                 }
                 _ => {

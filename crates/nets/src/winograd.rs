@@ -88,7 +88,7 @@
 //! the forward pass's, run in fixed contiguous groups, each with its own `dU`, summed in group
 //! order, so the result is bitwise identical for any thread count as well.
 
-use std::sync::{Mutex, OnceLock};
+use std::sync::Mutex;
 
 use base::Real;
 use ndarray::Array4;
@@ -243,8 +243,7 @@ pub(crate) fn conv3x3_valid<T: Real>(
     let jobs = jobs(n, tiles, per_job);
     let u = transform_kernels(ws, o, c);
     let guard = guard && relu;
-    // The guard's per-output-channel factor `band_factor(c) * |U[.][o][.]|`, and the weights in
-    // `f64` for the recomputations, made once by the first job that needs them.
+    // The guard's per-output-channel factor `band_factor(c) * |U[.][o][.]|`.
     let u_norms: Vec<f64> = if guard {
         let f = band_factor::<T>(c);
         (0..o)
@@ -253,7 +252,9 @@ pub(crate) fn conv3x3_valid<T: Real>(
     } else {
         Vec::new()
     };
-    let w64: OnceLock<Vec<f64>> = OnceLock::new();
+    // The pre-activations the guard flags, as `[image, output channel, row, column]`, in any
+    // order (`recompute` sorts them).
+    let flagged: Mutex<Vec<[u32; 4]>> = Mutex::new(Vec::new());
     let mut out = crate::conv::zeroed::<T>((n, o, h_out, w_out));
     let out_ptr = SyncPtr(out.as_mut_ptr());
     let plane_in = hp * wp;
@@ -314,7 +315,6 @@ pub(crate) fn conv3x3_valid<T: Real>(
                 );
             }
         }
-        let x_img = &xs[img * c * plane_in..(img + 1) * c * plane_in];
         arch.dispatch(OutputStage {
             m: &m,
             o,
@@ -325,6 +325,7 @@ pub(crate) fn conv3x3_valid<T: Real>(
             guard: guard.then_some(Guard {
                 u_norms: &u_norms,
                 tile_norms: &guard_scratch.norms,
+                bounds: &mut guard_scratch.bounds,
                 suspects: &mut guard_scratch.suspects,
             }),
             scratch: &mut rows,
@@ -332,25 +333,21 @@ pub(crate) fn conv3x3_valid<T: Real>(
             img,
             out_dims: [h_out, w_out],
         });
-        if guard && !guard_scratch.suspects.is_empty() {
-            let w64 = w64.get_or_init(|| ws.iter().map(|w| w.to_f64_exact()).collect());
-            recompute(
-                x_img,
-                [c, hp, wp],
-                w64,
-                bias,
-                &mut guard_scratch,
-                |oc, r, x| {
-                    // SAFETY: (oc, r, x) is an output of one of this job's tiles, which only
-                    // this job writes.
-                    unsafe { out_ptr.get().add(((img * o + oc) * h_out + r) * w_out + x) }
-                },
-            );
+        if !guard_scratch.suspects.is_empty() {
+            // A poisoned lock still holds every flag pushed before the panic that poisoned it
+            // (which rayon passes on to the caller anyway).
+            let mut f = flagged.lock().unwrap_or_else(|e| e.into_inner());
+            let of_image = guard_scratch.suspects.iter();
+            f.extend(of_image.map(|&(oc, r, x)| [img as u32, oc, r, x]));
         }
         if let Ok(mut p) = pool.lock() {
             p.push((v, m, rows, guard_scratch));
         }
     });
+    let mut flagged = flagged.into_inner().unwrap_or_else(|e| e.into_inner());
+    if !flagged.is_empty() {
+        recompute(xs, dims, ws, bias, &mut flagged, &mut out);
+    }
     out
 }
 
@@ -384,13 +381,14 @@ fn norm_f64<'a, T: Real + 'a>(values: impl IntoIterator<Item = &'a T>) -> f64 {
 }
 
 /// The guard's scratch of one job: the norms of its tiles' transformed patches (and their
-/// squares), and the pre-activations to recompute, as `(output channel, row, column)`.
+/// squares), one output channel's bounds over a run of tiles, and the pre-activations to
+/// recompute, as `(output channel, row, column)`.
 #[derive(Default)]
 struct GuardScratch<T> {
     sums: Vec<T>,
+    bounds: Vec<T>,
     norms: Vec<f64>,
     suspects: Vec<(u32, u32, u32)>,
-    patch: Vec<f64>,
 }
 
 /// The sums of squares of the transformed patches of a job's tiles (`|V_t|²`, over all 16
@@ -419,75 +417,93 @@ impl<T: Real> pulp::WithSimd for NormStage<'_, T> {
 }
 
 /// What [`OutputStage`] needs to flag pre-activations near zero.
-struct Guard<'a> {
+struct Guard<'a, T> {
     /// `band_factor(C) |U_o|` per output channel.
     u_norms: &'a [f64],
     /// `|V_t|` per tile of the job.
     tile_norms: &'a [f64],
+    /// The bounds of one output channel's run of tiles, rounded up into `T`.
+    bounds: &'a mut Vec<T>,
     suspects: &'a mut Vec<(u32, u32, u32)>,
 }
 
-/// Recomputes the flagged pre-activations of one job by the direct sum in `f64` (input
-/// channels, then kernel rows, then columns, in eight interleaved partial sums added in order at
-/// the end), adds the bias, rounds once to `T` and applies the ReLU, writing through `at`.
-fn recompute<T: Real>(
-    x_img: &[T],
-    [c, hp, wp]: [usize; 3],
-    w64: &[f64],
-    bias: Option<&[T]>,
-    scratch: &mut GuardScratch<T>,
-    at: impl Fn(usize, usize, usize) -> *mut T,
-) {
-    let plane = hp * wp;
-    let k = 9 * c;
-    // Position by position, so that each patch is gathered once.
-    scratch
-        .suspects
-        .sort_unstable_by_key(|&(oc, r, x)| (r, x, oc));
-    let mut i = 0;
-    while i < scratch.suspects.len() {
-        let (_, r, x) = scratch.suspects[i];
-        let (r, x) = (r as usize, x as usize);
-        let patch = &mut scratch.patch;
-        patch.clear();
-        for ci in 0..c {
-            for a in 0..3 {
-                let row = &x_img[ci * plane + (r + a) * wp + x..][..3];
-                patch.extend(row.iter().map(|v| v.to_f64_exact()));
-            }
-        }
-        while i < scratch.suspects.len() {
-            let (oc, r2, x2) = scratch.suspects[i];
-            if (r2 as usize, x2 as usize) != (r, x) {
-                break;
-            }
-            let oc = oc as usize;
-            let s = dot_f64(&w64[oc * k..(oc + 1) * k], patch);
-            let b = bias.map_or(0.0, |b| b[oc].to_f64_exact());
-            let v = T::lit(s + b);
-            // SAFETY: `at` returns this job's own output element.
-            unsafe { *at(oc, r, x) = if v > T::zero() { v } else { T::zero() } };
-            i += 1;
-        }
-    }
+/// A value of `T` at least `x` (for `x >= 0`; NaN stays NaN): `x` widened by `2^-20` of itself
+/// and by `f32`'s smallest normal value, then rounded to nearest. The widened value is a normal
+/// number, so rounding takes at most `2^-24` of it (`2^-53` in `f64`): less than was added. An
+/// element `|v| > upper_bound(x)` therefore has `|v| > x`; an element at or below it is compared
+/// with `x` itself, so the comparison's outcome is that of `|v| <= x` in `f64`.
+#[inline(always)]
+fn upper_bound<T: Real>(x: f64) -> T {
+    T::lit(x * (1.0 + 1.0 / 1_048_576.0) + f64::from(f32::MIN_POSITIVE))
 }
 
-/// `sum_i a[i] b[i]` in `f64`, in eight interleaved partial sums added in order at the end: the
-/// same order, and so the same bits, with any instruction set (no reassociation, no fused
-/// multiply-add).
-fn dot_f64(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0f64; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for l in 0..8 {
-            acc[l] += x[l] * y[l];
+/// Flagged pre-activations per parallel work item of [`recompute`].
+const RECOMPUTE_CHUNK: usize = 512;
+
+/// Input channels per block of [`recompute`]'s sums.
+const RECOMPUTE_CHANNELS: usize = 8;
+
+/// Recomputes the flagged pre-activations `[image, output channel, row, column]` by the direct
+/// sum in `f64`, adds the bias, rounds once to `T` and applies the ReLU, writing into `out`.
+///
+/// Each sum runs as nine partial sums, one per kernel tap, each over the input channels in
+/// ascending order, then added in tap order (row by row): it depends on the position alone, so
+/// the result is the same for any thread count and any split into jobs or regions. The work runs
+/// input channel block by block over chunks of the flagged positions sorted by image and row,
+/// so that a block's weights and the few input rows of a chunk are read while they are in cache.
+fn recompute<T: Real>(
+    xs: &[T],
+    [_, c, hp, wp]: [usize; 4],
+    ws: &[T],
+    bias: Option<&[T]>,
+    flagged: &mut [[u32; 4]],
+    out: &mut Array4<T>,
+) {
+    let (_, o, h_out, w_out) = out.dim();
+    let plane = hp * wp;
+    flagged.sort_unstable_by_key(|&[img, oc, r, x]| (img, r, x, oc));
+    // The weights by input channel, `[C][O][3][3]`, in `f64`.
+    let mut w64 = vec![0.0; ws.len()];
+    for (oc, wo) in ws.chunks_exact(9 * c).enumerate() {
+        for (ci, wk) in wo.chunks_exact(9).enumerate() {
+            let dst = &mut w64[(ci * o + oc) * 9..(ci * o + oc + 1) * 9];
+            for (d, w) in dst.iter_mut().zip(wk) {
+                *d = w.to_f64_exact();
+            }
         }
     }
-    for (l, (x, y)) in ra.iter().zip(rb).enumerate() {
-        acc[l] += x * y;
+    let sums: Vec<f64> = flagged
+        .par_chunks(RECOMPUTE_CHUNK)
+        .flat_map_iter(|chunk| {
+            let mut taps = vec![[0.0f64; 9]; chunk.len()];
+            for c0 in (0..c).step_by(RECOMPUTE_CHANNELS) {
+                let c1 = (c0 + RECOMPUTE_CHANNELS).min(c);
+                for (t, &[img, oc, r, x]) in taps.iter_mut().zip(chunk) {
+                    let (img, oc, r, x) = (img as usize, oc as usize, r as usize, x as usize);
+                    let mut acc = *t;
+                    for ci in c0..c1 {
+                        let w = &w64[(ci * o + oc) * 9..][..9];
+                        let xc = &xs[(img * c + ci) * plane..][..plane];
+                        for a in 0..3 {
+                            let row = &xc[(r + a) * wp + x..][..3];
+                            for b in 0..3 {
+                                acc[3 * a + b] += w[3 * a + b] * row[b].to_f64_exact();
+                            }
+                        }
+                    }
+                    *t = acc;
+                }
+            }
+            taps.into_iter().map(|t| t.iter().sum::<f64>())
+        })
+        .collect();
+    let out = out.as_slice_mut().expect("fresh output");
+    for (&s, &[img, oc, r, x]) in sums.iter().zip(flagged.iter()) {
+        let (img, oc, r, x) = (img as usize, oc as usize, r as usize, x as usize);
+        let b = bias.map_or(0.0, |b| b[oc].to_f64_exact());
+        let v = T::lit(s + b);
+        out[((img * o + oc) * h_out + r) * w_out + x] = if v > T::zero() { v } else { T::zero() };
     }
-    acc.iter().sum()
 }
 
 /// The weight gradient `[O, C, 3, 3]` (flat) of [`conv3x3_valid`] given its padded input
@@ -821,7 +837,7 @@ struct OutputStage<'a, T> {
     relu: bool,
     /// With a guard, the ReLU is applied here, after each pre-activation within the band of
     /// zero has been flagged for recomputation.
-    guard: Option<Guard<'a>>,
+    guard: Option<Guard<'a, T>>,
     scratch: &'a mut [T],
     out: SyncPtr<T>,
     img: usize,
@@ -849,19 +865,32 @@ impl<T: Real> pulp::WithSimd for OutputStage<'_, T> {
                 );
                 if let Some(g) = &mut self.guard {
                     // Pre-activations within the band of zero are flagged, then all go
-                    // through the ReLU.
+                    // through the ReLU. A column is first compared with the band's bounds
+                    // rounded up into `T` (`upper_bound`), all of it at once; only a column
+                    // with an element at or below one of them is compared exactly.
                     let y = &mut self.scratch[2 * A * len..2 * A * len + 2 * M * len];
                     let un = g.u_norms[oc];
                     let norms = &g.tile_norms[run.off..run.off + len];
+                    g.bounds.clear();
+                    g.bounds
+                        .extend(norms.iter().map(|&n| upper_bound::<T>(un * n)));
                     for (q, col) in y.chunks_exact_mut(len).enumerate() {
-                        let (x, a) = (q / M, q % M);
-                        for (k, v) in col.iter_mut().enumerate() {
-                            if v.to_f64_exact().abs() <= un * norms[k] {
-                                let (r, xx) = (run.ty * M + a, (run.tx0 + k) * M + x);
-                                if r < h_out && xx < w_out {
-                                    g.suspects.push((oc as u32, r as u32, xx as u32));
+                        let mut near = false;
+                        for (v, &b) in col.iter().zip(g.bounds.iter()) {
+                            near |= v.abs() <= b;
+                        }
+                        if near {
+                            let (x, a) = (q / M, q % M);
+                            for (k, v) in col.iter().enumerate() {
+                                if v.to_f64_exact().abs() <= un * norms[k] {
+                                    let (r, xx) = (run.ty * M + a, (run.tx0 + k) * M + x);
+                                    if r < h_out && xx < w_out {
+                                        g.suspects.push((oc as u32, r as u32, xx as u32));
+                                    }
                                 }
                             }
+                        }
+                        for v in col.iter_mut() {
                             *v = bias_relu(*v, T::zero(), true);
                         }
                     }
@@ -1089,13 +1118,18 @@ mod tests {
     #[test]
     fn guarded_relu_decisions_are_those_of_the_exact_sum() {
         let relu64 = |v: f64| v.max(0.0);
-        for (c, o, hp, wp, seed) in [(32, 8, 18, 18, 11), (48, 5, 17, 20, 12)] {
-            let dims = [1, c, hp, wp];
-            let half: Vec<f32> = values(seed, c / 2 * hp * wp)
-                .into_iter()
-                .map(|v| v as f32)
+        // The second case has two images, so that recomputed values land in the right one.
+        for (n, c, o, hp, wp, seed) in [(1, 32, 8, 18, 18, 11), (2, 48, 5, 17, 20, 12)] {
+            let dims = [n, c, hp, wp];
+            let xs: Vec<f32> = (0..n as u64)
+                .flat_map(|img| {
+                    let half: Vec<f32> = values(seed + 100 * img, c / 2 * hp * wp)
+                        .into_iter()
+                        .map(|v| v as f32)
+                        .collect();
+                    [half.clone(), half].concat()
+                })
                 .collect();
-            let xs = [half.clone(), half].concat();
             let base = values(seed + 1, o * c / 2 * 9);
             let tiny = values(seed + 2, o * c / 2 * 9);
             // Channel k + C/2 repeats channel k's input with the opposite weight plus 1e-6 of
@@ -1140,12 +1174,20 @@ mod tests {
                 flips > 0,
                 "C={c}: the unguarded pass made no wrong decision"
             );
-            // The recomputed values are the exact sum rounded once (up to the f64 rounding).
-            for (g, e) in guarded.iter().zip(&exact) {
-                assert!(
-                    (g - relu64(*e)).abs() <= 1e-6 * e.abs().max(1e-30),
-                    "{g} vs {e}"
-                );
+            // Every guarded value the guard changed is the exact sum rounded once to `f32`. The
+            // recomputation and `direct` each sum in `f64`, within `γ_{9C} A` of the real sum,
+            // where `A = sum |w x|` over the terms (`γ_n = n 2^-53 / (1 - n 2^-53)`); rounding to
+            // `f32` adds at most `2^-24` of the value. So the bound is `2^-23 |e| + 3 γ_{9C} A`.
+            let abs64 = |v: &[f64]| v.iter().map(|a| a.abs()).collect::<Vec<_>>();
+            let magnitudes = direct(&abs64(&x64), dims, &abs64(&w64), o);
+            let n_terms = (9 * c) as f64 * f64::EPSILON / 2.0;
+            let gamma = n_terms / (1.0 - n_terms);
+            for (((g, p), e), a) in guarded.iter().zip(&plain).zip(&exact).zip(&magnitudes) {
+                if g == p {
+                    continue;
+                }
+                let tol = e.abs() / 8_388_608.0 + 3.0 * gamma * a;
+                assert!((g - relu64(*e)).abs() <= tol, "{g} vs {e} (within {tol})");
             }
         }
         // Without cancellation: values outside the band are the unguarded pass's.

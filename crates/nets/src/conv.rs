@@ -531,32 +531,42 @@ fn pad_zero<T: Real>(x: ArrayView4<T>, p: usize) -> Array4<T> {
 fn fold_reflect1<T: Real>(gp: Array4<T>) -> Array4<T> {
     let (n, c, hp, wp) = gp.dim();
     let (h, w) = (hp - 2, wp - 2);
+    let gp = gp.as_standard_layout();
+    let gs = gp.as_slice().expect("standard layout");
     by_planes((n, c, h, w), |i, j, mut out| {
-        let g = gp.slice(s![i, j, .., ..]);
+        let g = &gs[(i * c + j) * hp * wp..][..hp * wp];
+        let out = out.as_slice_mut().expect("a fresh plane is contiguous");
         // Rows first on padded columns: padded row 0 mirrors input row 1, row h+1 mirrors
-        // input row h-2; then the padded columns likewise.
-        let mut rows = g.slice(s![1..h + 1, ..]).to_owned();
-        {
-            let top = g.row(0);
-            let mut r = rows.row_mut(1);
-            r += &top;
-        }
-        {
-            let bottom = g.row(h + 1);
-            let mut r = rows.row_mut(h - 2);
-            r += &bottom;
-        }
-        // Column q takes padded column q + 1, then column 1 adds padded column 0 and column
-        // w - 2 padded column w + 1, in that order (both when w = 3).
-        for ((r, q), d) in out.indexed_iter_mut() {
-            let mut v = rows[[r, q + 1]];
-            if q == 1 {
-                v += rows[[r, 0]];
+        // input row h-2 (added after row 0 when both are row 1); `summed` holds such a row.
+        let mut summed = vec![T::zero(); wp];
+        for (r, dst) in out.chunks_exact_mut(w).enumerate() {
+            let mut src = &g[(r + 1) * wp..(r + 2) * wp];
+            if r == 1 || r == h - 2 {
+                summed.copy_from_slice(src);
+                if r == 1 {
+                    for (s, &t) in summed.iter_mut().zip(&g[..wp]) {
+                        *s += t;
+                    }
+                }
+                if r == h - 2 {
+                    for (s, &b) in summed.iter_mut().zip(&g[(h + 1) * wp..]) {
+                        *s += b;
+                    }
+                }
+                src = &summed;
             }
-            if q == w - 2 {
-                v += rows[[r, w + 1]];
+            // Then the columns: column q takes padded column q + 1, column 1 adds padded
+            // column 0 and column w - 2 padded column w + 1, in that order (both when w = 3).
+            for (d, &v) in dst.iter_mut().zip(&src[1..w + 1]) {
+                d.write(v);
             }
-            d.write(v);
+            let mut first = src[2] + src[0];
+            if w == 3 {
+                first += src[w + 1];
+            } else {
+                dst[w - 2].write(src[w - 1] + src[w + 1]);
+            }
+            dst[1].write(first);
         }
     })
 }
@@ -762,7 +772,13 @@ mod tests {
     /// layouts, with distinct integer values.
     fn inputs() -> Vec<Array4<f64>> {
         let mut out = Vec::new();
-        for (n, c, h, w) in [(1, 1, 2, 2), (2, 3, 2, 5), (1, 4, 6, 3), (3, 2, 7, 9)] {
+        for (n, c, h, w) in [
+            (1, 1, 2, 2),
+            (2, 3, 2, 5),
+            (1, 4, 6, 3),
+            (3, 2, 7, 9),
+            (1, 2, 3, 3),
+        ] {
             let x = Array4::from_shape_fn((n, c, h, w), |(a, b, i, j)| {
                 (((a * 7 + b) * 11 + i) * 13 + j) as f64
             });
@@ -812,6 +828,29 @@ mod tests {
             let folded = fold_reflect1(g.clone());
             assert_eq!(folded.dim(), x.dim());
             assert_eq!(lhs, (&x * &folded).sum());
+        }
+    }
+
+    /// Element by element: `fold(g)` at a pixel is `<pad(e), g>` for the one-hot input `e` of
+    /// that pixel (integer values, so exact), at every size of `inputs`, the smallest included.
+    #[test]
+    fn folding_gathers_every_padded_copy_of_each_pixel() {
+        for x in inputs() {
+            let (n, c, h, w) = x.dim();
+            let g = Array4::from_shape_fn((n, c, h + 2, w + 2), |(a, b, i, j)| {
+                ((a * 5 + b * 3 + i * 11 + j * 7) % 19) as f64 - 9.0
+            });
+            let folded = fold_reflect1(g.clone());
+            for ((a, b, i, j), &v) in folded.indexed_iter() {
+                let mut e = Array4::<f64>::zeros((n, c, h, w));
+                e[[a, b, i, j]] = 1.0;
+                assert_eq!(
+                    v,
+                    (&pad_reflect1(e.view()) * &g).sum(),
+                    "{:?}",
+                    (a, b, i, j)
+                );
+            }
         }
     }
 }

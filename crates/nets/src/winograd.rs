@@ -255,8 +255,10 @@ pub(crate) fn conv3x3_valid<T: Real>(
     // The pre-activations the guard flags, as `[image, output channel, row, column]`, in any
     // order (`recompute` sorts them).
     let flagged: Mutex<Vec<[u32; 4]>> = Mutex::new(Vec::new());
-    let mut out = crate::conv::zeroed::<T>((n, o, h_out, w_out));
-    let out_ptr = SyncPtr(out.as_mut_ptr());
+    // Not zeroed first: the jobs' runs partition the tiles, and the output stage writes every
+    // output element of each run's tiles (see `assume_init` below).
+    let mut out = Array4::<T>::uninit((n, o, h_out, w_out));
+    let out_ptr = SyncPtr(out.as_mut_ptr().cast::<T>());
     let plane_in = hp * wp;
     let arch = pulp::Arch::new();
     // Scratch buffers are recycled through a pool, so at most one set per running job exists.
@@ -344,6 +346,10 @@ pub(crate) fn conv3x3_valid<T: Real>(
             p.push((v, m, rows, guard_scratch));
         }
     });
+    // SAFETY: the jobs' runs cover every tile of every image (`jobs` and `runs` partition
+    // them), and `OutputStage` writes all the output rows and columns of each run's tiles that
+    // lie inside the output, so every element has been written.
+    let mut out = unsafe { out.assume_init() };
     let mut flagged = flagged.into_inner().unwrap_or_else(|e| e.into_inner());
     if !flagged.is_empty() {
         recompute(xs, dims, ws, bias, &mut flagged, &mut out);

@@ -663,15 +663,29 @@ pub(crate) fn conv3x3_reflect_with<T: Real>(
     relu: bool,
     guard: bool,
 ) -> Array4<T> {
+    conv3x3_reflect_padded(x, w, b, relu, guard).0
+}
+
+/// [`conv3x3_reflect_with`], also returning the reflection-padded input it convolved, which
+/// [`conv3x3_padded_backward_params`] takes.
+pub(crate) fn conv3x3_reflect_padded<T: Real>(
+    x: ArrayView4<T>,
+    w: ArrayView4<T>,
+    b: ArrayView1<T>,
+    relu: bool,
+    guard: bool,
+) -> (Array4<T>, Array4<T>) {
     check_3x3(&w);
-    conv_valid(
-        pad_reflect1(x).view(),
+    let xp = pad_reflect1(x);
+    let y = conv_valid(
+        xp.view(),
         w,
         Some(b),
         relu,
         guard,
         backend_for(Pass::Forward),
-    )
+    );
+    (y, xp)
 }
 
 /// Input gradient of [`conv3x3_reflect`] (without ReLU) given the output gradient `dy [N,O,H,W]`.
@@ -699,7 +713,16 @@ pub fn conv3x3_reflect_backward_params<T: Real>(
     x: ArrayView4<T>,
     dy: ArrayView4<T>,
 ) -> (Array4<T>, Array1<T>) {
-    conv_valid_param_grads(pad_reflect1(x).view(), dy, 3, backend_for(Pass::WeightGrad))
+    conv3x3_padded_backward_params(pad_reflect1(x).view(), dy)
+}
+
+/// [`conv3x3_reflect_backward_params`] given the reflection-padded input `xp [N,C,H+2,W+2]`
+/// (as [`conv3x3_reflect_padded`] returns it) instead of the input.
+pub(crate) fn conv3x3_padded_backward_params<T: Real>(
+    xp: ArrayView4<T>,
+    dy: ArrayView4<T>,
+) -> (Array4<T>, Array1<T>) {
+    conv_valid_param_grads(xp, dy, 3, backend_for(Pass::WeightGrad))
 }
 
 /// 1x1 convolution: `x [N,C,H,W]`, `w [O,C,1,1]`, `b [O]` to `[N,O,H,W]`, optionally followed by

@@ -59,6 +59,24 @@ impl<T: Real> ConvLayer<T> {
         }
     }
 
+    /// [`ConvLayer::forward`], also returning what [`ConvLayer::backward_params`] takes
+    /// of the input, when the convolution made it: the reflection-padded input of a 3x3 layer
+    /// (`None` for a 1x1 layer, whose parameter gradient takes the input itself).
+    pub(crate) fn forward_keeping_input(
+        &self,
+        x: ArrayView4<T>,
+        relu: bool,
+        exact_relu: bool,
+    ) -> (Array4<T>, Option<Array4<T>>) {
+        if self.kernel() == 1 {
+            (self.forward(x, relu, exact_relu), None)
+        } else {
+            let (w, b) = (self.weight.view(), self.bias.view());
+            let (y, xp) = conv::conv3x3_reflect_padded(x, w, b, relu, exact_relu);
+            (y, Some(xp))
+        }
+    }
+
     /// Input gradient (of the convolution alone).
     pub(crate) fn backward_input(&self, dy: ArrayView4<T>) -> Array4<T> {
         if self.kernel() == 1 {
@@ -68,12 +86,14 @@ impl<T: Real> ConvLayer<T> {
         }
     }
 
-    /// Parameter gradients (of the convolution alone) given its input.
-    pub(crate) fn backward_params(&self, x: ArrayView4<T>, dy: ArrayView4<T>) -> ConvGrad<T> {
+    /// Parameter gradients (of the convolution alone) given its input as the tape keeps it:
+    /// reflection-padded for a 3x3 layer (see [`ConvLayer::forward_keeping_input`]), as it is
+    /// for a 1x1 layer.
+    pub(crate) fn backward_params(&self, kept: ArrayView4<T>, dy: ArrayView4<T>) -> ConvGrad<T> {
         let (weight, bias) = if self.kernel() == 1 {
-            conv::conv1x1_backward_params(x, dy)
+            conv::conv1x1_backward_params(kept, dy)
         } else {
-            conv::conv3x3_reflect_backward_params(x, dy)
+            conv::conv3x3_padded_backward_params(kept, dy)
         };
         ConvGrad {
             name: self.name.clone(),

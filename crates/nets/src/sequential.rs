@@ -27,7 +27,8 @@ pub(crate) enum Step<'a, T: Real> {
 #[derive(Clone, Debug)]
 enum Saved<T: Real> {
     Conv {
-        /// The conv's input, kept only when parameter gradients are wanted.
+        /// The conv's input, kept only when parameter gradients are wanted: reflection-padded
+        /// for a 3x3 layer (the copy its forward pass made), as it was for a 1x1 layer.
         input: Option<Array4<T>>,
         mask: Option<ReluMask>,
     },
@@ -111,11 +112,18 @@ pub(crate) fn forward<T: Real>(
             Step::Conv { layer, relu } => {
                 // A taped forward's ReLU decisions are the masks of the backward pass: they are
                 // made as the exact sum would make them (see `crate::winograd`).
-                let y = layer.forward(view, *relu, tape);
+                let keep = tape && keep_conv_inputs;
+                let (y, padded) = if keep {
+                    layer.forward_keeping_input(view, *relu, tape)
+                } else {
+                    (layer.forward(view, *relu, tape), None)
+                };
                 if tape {
-                    // The input is kept by moving the previous step's activation, not copying it.
-                    let input =
-                        keep_conv_inputs.then(|| cur.take().unwrap_or_else(|| x.to_owned()));
+                    // A 3x3 layer's input is kept as the padded copy its convolution made; a 1x1
+                    // layer's by moving the previous step's activation, not copying it.
+                    let input = keep.then(|| {
+                        padded.unwrap_or_else(|| cur.take().unwrap_or_else(|| x.to_owned()))
+                    });
                     let mask = relu.then(|| ReluMask::of_output(y.as_slice().expect("fresh")));
                     saved.push(Saved::Conv { input, mask });
                 }

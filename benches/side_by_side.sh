@@ -2,10 +2,15 @@
 # Side-by-side speed figures measured in one run, so that each ratio compares numbers taken on the
 # same machine state.
 #
-#   benches/side_by_side.sh nets [PYTHON]   the fullres networks in dsgs and, when a Python with
+#   benches/side_by_side.sh nets [PYTHON] [ROUNDS]
+#                                           the fullres networks in dsgs and, when a Python with
 #                                           PyTorch is available (default: $DSGS_TORCH_PYTHON,
 #                                           then python3), the same passes in PyTorch, both
-#                                           with the dsgs binary's allocator setting
+#                                           with the dsgs binary's allocator setting; ROUNDS
+#                                           (default 1) alternates the two sides that many
+#                                           times and prints, after each round, one line per
+#                                           pass:
+#   nets <pass> round=<r> dsgs=<s> torch=<s> ratio=<x>
 #   benches/side_by_side.sh raster [--quick]
 #                                           the rasterizer's vector lane kernels against its
 #                                           scalar reference loops, forward and backward, on two
@@ -32,15 +37,52 @@ shift || true
 case "$what" in
 nets)
   py="${1:-${DSGS_TORCH_PYTHON:-python3}}"
+  rounds="${2:-1}"
+  case "$rounds" in
+  '' | *[!0-9]* | 0)
+    echo "ROUNDS must be a positive integer, got '$rounds'" >&2
+    exit 2
+    ;;
+  esac
   # Both sides run with the allocator setting of the dsgs binary (see the raster case below), so
   # that neither pays page faults for buffers the other keeps in its heap.
   export MALLOC_MMAP_THRESHOLD_=1073741824 MALLOC_TRIM_THRESHOLD_=2147483647
-  cargo bench -p dsgs-nets --bench networks
-  if "$py" -c "import torch" 2>/dev/null; then
-    "$py" benches/torch_networks.py 2
-  else
+  torch=yes
+  if ! "$py" -c "import torch" 2>/dev/null; then
     echo "PyTorch not found for $py: skipping the PyTorch side" >&2
+    torch=
   fi
+  log="$(mktemp)"
+  trap 'rm -f "$log"' EXIT
+  for r in $(seq 1 "$rounds"); do
+    : >"$log"
+    cargo bench -p dsgs-nets --bench networks | tee -a "$log"
+    if [ -n "$torch" ]; then
+      "$py" benches/torch_networks.py 2 | tee -a "$log"
+      # Criterion prints "networks/<id>" then "time: [low mid high]"; PyTorch "<name>\t<s>".
+      awk -v round="$r" '
+        function secs(v, unit) {
+          if (unit == "ms") return v / 1e3
+          if (unit ~ /^(µs|us)$/) return v / 1e6
+          return v
+        }
+        /^networks\// { id = substr($1, 10) }
+        /time:/ && id != "" {
+          gsub(/[\[\]]/, "")
+          for (i = 1; i <= NF; i++) if ($i == "time:") { d[id] = secs($(i + 3), $(i + 4)) }
+          id = ""
+        }
+        /^(encoder|decoder)_.*\t/ { split($0, f, "\t"); t[f[1]] = f[2] }
+        END {
+          n = split("vgg_relu3_1_fullres_forward_256 vgg_relu4_1_fullres_forward_256 decoder_relu3_1_fullres_forward_256 decoder_relu3_1_fullres_forward_backward_256", ds, " ")
+          split("encoder_relu3_1_fullres_256 encoder_relu4_1_fullres_256 decoder_relu3_1_fullres_256 decoder_relu3_1_fullres_forward_backward_256", ts, " ")
+          for (i = 1; i <= n; i++) {
+            if (!(ds[i] in d) || !(ts[i] in t)) continue
+            printf "nets %s round=%d dsgs=%.4f torch=%.4f ratio=%.2f\n", ds[i], round, d[ds[i]], t[ts[i]], d[ds[i]] / t[ts[i]]
+          }
+        }' "$log"
+    fi
+  done
   ;;
 raster)
   if [ "${1:-}" = "--quick" ]; then
@@ -81,7 +123,7 @@ raster)
     }' "$log"
   ;;
 *)
-  echo "usage: benches/side_by_side.sh nets [PYTHON] | raster [--quick]" >&2
+  echo "usage: benches/side_by_side.sh nets [PYTHON] [ROUNDS] | raster [--quick]" >&2
   exit 2
   ;;
 esac

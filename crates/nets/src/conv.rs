@@ -64,7 +64,7 @@ use std::mem::MaybeUninit;
 use std::sync::Mutex;
 
 use base::Real;
-use ndarray::{s, Array1, Array4, ArrayView1, ArrayView4, ArrayViewMut2, Axis, Zip};
+use ndarray::{Array1, Array4, ArrayView1, ArrayView4, ArrayViewMut2, Axis};
 use rayon::prelude::*;
 
 use crate::matmul::{backend_for, matmul, GemmBackend, Pass};
@@ -484,23 +484,25 @@ pub fn pad_reflect1<T: Real>(x: ArrayView4<T>) -> Array4<T> {
         h >= 2 && w >= 2,
         "reflection padding needs at least 2x2 pixels, got {h}x{w}"
     );
+    let x = x.as_standard_layout();
+    let xs = x.as_slice().expect("standard layout");
     // Padded row `r` copies input row `1` (r = 0), `r - 1` or `h - 2` (r = h + 1); within it,
     // column 0 copies input column 1 and column w + 1 input column w - 2.
     by_planes((n, c, h + 2, w + 2), |i, j, mut o| {
-        let xc = x.slice(s![i, j, .., ..]);
-        for (r, mut row) in o.outer_iter_mut().enumerate() {
-            let src = xc.row(match r {
+        let xc = &xs[(i * c + j) * h * w..][..h * w];
+        let o = o.as_slice_mut().expect("a fresh plane is contiguous");
+        for (r, row) in o.chunks_exact_mut(w + 2).enumerate() {
+            let y = match r {
                 0 => 1,
                 r if r == h + 1 => h - 2,
                 r => r - 1,
-            });
+            };
+            let src = &xc[y * w..][..w];
             row[0].write(src[1]);
             row[w + 1].write(src[w - 2]);
-            Zip::from(row.slice_mut(s![1..w + 1]))
-                .and(&src)
-                .for_each(|d, &v| {
-                    d.write(v);
-                });
+            for (d, &v) in row[1..w + 1].iter_mut().zip(src) {
+                d.write(v);
+            }
         }
     })
 }
@@ -508,20 +510,22 @@ pub fn pad_reflect1<T: Real>(x: ArrayView4<T>) -> Array4<T> {
 /// Zero padding by `p` pixels on both spatial axes.
 fn pad_zero<T: Real>(x: ArrayView4<T>, p: usize) -> Array4<T> {
     let (n, c, h, w) = x.dim();
-    by_planes((n, c, h + 2 * p, w + 2 * p), |i, j, mut o| {
-        let xc = x.slice(s![i, j, .., ..]);
-        for (r, mut row) in o.outer_iter_mut().enumerate() {
+    let x = x.as_standard_layout();
+    let xs = x.as_slice().expect("standard layout");
+    let wp = w + 2 * p;
+    by_planes((n, c, h + 2 * p, wp), |i, j, mut o| {
+        let xc = &xs[(i * c + j) * h * w..][..h * w];
+        let o = o.as_slice_mut().expect("a fresh plane is contiguous");
+        for (r, row) in o.chunks_exact_mut(wp).enumerate() {
             if r < p || r >= p + h {
                 row.fill(MaybeUninit::new(T::zero()));
                 continue;
             }
-            row.slice_mut(s![..p]).fill(MaybeUninit::new(T::zero()));
-            row.slice_mut(s![p + w..]).fill(MaybeUninit::new(T::zero()));
-            Zip::from(row.slice_mut(s![p..p + w]))
-                .and(xc.row(r - p))
-                .for_each(|d, &v| {
-                    d.write(v);
-                });
+            row[..p].fill(MaybeUninit::new(T::zero()));
+            row[p + w..].fill(MaybeUninit::new(T::zero()));
+            for (d, &v) in row[p..p + w].iter_mut().zip(&xc[(r - p) * w..][..w]) {
+                d.write(v);
+            }
         }
     })
 }

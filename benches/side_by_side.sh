@@ -6,11 +6,14 @@
 #                                           the fullres networks in dsgs and, when a Python with
 #                                           PyTorch is available (default: $DSGS_TORCH_PYTHON,
 #                                           then python3), the same passes in PyTorch, both
-#                                           with the dsgs binary's allocator setting; ROUNDS
-#                                           (default 1) alternates the two sides that many
-#                                           times and prints, after each round, one line per
-#                                           pass:
+#                                           with the dsgs binary's allocator setting. Each
+#                                           pass runs on the dsgs side, then at once on the
+#                                           PyTorch side (the two times of a ratio lie within a
+#                                           minute), and prints one line:
 #   nets <pass> round=<r> dsgs=<s> torch=<s> ratio=<x>
+#                                           ROUNDS (default 1) repeats the four passes that
+#                                           many times, then prints each pass's median ratio:
+#   nets <pass> median ratio=<x> over <n> rounds (<lowest> to <highest>)
 #   benches/side_by_side.sh raster [--quick]
 #                                           the rasterizer's vector lane kernels against its
 #                                           scalar reference loops, forward and backward, on two
@@ -53,36 +56,56 @@ nets)
     torch=
   fi
   log="$(mktemp)"
-  trap 'rm -f "$log"' EXIT
+  ratios="$(mktemp)"
+  trap 'rm -f "$log" "$ratios"' EXIT
+  # The passes as "dsgs id:PyTorch name". Each pass runs on one side, then at once on the other,
+  # so that both times of a ratio are taken within a minute of each other.
+  passes="vgg_relu3_1_fullres_forward_256:encoder_relu3_1_fullres_256
+vgg_relu4_1_fullres_forward_256:encoder_relu4_1_fullres_256
+decoder_relu3_1_fullres_forward_256:decoder_relu3_1_fullres_256
+decoder_relu3_1_fullres_forward_backward_256:decoder_relu3_1_fullres_forward_backward_256"
+  cargo bench -q -p dsgs-nets --bench networks --no-run
   for r in $(seq 1 "$rounds"); do
-    : >"$log"
-    cargo bench -p dsgs-nets --bench networks | tee -a "$log"
-    if [ -n "$torch" ]; then
-      "$py" benches/torch_networks.py 2 | tee -a "$log"
+    for pass in $passes; do
+      ds="${pass%%:*}"
+      ts="${pass##*:}"
+      : >"$log"
+      cargo bench -q -p dsgs-nets --bench networks -- "^networks/${ds}\$" | tee -a "$log"
+      [ -n "$torch" ] || continue
+      "$py" benches/torch_networks.py 2 "$ts" | tee -a "$log"
       # Criterion prints "networks/<id>" then "time: [low mid high]"; PyTorch "<name>\t<s>".
-      awk -v round="$r" '
+      awk -v round="$r" -v ds="$ds" -v ts="$ts" '
         function secs(v, unit) {
           if (unit == "ms") return v / 1e3
           if (unit ~ /^(µs|us)$/) return v / 1e6
           return v
         }
         /^networks\// { id = substr($1, 10) }
-        /time:/ && id != "" {
+        /time:/ && id == ds {
           gsub(/[\[\]]/, "")
-          for (i = 1; i <= NF; i++) if ($i == "time:") { d[id] = secs($(i + 3), $(i + 4)) }
+          for (i = 1; i <= NF; i++) if ($i == "time:") { d = secs($(i + 3), $(i + 4)) }
           id = ""
         }
-        /^(encoder|decoder)_.*\t/ { split($0, f, "\t"); t[f[1]] = f[2] }
+        $0 ~ "^" ts "\t" { split($0, f, "\t"); t = f[2] }
         END {
-          n = split("vgg_relu3_1_fullres_forward_256 vgg_relu4_1_fullres_forward_256 decoder_relu3_1_fullres_forward_256 decoder_relu3_1_fullres_forward_backward_256", ds, " ")
-          split("encoder_relu3_1_fullres_256 encoder_relu4_1_fullres_256 decoder_relu3_1_fullres_256 decoder_relu3_1_fullres_forward_backward_256", ts, " ")
-          for (i = 1; i <= n; i++) {
-            if (!(ds[i] in d) || !(ts[i] in t)) continue
-            printf "nets %s round=%d dsgs=%.4f torch=%.4f ratio=%.2f\n", ds[i], round, d[ds[i]], t[ts[i]], d[ds[i]] / t[ts[i]]
-          }
-        }' "$log"
-    fi
+          if (d == "" || t == "") exit
+          printf "nets %s round=%d dsgs=%.4f torch=%.4f ratio=%.2f\n", ds, round, d, t, d / t
+        }' "$log" | tee -a "$ratios"
+    done
   done
+  # With several rounds, each pass's median ratio.
+  if [ "$rounds" -gt 1 ]; then
+    for pass in $passes; do
+      ds="${pass%%:*}"
+      grep "^nets $ds " "$ratios" | sed 's/.*ratio=//' | sort -g | awk -v ds="$ds" -v n="$rounds" '
+        { v[NR] = $1 }
+        END {
+          if (NR == 0) exit
+          m = NR % 2 ? v[(NR + 1) / 2] : (v[NR / 2] + v[NR / 2 + 1]) / 2
+          printf "nets %s median ratio=%.2f over %d rounds (%s to %s)\n", ds, m, NR, v[1], v[NR]
+        }'
+    done
+  fi
   ;;
 raster)
   if [ "${1:-}" = "--quick" ]; then

@@ -4,6 +4,7 @@ Optional and never part of the build or the tests: run by benches/side_by_side.s
 with PyTorch is available (for example the environment built by ../shared/oracle/setup.sh).
 Same shapes as the Rust benches: 256x256 input, fullres (no pooling, no upsampling), float32,
 two threads; gradients off except in the decoder forward+backward (input and weight gradients).
+Usage: torch_networks.py [THREADS] [PASS ...] (default: 2 threads, every pass).
 Prints one line per pass: name, median seconds, GFLOP/s.
 """
 import statistics
@@ -85,9 +86,19 @@ def bench_forward_backward(name, net, channels, reps=5):
     print(f"{name}\t{med:.4f}\t{3 * flops(net, x) / med / 1e9:.1f}")
 
 
+PASSES = {
+    "encoder_relu3_1_fullres_256": lambda n: bench(n, encoder(3), 3),
+    "encoder_relu4_1_fullres_256": lambda n: bench(n, encoder(4), 3, reps=3),
+    "decoder_relu3_1_fullres_256": lambda n: bench(n, decoder3(), 256),
+    "decoder_relu3_1_fullres_forward_backward_256": lambda n: bench_forward_backward(
+        n, decoder3(), 256
+    ),
+}
+wanted = sys.argv[2:] or list(PASSES)
+unknown = [w for w in wanted if w not in PASSES]
+if unknown:
+    sys.exit(f"unknown pass {unknown[0]}; the passes are: {', '.join(PASSES)}")
 print(f"# torch {torch.__version__}, {torch.get_num_threads()} threads")
 print("pass\tseconds\tGFLOP/s")
-bench("encoder_relu3_1_fullres_256", encoder(3), 3)
-bench("encoder_relu4_1_fullres_256", encoder(4), 3, reps=3)
-bench("decoder_relu3_1_fullres_256", decoder3(), 256)
-bench_forward_backward("decoder_relu3_1_fullres_forward_backward_256", decoder3(), 256)
+for name in wanted:
+    PASSES[name](name)

@@ -94,10 +94,10 @@ decoder_relu3_1_fullres_forward_backward_256:decoder_relu3_1_fullres_forward_bac
     done
   done
   # With several rounds, each pass's median ratio.
-  if [ "$rounds" -gt 1 ]; then
+  if [ -n "$torch" ] && [ "$rounds" -gt 1 ]; then
     for pass in $passes; do
       ds="${pass%%:*}"
-      grep "^nets $ds " "$ratios" | sed 's/.*ratio=//' | sort -g | awk -v ds="$ds" -v n="$rounds" '
+      { grep "^nets $ds " "$ratios" || true; } | sed 's/.*ratio=//' | sort -g | awk -v ds="$ds" '
         { v[NR] = $1 }
         END {
           if (NR == 0) exit

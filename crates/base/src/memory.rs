@@ -8,9 +8,10 @@
 //! every Gaussian, per-intersection records): [`filled`] and [`refill`], which write the
 //! elements on the threads of the current rayon pool instead of the calling thread alone.
 //! Also [`clear_with_capacity`], to empty a reused buffer and grow it without copying its old
-//! contents, and the one cache hint of the libraries, [`prefetch`].
+//! contents, [`fill_uninit`], to initialise a part of a buffer's spare capacity where it is used, and the one cache hint of the libraries, [`prefetch`].
 
 use std::alloc::{GlobalAlloc, Layout, System};
+use std::mem::MaybeUninit;
 
 use rayon::iter::ParallelExtend;
 
@@ -48,6 +49,17 @@ pub fn clear_with_capacity<T>(v: &mut Vec<T>, capacity: usize) {
     if v.capacity() < capacity {
         *v = Vec::with_capacity(capacity);
     }
+}
+
+/// Writes `value` into every element of `v`, a buffer not yet written (e.g. part of a vector's
+/// spare capacity), and returns it as written. For a part that its user initialises itself, in
+/// cache, instead of a whole buffer filled in advance ([`refill`]).
+pub fn fill_uninit<T: Copy>(v: &mut [MaybeUninit<T>], value: T) -> &mut [T] {
+    for x in v.iter_mut() {
+        x.write(value);
+    }
+    // SAFETY: every element was written just above, and `MaybeUninit<T>` has the layout of `T`.
+    unsafe { &mut *(std::ptr::from_mut(v) as *mut [T]) }
 }
 
 /// Asks the processor to bring the cache lines of `data` closer (a hint: no effect on any
@@ -207,6 +219,22 @@ mod tests {
         v.extend(0..3);
         clear_with_capacity(&mut v, 1000);
         assert!(v.is_empty() && v.capacity() >= 1000);
+    }
+
+    /// `fill_uninit` writes every element of the part it is given and no other: a vector's
+    /// spare capacity filled in two parts with different values reads back as those values.
+    #[test]
+    fn uninitialised_parts_fill_with_their_value() {
+        for (len, cut) in [(0, 0), (1, 0), (1, 1), (37, 5), (1000, 999)] {
+            let mut v: Vec<u32> = Vec::with_capacity(len);
+            let (head, tail) = v.spare_capacity_mut()[..len].split_at_mut(cut);
+            assert_eq!(fill_uninit(head, 7), vec![7; cut]);
+            assert_eq!(fill_uninit(tail, 9), vec![9; len - cut]);
+            // SAFETY: the first `len` elements were written by the two calls above.
+            unsafe { v.set_len(len) };
+            let want: Vec<u32> = (0..len).map(|i| if i < cut { 7 } else { 9 }).collect();
+            assert_eq!(v, want);
+        }
     }
 
     /// The advised allocator hands out blocks that hold what is written to them, zeroed ones

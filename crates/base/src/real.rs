@@ -12,6 +12,7 @@
 
 use std::fmt::{Debug, Display};
 use std::iter::Sum;
+use std::mem::MaybeUninit;
 use std::ops::{AddAssign, DivAssign, MulAssign, SubAssign};
 
 use ndarray::ScalarOperand;
@@ -54,6 +55,8 @@ pub trait Real:
     fn as_f32_slice(v: &[Self]) -> Option<&[f32]>;
     /// Mutable form of [`Real::as_f32_slice`].
     fn as_f32_slice_mut(v: &mut [Self]) -> Option<&mut [f32]>;
+    /// [`Real::as_f32_slice_mut`] for a buffer not yet written.
+    fn as_f32_uninit_mut(v: &mut [MaybeUninit<Self>]) -> Option<&mut [MaybeUninit<f32>]>;
 }
 
 impl Real for f32 {
@@ -77,6 +80,10 @@ impl Real for f32 {
     fn as_f32_slice_mut(v: &mut [Self]) -> Option<&mut [f32]> {
         Some(v)
     }
+    #[inline(always)]
+    fn as_f32_uninit_mut(v: &mut [MaybeUninit<Self>]) -> Option<&mut [MaybeUninit<f32>]> {
+        Some(v)
+    }
 }
 
 impl Real for f64 {
@@ -98,6 +105,10 @@ impl Real for f64 {
     }
     #[inline(always)]
     fn as_f32_slice_mut(_: &mut [Self]) -> Option<&mut [f32]> {
+        None
+    }
+    #[inline(always)]
+    fn as_f32_uninit_mut(_: &mut [MaybeUninit<Self>]) -> Option<&mut [MaybeUninit<f32>]> {
         None
     }
 }

@@ -47,7 +47,9 @@
 //! tile list, while they fit [`crate::tiles::ROW_LIST_BUDGET_BYTES`]; tiles beyond it are walked
 //! again).
 
-use base::memory::{filled, refill};
+use std::mem::MaybeUninit;
+
+use base::memory::{clear_with_capacity, fill_uninit, filled, refill};
 use gaussian::Real;
 use rayon::prelude::*;
 
@@ -276,11 +278,14 @@ pub fn rasterize_backward_with<T: Real>(
             last += 1;
         }
         let end = record_start[last];
-        refill(&mut records, (end - begin) * stride, T::zero());
+        // Not filled in advance: each tile's task initialises its own records, in cache (the
+        // lane kernels' compact records are each written once, by their Gaussian's group).
+        let len = (end - begin) * stride;
+        clear_with_capacity(&mut records, len);
 
         // Split the records into per-tile slices.
-        let mut slices: Vec<(usize, &mut [T], &mut [T])> = Vec::with_capacity(last - first);
-        let mut rest: &mut [T] = &mut records;
+        let mut slices = Vec::with_capacity(last - first);
+        let mut rest: &mut [MaybeUninit<T>] = &mut records.spare_capacity_mut()[..len];
         let mut bg_rest: &mut [T] = &mut tile_bg[first * d..last * d];
         for t in first..last {
             let count = record_start[t + 1] - record_start[t];
@@ -296,7 +301,7 @@ pub fn rasterize_backward_with<T: Real>(
             slices.into_iter().par_bridge().for_each_init(
                 <(scalar::Scratch<T>, lanes::Scratch)>::default,
                 |(scalar_scratch, lane_scratch), (t, rec, bg)| {
-                    let lanes_out = T::as_f32_slice_mut(rec).zip(T::as_f32_slice_mut(bg));
+                    let lanes_out = T::as_f32_uninit_mut(rec).zip(T::as_f32_slice_mut(bg));
                     match (&lanes_in, lanes_out) {
                         (Some((token, splats, background, cot)), Some((rec, bg_grad))) => token
                             .run(lanes::BackwardTile {
@@ -321,7 +326,7 @@ pub fn rasterize_backward_with<T: Real>(
                             cot,
                             t,
                             scalar_scratch,
-                            rec,
+                            fill_uninit(rec, T::zero()),
                             bg,
                         ),
                     }
@@ -339,6 +344,11 @@ pub fn rasterize_backward_with<T: Real>(
                 lists.insert(built)
             }
         };
+        // SAFETY: the tiles' parts cover `records[..len]`, and the tile pass initialised every
+        // part: the scalar loops fill theirs with zeros before adding to it, the lane kernels
+        // fill a part of one record per list entry, and write a part of compact records
+        // record by record after checking that the tile's Gaussians cover it.
+        unsafe { records.set_len(len) };
 
         // Sum the records per Gaussian, in intersection order: each Gaussian takes its
         // intersections of this batch, which follow its cursor in its ascending list.

@@ -33,6 +33,9 @@
 //! sum takes the pixels in the scalar loops' order. The results are therefore bit-identical to
 //! the scalar loops in `f32`.
 
+use std::mem::MaybeUninit;
+
+use base::memory::fill_uninit;
 use gaussian::{exp_f32, exp_f32_in_range, EXP_F32_HIGH, EXP_F32_LOW};
 use rayon::prelude::*;
 
@@ -1063,7 +1066,9 @@ pub(crate) struct BackwardTile<'a, 'b> {
     pub cot: &'a Cotangents<'a, f32>,
     pub t: usize,
     pub scratch: &'b mut Scratch,
-    pub rec: &'b mut [f32],
+    /// Not yet written: one record per tile list entry, or, with `compact`, per Gaussian that
+    /// blends in the tile. The pass initialises all of it.
+    pub rec: &'b mut [MaybeUninit<f32>],
     pub bg_grad: &'b mut [f32],
     /// The rows the forward pass of the same Gaussians blended in this tile, when it kept them.
     pub kept: Option<&'a KeptRows>,
@@ -1187,6 +1192,19 @@ impl BackwardTile<'_, '_> {
             previous = b.k;
         }
         starts[groups] = blended.len();
+        if compact {
+            // The forward pass kept this tile's rows, and its blending Gaussians (`blending_ids`,
+            // which gave `rec` its length) are the groups of those rows: each group writes its
+            // record below, so every record is written once.
+            assert_eq!(
+                groups * stride,
+                rec.len(),
+                "one compact record per blending Gaussian"
+            );
+        } else {
+            // Records of the list entries that blend nowhere stay zero.
+            fill_uninit(rec, 0.0);
+        }
 
         // Back to front, one Gaussian at a time; its rows in ascending order.
         let cx: [f32; LANES] = std::array::from_fn(|l| pixel_centre::<f32>(x0 + l as u32));
@@ -1296,8 +1314,13 @@ impl BackwardTile<'_, '_> {
             // which is the order of the groups.
             let slot = if compact { group } else { k };
             let record = &mut rec[slot * stride..(slot + 1) * stride];
-            record[..GEOMETRY].copy_from_slice(&sums);
-            record[GEOMETRY..].copy_from_slice(grads.as_ref());
+            let (geometry, channels) = record.split_at_mut(GEOMETRY);
+            for (r, &v) in geometry.iter_mut().zip(&sums) {
+                r.write(v);
+            }
+            for (r, &v) in channels.iter_mut().zip(grads.as_ref()) {
+                r.write(v);
+            }
         }
     }
 }

@@ -4,11 +4,13 @@
 //! benchmarks do, and any program using the libraries may (`docs/performance.md`, "Keeping freed
 //! memory in the process" and "Huge pages for large blocks").
 //!
-//! It also has the one way the libraries create their large initialised buffers (gradients of
-//! every Gaussian, per-intersection records): [`filled`] and [`refill`], which write the
-//! elements on the threads of the current rayon pool instead of the calling thread alone.
-//! Also [`clear_with_capacity`], to empty a reused buffer and grow it without copying its old
-//! contents, [`fill_uninit`], to initialise a part of a buffer's spare capacity where it is used, and the one cache hint of the libraries, [`prefetch`].
+//! It also has the one way the libraries create their large initialised buffers (e.g. the
+//! gradients of every Gaussian): [`filled`] and [`refill`], which write the elements on the
+//! threads of the current rayon pool instead of the calling thread alone; and
+//! [`fill_uninit`], for a buffer whose parts are initialised where they are used (the
+//! rasterizer's per-intersection records, each tile's part in its own task). Also
+//! [`clear_with_capacity`], to empty a reused buffer and grow it without copying its old
+//! contents, and the one cache hint of the libraries, [`prefetch`].
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::mem::MaybeUninit;

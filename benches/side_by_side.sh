@@ -14,13 +14,23 @@
 #                                           ROUNDS (default 1) repeats the four passes that
 #                                           many times, then prints each pass's median ratio:
 #   nets <pass> median ratio=<x> over <n> rounds (<lowest> to <highest>)
-#   benches/side_by_side.sh raster [--quick]
+#   benches/side_by_side.sh raster [--quick] [--rounds N]
 #                                           the rasterizer's vector lane kernels against its
 #                                           scalar reference loops, forward and backward, on two
 #                                           threads: 3, 35 and 64 channels at 100k Gaussians on
 #                                           256x256 and 1M on 800x800 (--quick: 35 channels,
 #                                           100k, 256x256 only). One line per case:
 #   raster <channels>ch/<gaussians>/<size> <fwd|bwd> simd=<pairs/s> scalar=<pairs/s> ratio=<x>
+#                                           --rounds N (default 1) runs the whole set N times,
+#                                           each case's two kernels back to back in every round,
+#                                           prints each round's lines with round=<r> after the
+#                                           pass, then per case the line above for the round
+#                                           whose ratio is the median (for an even N the lower
+#                                           of the two middle ones), followed by
+#                                           "median of <N> rounds (<lowest> to <highest>)".
+#                                           On a machine whose speed drifts (a shared host), a
+#                                           single run's two kernels can meet different
+#                                           speeds; the median round's ratio is the steadier.
 #
 # Pairs/s are blended Gaussian-pixel pairs per second at criterion's point estimate. PyTorch is
 # optional; without it only the dsgs network figures are printed.
@@ -108,45 +118,110 @@ decoder_relu3_1_fullres_forward_backward_256:decoder_relu3_1_fullres_forward_bac
   fi
   ;;
 raster)
-  if [ "${1:-}" = "--quick" ]; then
+  quick=
+  rounds=1
+  while [ $# -gt 0 ]; do
+    case "$1" in
+    --quick) quick=yes ;;
+    --rounds)
+      if [ $# -lt 2 ]; then
+        echo "--rounds needs a positive integer" >&2
+        exit 2
+      fi
+      rounds="$2"
+      shift
+      ;;
+    *)
+      echo "unknown raster option '$1' (expected --quick, --rounds N)" >&2
+      exit 2
+      ;;
+    esac
+    shift
+  done
+  case "$rounds" in
+  '' | *[!0-9]* | 0)
+    echo "--rounds needs a positive integer, got '$rounds'" >&2
+    exit 2
+    ;;
+  esac
+  if [ -n "$quick" ]; then
     cases="35ch/100k/256"
   else
     cases="3ch/100k/256 35ch/100k/256 64ch/100k/256 3ch/1000k/800 35ch/1000k/800 64ch/1000k/800"
   fi
   log="$(mktemp)"
-  trap 'rm -f "$log"' EXIT
+  lines="$(mktemp)"
+  trap 'rm -f "$log" "$lines"' EXIT
   export MALLOC_MMAP_THRESHOLD_=1073741824 MALLOC_TRIM_THRESHOLD_=2147483647 MALLOC_ARENA_MAX=1
-  for c in $cases; do
-    cargo bench -q -p dsgs-raster --bench raster -- "/$c/t2" 2>/dev/null | tee -a "$log" >/dev/null
-  done
-  # Criterion prints the id on one line and "thrpt: [low mid high]" two lines later.
-  awk '
-    function rate(v, unit) {
-      if (unit ~ /^Gelem/) return v * 1e9
-      if (unit ~ /^Melem/) return v * 1e6
-      if (unit ~ /^Kelem/) return v * 1e3
-      return v
-    }
-    /^(forward|backward)\/(scalar|simd)\// { id = $1 }
-    /thrpt:/ && id != "" {
-      gsub(/[\[\]]/, "")
-      for (i = 1; i <= NF; i++) if ($i == "thrpt:") { v = $(i + 3); u = $(i + 4) }
-      split(id, p, "/")
-      key = p[3] "/" p[4] "/" p[5] " " (p[1] == "forward" ? "fwd" : "bwd")
-      r[key, p[2]] = rate(v, u)
-      if (!(key in seen)) { seen[key] = 1; order[++n] = key }
-      id = ""
-    }
-    END {
-      for (i = 1; i <= n; i++) {
-        k = order[i]; s = r[k, "simd"]; c = r[k, "scalar"]
-        if (s == "" || c == "") continue
-        printf "raster %s simd=%.4g scalar=%.4g ratio=%.2f\n", k, s, c, s / c
+  cargo bench -q -p dsgs-raster --bench raster --no-run 2>/dev/null
+  for r in $(seq 1 "$rounds"); do
+    : >"$log"
+    for c in $cases; do
+      cargo bench -q -p dsgs-raster --bench raster -- "/$c/t2" 2>/dev/null | tee -a "$log" >/dev/null
+    done
+    # Criterion prints the id on one line and "thrpt: [low mid high]" two lines later.
+    awk -v round="$r" -v rounds="$rounds" '
+      function rate(v, unit) {
+        if (unit ~ /^Gelem/) return v * 1e9
+        if (unit ~ /^Melem/) return v * 1e6
+        if (unit ~ /^Kelem/) return v * 1e3
+        return v
       }
-    }' "$log"
+      /^(forward|backward)\/(scalar|simd)\// { id = $1 }
+      /thrpt:/ && id != "" {
+        gsub(/[\[\]]/, "")
+        for (i = 1; i <= NF; i++) if ($i == "thrpt:") { v = $(i + 3); u = $(i + 4) }
+        split(id, p, "/")
+        key = p[3] "/" p[4] "/" p[5] " " (p[1] == "forward" ? "fwd" : "bwd")
+        r[key, p[2]] = rate(v, u)
+        if (!(key in seen)) { seen[key] = 1; order[++n] = key }
+        id = ""
+      }
+      END {
+        for (i = 1; i <= n; i++) {
+          k = order[i]; s = r[k, "simd"]; c = r[k, "scalar"]
+          if (s == "" || c == "") continue
+          if (rounds == 1) {
+            printf "raster %s simd=%.4g scalar=%.4g ratio=%.2f\n", k, s, c, s / c
+          } else {
+            printf "raster %s round=%d simd=%.4g scalar=%.4g ratio=%.2f\n", k, round, s, c, s / c
+          }
+        }
+      }' "$log" | tee -a "$lines"
+  done
+  # With several rounds, each case's median round.
+  if [ "$rounds" -gt 1 ]; then
+    awk '
+      {
+        key = $2 " " $3
+        for (i = 4; i <= NF; i++) {
+          split($i, kv, "=")
+          f[kv[1]] = kv[2]
+        }
+        if (!(key in count)) order[++n] = key
+        c = ++count[key]
+        ratio[key, c] = f["ratio"] + 0
+        line[key, c] = sprintf("simd=%s scalar=%s ratio=%s", f["simd"], f["scalar"], f["ratio"])
+      }
+      END {
+        for (i = 1; i <= n; i++) {
+          k = order[i]; m = count[k]
+          # Insertion sort of the rounds by ratio (a handful of rounds).
+          for (a = 1; a <= m; a++) idx[a] = a
+          for (a = 2; a <= m; a++) {
+            x = idx[a]
+            for (b = a - 1; b >= 1 && ratio[k, idx[b]] > ratio[k, x]; b--) idx[b + 1] = idx[b]
+            idx[b + 1] = x
+          }
+          mid = idx[int((m + 1) / 2)]
+          printf "raster %s %s median of %d rounds (%.2f to %.2f)\n", k, line[k, mid], m,
+            ratio[k, idx[1]], ratio[k, idx[m]]
+        }
+      }' "$lines"
+  fi
   ;;
 *)
-  echo "usage: benches/side_by_side.sh nets [PYTHON] [ROUNDS] | raster [--quick]" >&2
+  echo "usage: benches/side_by_side.sh nets [PYTHON] [ROUNDS] | raster [--quick] [--rounds N]" >&2
   exit 2
   ;;
 esac

@@ -98,8 +98,16 @@ struct ViewArgs {
     #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE, value_parser = at_least_one::<u32>())]
     style_size: u32,
     /// Working memory of the networks per stylized view, in MiB (1 to 1048576).
-    #[arg(long, default_value_t = train::bundle::DEFAULT_TILE_BUDGET_BYTES >> 20, value_parser = tile_budget())]
+    #[arg(long, default_value_t = train::bundle::DEFAULT_TILE_BUDGET_BYTES >> 20, value_parser = mebibytes())]
     tile_budget: u64,
+    /// Most pixels (width x height) of an uploaded style image, read from its header before
+    /// decoding (at least 1).
+    #[arg(long, default_value_t = viewer::ViewerConfig::new("").max_upload_pixels, value_parser = at_least_one::<u64>())]
+    max_upload_pixels: u64,
+    /// Memory that the work in flight (uploads being decoded, stylizations running or waiting)
+    /// may take by estimate, in MiB; a request beyond it is answered 503 (1 to 1048576).
+    #[arg(long, default_value_t = viewer::ViewerConfig::new("").memory_budget >> 20, value_parser = mebibytes())]
+    memory_budget: u64,
 }
 
 #[derive(Args)]
@@ -498,6 +506,14 @@ struct PretrainDecoderArgs {
     /// Search the image folders recursively.
     #[arg(long)]
     recursive: bool,
+    /// Held-out content images for the evaluation curve (folder or file; repeat for several;
+    /// with --eval-style) [default: the training images]
+    #[arg(long = "eval-content", requires = "eval_styles")]
+    eval_content: Vec<PathBuf>,
+    /// Held-out style images for the evaluation curve (folder or file; repeat for several;
+    /// with --eval-content) [default: the training images]
+    #[arg(long = "eval-style", requires = "eval_content")]
+    eval_styles: Vec<PathBuf>,
     /// Canonical network weights (.safetensors) holding the encoder and, unless --from-scratch
     /// or --decoder, the starting decoder [default: none: give --encoder and --decoder]
     #[arg(long)]
@@ -748,7 +764,7 @@ struct BakeArgs {
     resolution_scale: Option<f64>,
     #[arg(long, help = with_default("Seed of the view order", BakeConfig::default().seed))]
     seed: Option<u64>,
-    #[arg(long, value_parser = tile_budget(), help = with_default(
+    #[arg(long, value_parser = mebibytes(), help = with_default(
         "Working memory of the networks per decoded target view, in MiB: views are decoded in \
          tiles that fit it (any budget gives the same targets; 1 to 1048576)",
         BakeConfig::default().tile_budget_mib,
@@ -876,12 +892,12 @@ struct StyleArgs {
     decoder: Option<PathBuf>,
     /// Working memory of the networks per frame, in MiB: frames are decoded in tiles that fit
     /// it (any budget gives the same images; 1 to 1048576).
-    #[arg(long, default_value_t = train::bundle::DEFAULT_TILE_BUDGET_BYTES >> 20, value_parser = tile_budget())]
+    #[arg(long, default_value_t = train::bundle::DEFAULT_TILE_BUDGET_BYTES >> 20, value_parser = mebibytes())]
     tile_budget: u64,
 }
 
-/// MiB of a `--tile-budget`.
-fn tile_budget() -> impl TypedValueParser<Value = u64> {
+/// An amount of memory in MiB: 1 to 1048576 (1 TiB).
+fn mebibytes() -> impl TypedValueParser<Value = u64> {
     clap::value_parser!(u64).range(1..=1 << 20)
 }
 
@@ -1214,6 +1230,8 @@ fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
         content: a.content,
         styles: a.styles,
         recursive: a.recursive,
+        eval_content: a.eval_content,
+        eval_styles: a.eval_styles,
         networks: NetworkFiles {
             weights: a.weights,
             encoder: a.encoder,
@@ -1618,6 +1636,8 @@ fn view(a: ViewArgs) -> Result<()> {
         port: a.port,
         style_side: a.style_size,
         tile_budget: a.tile_budget << 20,
+        max_upload_pixels: a.max_upload_pixels,
+        memory_budget: a.memory_budget << 20,
         ..viewer::ViewerConfig::new(&a.scene)
     };
     let running = viewer::start(config)

@@ -268,7 +268,7 @@ fn the_api_serves_the_scene_stylizes_views_and_refuses_bad_requests() {
             &png_header(20_000, 20_000),
         ),
         413,
-        "pixels per side",
+        "at most 16777216 pixels",
     );
     refused(
         post(
@@ -364,4 +364,229 @@ fn a_scene_that_cannot_be_read_is_named() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("nothing.ply"), "{err}");
+}
+
+/// An all-zero RGB PNG of `side x side` pixels, written row by row (a decompression bomb: a
+/// few hundred KB that decode to `3 * side^2` bytes).
+fn zero_png(side: u32) -> Vec<u8> {
+    let mut out = Vec::new();
+    {
+        let mut e = png::Encoder::new(&mut out, side, side);
+        e.set_color(png::ColorType::Rgb);
+        e.set_depth(png::BitDepth::Eight);
+        e.set_compression(png::Compression::High);
+        let mut w = e.write_header().unwrap();
+        let mut stream = w.stream_writer().unwrap();
+        let row = vec![0u8; 3 * side as usize];
+        for _ in 0..side {
+            std::io::Write::write_all(&mut stream, &row).unwrap();
+        }
+        stream.finish().unwrap();
+    }
+    out
+}
+
+/// The peak resident memory of process `pid` (`VmHWM`), in bytes (Linux).
+fn peak_rss(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb << 10)
+}
+
+/// `(status, body)` of a request with any method.
+fn call(s: &Server, method: &str, path: &str) -> (u16, Vec<u8>) {
+    let req = ureq::http::Request::builder()
+        .method(method)
+        .uri(format!("{}{path}", s.url))
+        .body(())
+        .unwrap();
+    let mut r = agent().run(req).unwrap();
+    let status = r.status().as_u16();
+    (status, r.body_mut().read_to_vec().unwrap())
+}
+
+/// `(status, body)` of a raw HTTP/1.1 request written to a new connection (for heads no
+/// client library sends).
+fn raw(s: &Server, request: &[u8]) -> (u16, Vec<u8>) {
+    use std::io::{Read, Write};
+    let addr = s.url.trim_start_matches("http://");
+    let mut c = std::net::TcpStream::connect(addr).unwrap();
+    c.set_read_timeout(Some(std::time::Duration::from_secs(30)))
+        .unwrap();
+    // The server may answer and close before reading all of an over-long head.
+    let _ = c.write_all(request);
+    let mut answer = Vec::new();
+    let _ = c.read_to_end(&mut answer);
+    let text = String::from_utf8_lossy(&answer).to_string();
+    let status = text
+        .split_whitespace()
+        .nth(1)
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no status in {text:?}"));
+    let body = text.split_once("\r\n\r\n").map_or("", |(_, b)| b);
+    (status, body.as_bytes().to_vec())
+}
+
+/// One hostile request's answer: what it was, the answer (status, body), the documented
+/// status and words its message must hold.
+type Answer = (&'static str, (u16, Vec<u8>), u16, &'static str);
+
+/// The load test of the viewer's limits: 8 clients send the hostile requests that once
+/// crashed or misanswered it (a 6,000-entry style list, a decompression-bomb upload, a
+/// 4096x4096 upload at the pixel limit, views too small for the networks, wrong methods, an
+/// over-long URI, malformed parameters) for a bounded time (`DSGS_LOAD_SECONDS`, default 15).
+/// Every answer must be its documented status with a JSON `{error}` message, the server's peak
+/// resident memory must stay under 2 GB, and a normal request must still succeed afterwards.
+#[test]
+fn hostile_requests_are_refused_within_bounded_memory() {
+    const CLIENTS: usize = 8;
+    const PEAK_BOUND: u64 = 2_000_000_000;
+    let seconds: u64 = std::env::var("DSGS_LOAD_SECONDS")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(15)
+        .clamp(1, 600);
+    let dir = scratch("view-load");
+    let bundle = save_tiny_bundle(&dir);
+    let style = shared_path("data/styles/mondrian.jpg");
+    let s = serve(&bundle, &["--style", style.to_str().unwrap()]);
+    let scene = json_of(&get(&s, "/api/scene").1);
+    let camera = scene["cameras"][0].clone();
+
+    let many = vec![json!({"id": "s0"}); 6000];
+    let long_list = json!({"camera": camera, "styles": many}).to_string();
+    assert!(long_list.len() > 60_000, "{}", long_list.len());
+    let bomb = zero_png(16384);
+    assert!(bomb.len() < 2 << 20, "bomb of {} bytes", bomb.len());
+    let at_limit = zero_png(4096);
+    let mut tiny = camera.clone();
+    tiny["width"] = json!(1);
+    tiny["height"] = json!(1);
+    tiny["cx"] = json!(0.5);
+    tiny["cy"] = json!(0.5);
+    let tiny_view = json!({"camera": tiny, "styles": [{"id": "s0"}]});
+    let one_pixel = json!({"camera": camera, "styles": [{"id": "s0"}], "max_side": 1});
+    let long_uri = format!("/api/scene?pad={}", "x".repeat(20_000));
+    // Beyond the HTTP layer's own limits (64 KiB of URI, about 400 KiB of head).
+    let huge_uri = format!(
+        "GET /api/scene?pad={} HTTP/1.1\r\nHost: a\r\n\r\n",
+        "x".repeat(70_000)
+    );
+    let huge_head = format!(
+        "GET /api/scene HTTP/1.1\r\nHost: a\r\nX-Pad: {}\r\n\r\n",
+        "y".repeat(600_000)
+    );
+
+    // One round of every hostile request: (what, answer, status, words of the message).
+    let round = |i: usize| -> Vec<Answer> {
+        let mut v = vec![
+            (
+                "6000 styles",
+                post(&s, "/api/stylize", "application/json", long_list.as_bytes()),
+                400,
+                "at most 8",
+            ),
+            (
+                "bomb",
+                post(&s, "/api/styles?name=bomb.png", "image/png", &bomb),
+                413,
+                "at most 16777216 pixels",
+            ),
+            (
+                "1x1 view",
+                post_json(&s, "/api/stylize", &tiny_view),
+                400,
+                "too small",
+            ),
+            (
+                "max_side 1",
+                post_json(&s, "/api/stylize", &one_pixel),
+                400,
+                "too small",
+            ),
+            ("GET stylize", get(&s, "/api/stylize"), 405, "not allowed"),
+            (
+                "PUT scene",
+                call(&s, "PUT", "/api/scene"),
+                405,
+                "not allowed",
+            ),
+            ("long URI", get(&s, &long_uri), 414, "URI"),
+            ("huge URI", raw(&s, huge_uri.as_bytes()), 414, "URI"),
+            ("huge head", raw(&s, huge_head.as_bytes()), 431, "head"),
+            (
+                "bad path",
+                get(&s, "/api/styles/%FF%FE/thumbnail.png"),
+                400,
+                "",
+            ),
+            (
+                "bad query",
+                post(&s, "/api/styles?name=%FF", "image/png", b"x"),
+                400,
+                "",
+            ),
+            (
+                "no JSON type",
+                post(&s, "/api/stylize", "text/plain", b"{}"),
+                400,
+                "Content-Type",
+            ),
+        ];
+        // Every other round, one client uploads an image at the pixel limit: decoded under
+        // the slots and the budget, it is accepted (or, while the budget is full, 503).
+        if i.is_multiple_of(2) {
+            v.push((
+                "4096x4096",
+                post(&s, "/api/styles?name=flat.png", "image/png", &at_limit),
+                201,
+                "",
+            ));
+        }
+        v
+    };
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(seconds);
+    let answered = std::sync::atomic::AtomicUsize::new(0);
+    std::thread::scope(|scope| {
+        for c in 0..CLIENTS {
+            let (round, answered) = (&round, &answered);
+            scope.spawn(move || {
+                let mut i = c;
+                while std::time::Instant::now() < deadline {
+                    for (what, (got, body), want, needle) in round(i) {
+                        let text = String::from_utf8_lossy(&body);
+                        if got == 201 || (want == 201 && got == 503) {
+                            assert!(want == 201, "{what}: {got} {text}");
+                        } else {
+                            assert_eq!(got, want, "{what}: {text}");
+                        }
+                        if got >= 400 {
+                            let v: Value = serde_json::from_slice(&body)
+                                .unwrap_or_else(|_| panic!("{what}: {got} without JSON: {text}"));
+                            let msg = v["error"].as_str().unwrap_or_default();
+                            assert!(!msg.is_empty() && msg.contains(needle), "{what}: {msg}");
+                        }
+                        answered.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    }
+                    i += 1;
+                }
+            });
+        }
+    });
+    let peak = peak_rss(s.child.id());
+    eprintln!(
+        "load test: {} answers from {CLIENTS} clients in {seconds} s; server peak RSS {:?} MB",
+        answered.into_inner(),
+        peak.map(|b| b / 1_000_000)
+    );
+    if let Some(peak) = peak {
+        assert!(peak < PEAK_BOUND, "peak resident memory {peak} bytes");
+    }
+    // The server is up and a normal request still succeeds.
+    let normal = json!({"camera": camera, "styles": [{"id": "s0"}], "max_side": 32});
+    let (status, png) = post_json(&s, "/api/stylize", &normal);
+    assert_eq!(status, 200, "{}", String::from_utf8_lossy(&png));
+    drop(s);
+    std::fs::remove_dir_all(&dir).ok();
 }

@@ -538,6 +538,70 @@ fn colmap_text_fixture_as_dataset() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// Image names that leave the dataset's `images/` folder (absolute, or `..` above it) are
+/// refused before any file is opened, naming `images.txt` and the image; a point whose position
+/// is not finite is refused naming `points3D.txt` and the point.
+#[test]
+fn colmap_names_stay_inside_the_dataset_and_points_are_finite() {
+    let dir = scratch_dir("data", "colmap_escape");
+    let sparse = dir.join("sparse/0");
+    std::fs::create_dir_all(&sparse).unwrap();
+    for f in ["cameras.txt", "points3D.txt"] {
+        std::fs::copy(repo_fixture("colmap_tiny/sparse/0").join(f), sparse.join(f)).unwrap();
+    }
+    std::fs::create_dir_all(dir.join("images/sub")).unwrap();
+    for name in ["a.png", "sub/b.png"] {
+        image::RgbImage::from_pixel(64, 48, image::Rgb([255, 0, 0]))
+            .save(dir.join("images").join(name))
+            .unwrap();
+    }
+    // A readable file outside the dataset: a name reaching it must not load it.
+    let outside = dir.join("x.png");
+    image::RgbImage::from_pixel(64, 48, image::Rgb([0, 255, 0]))
+        .save(&outside)
+        .unwrap();
+    let images_txt = |second: &str| {
+        std::fs::write(
+            sparse.join("images.txt"),
+            format!("1 1 0 0 0 0 0 0 1 a.png\n\n2 1 0 0 0 0 0 4 2 {second}\n\n"),
+        )
+        .unwrap();
+    };
+    // Inside the folder, `..` that stays inside is fine.
+    images_txt("sub/../sub/b.png");
+    let d = Dataset::load(&dir, &LoadOptions::default()).unwrap();
+    assert_eq!(d.len(), 2);
+    for (bad, why) in [
+        ("../x.png", "leaves the images folder"),
+        ("sub/../../x.png", "leaves the images folder"),
+        ("/etc/hostname", "is absolute"),
+        (outside.to_str().unwrap(), "is absolute"),
+    ] {
+        images_txt(bad);
+        let err = Dataset::load(&dir, &LoadOptions::default())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("images.txt") && err.contains(why) && err.contains(bad),
+            "{bad}: {err}"
+        );
+    }
+    images_txt("a.png");
+    std::fs::write(
+        sparse.join("points3D.txt"),
+        "1 0 0 0 255 0 0 0.5 1 0\n7 1 nan 2 0 128 255 0.5 2 0\n",
+    )
+    .unwrap();
+    let err = Dataset::load(&dir, &LoadOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("points3D.txt") && err.contains("point 7") && err.contains("not finite"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 // ---------------------------------------------------------------------------------------------
 // npy and split
 

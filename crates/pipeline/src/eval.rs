@@ -403,6 +403,7 @@ fn evaluate(
         settings.styles.len(),
     )?;
     crate::cameras::check_camera_sizes(cameras)?;
+    stylize::check_view_sizes(bundle, cameras)?;
     let (width, height) = check_same_size(cameras)?;
     // Without styles only the colour render is evaluated: the floor the warp itself reaches.
     let styles = if settings.styles.is_empty() {

@@ -16,9 +16,14 @@
 //! once up front (reported as `Stage::Prepare` progress), so a bad file is named in seconds,
 //! not when training first draws it.
 //!
-//! Outputs: `OUT/decoder.safetensors` (encoder and trained decoder, canonical weights) and
+//! Evaluation: the held-out loss is measured on `eval_pairs` fixed (content, style) pairs,
+//! drawn from `--eval-content` and `--eval-style` when given (images training never sees),
+//! otherwise from the training images.
+//!
+//! Outputs: `OUT/decoder.safetensors` (encoder and trained decoder, canonical weights),
 //! `OUT/checkpoint.safetensors`, written at the checkpoint interval and again at the end, so a
-//! finished run can be continued with more iterations.
+//! finished run can be continued with more iterations, and `OUT/evaluations.tsv`, the held-out
+//! curve of the whole run across resumptions.
 
 use std::path::PathBuf;
 
@@ -143,6 +148,11 @@ pub struct PretrainSettings {
     pub styles: Vec<PathBuf>,
     /// Search the folders recursively.
     pub recursive: bool,
+    /// Held-out content images for the evaluation (`--eval-content`; empty: the training
+    /// images). Given together with `eval_styles`.
+    pub eval_content: Vec<PathBuf>,
+    /// Held-out style images for the evaluation (`--eval-style`; empty: the training images).
+    pub eval_styles: Vec<PathBuf>,
     /// The frozen encoder and the starting decoder (`--weights`, `--encoder`, `--decoder`).
     pub networks: NetworkFiles,
     /// Start from a seeded initialisation instead of a decoder file.
@@ -220,7 +230,26 @@ pub fn run(settings: &PretrainSettings, control: &Control) -> Result<PretrainRep
     let content = open_images(&settings.content, settings.recursive, "content")?;
     let styles = open_images(&settings.styles, settings.recursive, "style")?;
     let (n_content, n_style) = (content.len(), styles.len());
-    decode_inputs(&[(&content, "content"), (&styles, "style")], control)?;
+    let held_out = match (
+        settings.eval_content.is_empty(),
+        settings.eval_styles.is_empty(),
+    ) {
+        (true, true) => None,
+        (false, false) => Some((
+            open_images(
+                &settings.eval_content,
+                settings.recursive,
+                "held-out content",
+            )?,
+            open_images(&settings.eval_styles, settings.recursive, "held-out style")?,
+        )),
+        _ => bail!("held-out images need both --eval-content and --eval-style"),
+    };
+    let mut sets = vec![(&content, "content"), (&styles, "style")];
+    if let Some((c, s)) = &held_out {
+        sets.extend([(c, "held-out content"), (s, "held-out style")]);
+    }
+    decode_inputs(&sets, control)?;
     let encoder = settings.networks.load_encoder()?;
     // Every input is read before anything is written.
     let decoder = match (&settings.resume, settings.from_scratch) {
@@ -249,6 +278,11 @@ pub fn run(settings: &PretrainSettings, control: &Control) -> Result<PretrainRep
                 .with_context(|| format!("resuming from {}", ck.display()))?
         }
     };
+    if let Some((c, s)) = &held_out {
+        trainer = trainer
+            .with_eval_images(c, s)
+            .context("drawing the held-out evaluation pairs")?;
+    }
     let summary = trainer.train(&control.run_in(&settings.out_dir))?;
     let checkpoint = settings.out_dir.join(DECODER_CHECKPOINT_FILE);
     if !summary.run.interrupted {

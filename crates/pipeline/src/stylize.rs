@@ -322,6 +322,18 @@ pub fn render_feature_view(bundle: &SceneBundle, camera: &Camera) -> Result<Feat
     })
 }
 
+/// Checks that the bundle's networks can stylize every camera's view
+/// ([`SceneBundle::check_view_size`]), naming the first camera too small by its index.
+pub fn check_view_sizes(bundle: &SceneBundle, cameras: &[Camera]) -> Result<()> {
+    for (i, c) in cameras.iter().enumerate() {
+        let k = &c.intrinsics;
+        if let Err(m) = bundle.check_view_size(k.width, k.height) {
+            bail!("camera {i}: {m}");
+        }
+    }
+    Ok(())
+}
+
 /// Wall time of the stages of one decoded view, in seconds.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct StageSeconds {
@@ -509,6 +521,7 @@ pub fn run(
         settings.styles.len(),
     )?;
     crate::cameras::check_camera_sizes(cameras)?;
+    check_view_sizes(bundle, cameras)?;
     let ffmpeg = if settings.mp4 && merges {
         Some(image_io::ffmpeg()?)
     } else {

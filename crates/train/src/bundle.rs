@@ -15,8 +15,10 @@
 //! [`MAX_IMAGE_SIDE`], focal lengths finite and positive, principal point finite, every entry of
 //! `camera_from_world` finite, its last row `0 0 0 1` and its rotation part orthonormal with
 //! determinant +1 (a rigid transform, as the dataset loaders of `gaussian::dataset` require).
-//! A bad camera is reported as a [`TrainError::Checkpoint`] naming `bundle.json`, the camera's
-//! index and name, and the problem.
+//! A bad camera is reported as a [`TrainError::Bundle`] naming `bundle.json`, the camera's
+//! index and name, and the problem. [`SceneBundle::load`] also refuses cameras smaller than the
+//! networks can decode ([`SceneBundle::min_view_side`]) and `bundle.json` values that do not fit
+//! the scene or the networks, naming the key.
 //!
 //! Rendering a stylized view (the module's convention, shared by training and stylization):
 //!
@@ -316,12 +318,12 @@ impl BundleInfo {
     /// its scene or networks (enough for its cameras).
     ///
     /// Checked: the JSON, the format tag, and every camera ([`CameraRecord::check`]). A bad
-    /// camera gives a [`TrainError::Checkpoint`] on `bundle.json` whose message names the
+    /// camera gives a [`TrainError::Bundle`] on `bundle.json` whose message names the
     /// camera by index and name and says what is wrong, e.g. `camera 3 (r_12): fx is 0; the
     /// focal length must be finite and positive`.
     ///
-    /// A missing folder or description is said once, plainly: `checkpoint X: bundle folder not
-    /// found`, `checkpoint X: no bundle.json (...)`.
+    /// A missing folder or description is said once, plainly: `X: bundle folder not found`,
+    /// `X: no bundle.json (...)`.
     pub fn load(dir: &Path) -> Result<BundleInfo, TrainError> {
         let info_path = dir.join(INFO_FILE);
         let bytes = std::fs::read(&info_path).map_err(|e| {
@@ -410,7 +412,7 @@ mod null_as_nan {
 }
 
 fn bundle_err(path: &Path, message: impl Into<String>) -> TrainError {
-    TrainError::Checkpoint {
+    TrainError::Bundle {
         path: path.to_path_buf(),
         message: message.into(),
     }
@@ -491,13 +493,13 @@ impl SceneBundle {
         let mut problems = Vec::new();
         if self.scene.feature_dim != f {
             problems.push(format!(
-                "the scene has {} feature channels, bundle.json says {f}",
+                "feature_dim is {f}, but the scene has {} feature channels",
                 self.scene.feature_dim
             ));
         }
         if self.lifter.in_channels() != f {
             problems.push(format!(
-                "the lifter takes {} channels, the features have {f}",
+                "feature_dim is {f}, but the lifter takes {} channels",
                 self.lifter.in_channels()
             ));
         }
@@ -514,21 +516,54 @@ impl SceneBundle {
         }
         if self.info.scene_mean.len() != c || self.info.scene_std.len() != c {
             problems.push(format!(
-                "scene statistics have {} / {} channels, expected {c}",
+                "scene_mean and scene_std have {} and {} values, expected {c} (the lifter's \
+                 width)",
                 self.info.scene_mean.len(),
                 self.info.scene_std.len()
             ));
         }
+        if self.info.encoder_widths != self.encoder.widths() {
+            problems.push(format!(
+                "encoder_widths is {:?}, but the encoder's widths are {:?}",
+                self.info.encoder_widths,
+                self.encoder.widths()
+            ));
+        }
         if self.decoder.is_pointwise() && self.info.variant != Variant::Fullres {
-            problems.push(
-                "the decoder is a per-pixel MLP, which needs the fullres variant".to_string(),
-            );
+            problems.push(format!(
+                "variant is {}, but the decoder is a per-pixel MLP, which needs fullres",
+                self.info.variant.as_str()
+            ));
         }
         if self.info.feature_background.len() != f {
             problems.push(format!(
-                "feature background has {} values, expected {f}",
+                "feature_background has {} values, expected {f} (feature_dim)",
                 self.info.feature_background.len()
             ));
+        }
+        let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+        for (key, values) in [
+            ("scene_mean", &self.info.scene_mean),
+            ("scene_std", &self.info.scene_std),
+            ("feature_background", &self.info.feature_background),
+        ] {
+            if !finite(values) {
+                problems.push(format!("{key} holds a value that is not finite"));
+            }
+        }
+        if !self.info.background.iter().all(|x| x.is_finite()) {
+            problems.push("background holds a value that is not finite".to_string());
+        }
+        let min = self.min_view_side();
+        for (i, cam) in self.info.cameras.iter().enumerate() {
+            if cam.width.min(cam.height) < min {
+                problems.push(format!(
+                    "camera {i} ({}) is {}x{}: the networks decode views of at least {min} \
+                     pixels a side",
+                    cam.name, cam.width, cam.height
+                ));
+                break;
+            }
         }
         if problems.is_empty() {
             Ok(())
@@ -597,9 +632,10 @@ impl SceneBundle {
             lifter,
             info,
         };
-        bundle
-            .validate()
-            .map_err(|e| bundle_err(dir, e.to_string()))?;
+        bundle.validate().map_err(|e| match e {
+            TrainError::Config(m) => bundle_err(&dir.join(INFO_FILE), m),
+            other => other,
+        })?;
         Ok(bundle)
     }
 
@@ -633,6 +669,32 @@ impl SceneBundle {
     /// The cameras stored in the bundle.
     pub fn cameras(&self) -> Vec<Camera> {
         self.info.cameras()
+    }
+
+    /// The smallest side, in pixels, of a view these networks can stylize: its feature map
+    /// must have at least 2x2 positions for the decoder's reflection-padded 3x3 convolutions
+    /// (1x1 for a per-pixel decoder), after the standard variant's pooling.
+    pub fn min_view_side(&self) -> u32 {
+        let need = if self.decoder.is_pointwise() { 1 } else { 2 };
+        (1..=MAX_IMAGE_SIDE)
+            .find(|&s| {
+                let (w, h) = self.feature_size(s, s);
+                w.min(h) >= need
+            })
+            .unwrap_or(MAX_IMAGE_SIDE)
+    }
+
+    /// Checks that a `width x height` view can be stylized ([`SceneBundle::min_view_side`]);
+    /// the error says the size and the minimum.
+    pub fn check_view_size(&self, width: u32, height: u32) -> Result<(), String> {
+        let min = self.min_view_side();
+        if width.min(height) < min {
+            return Err(format!(
+                "a view of {width}x{height} pixels is too small: this bundle's networks decode \
+                 views of at least {min} pixels a side"
+            ));
+        }
+        Ok(())
     }
 
     /// The feature-map size `(width, height)` for an image of `width x height`.

@@ -61,6 +61,11 @@ pub const DECODER_CHECKPOINT_FILE: &str = crate::driver::CHECKPOINT_FILE;
 /// The final weights inside a decoder-training output folder (encoder and decoder), written
 /// when training completes.
 pub const DECODER_WEIGHTS_FILE: &str = "decoder.safetensors";
+/// The held-out curve inside a decoder-training output folder: one tab-separated row per
+/// evaluation (`step pairs loss content style`), rewritten atomically at each evaluation. A
+/// resumed run keeps the rows before its checkpoint's step and appends its own, so the file
+/// holds the curve of the whole run across sessions.
+pub const DECODER_CURVE_FILE: &str = "evaluations.tsv";
 
 /// Settings of a decoder training run. The defaults are the AdaIN paper's, scaled down for a CPU
 /// (smaller batch and crops).
@@ -513,6 +518,7 @@ impl DecoderTrainer {
             t: self,
             evaluations: Vec::new(),
             lr: 0.0,
+            curve: run.out_dir.map(|d| d.join(DECODER_CURVE_FILE)),
         };
         let run = drive(&mut l, cadence, run)?;
         Ok(DecoderTrainSummary {
@@ -528,6 +534,8 @@ struct DecoderLoop<'t> {
     evaluations: Vec<DecoderEvaluation>,
     /// The learning rate of the last iteration.
     lr: f64,
+    /// `OUT/evaluations.tsv`, with an output folder.
+    curve: Option<PathBuf>,
 }
 
 impl DecoderLoop<'_> {
@@ -539,10 +547,35 @@ impl DecoderLoop<'_> {
                 step: e.step,
                 metrics: e.metrics(),
             });
+            if let Some(path) = &self.curve {
+                record_evaluation(path, &e)?;
+            }
             self.evaluations.push(e);
         }
         Ok(())
     }
+}
+
+/// The header line of [`DECODER_CURVE_FILE`].
+const CURVE_HEADER: &str = "step\tpairs\tloss\tcontent\tstyle";
+
+/// Rewrites the curve file at `path` with its rows of earlier steps and then `e` (a missing or
+/// unreadable file starts a new curve).
+fn record_evaluation(path: &Path, e: &DecoderEvaluation) -> Result<(), TrainError> {
+    let old = std::fs::read_to_string(path).unwrap_or_default();
+    let mut text = format!("{CURVE_HEADER}\n");
+    for line in old.lines().skip(1) {
+        let step = line.split('\t').next().and_then(|s| s.parse::<u64>().ok());
+        if step.is_some_and(|s| s < e.step) {
+            text.push_str(line);
+            text.push('\n');
+        }
+    }
+    text.push_str(&format!(
+        "{}\t{}\t{:.6}\t{:.6}\t{:.6}\n",
+        e.step, e.pairs, e.loss, e.loss_content, e.loss_style
+    ));
+    base::write_atomic(path, text.as_bytes()).map_err(|err| TrainError::io(path, err))
 }
 
 impl TrainingLoop for DecoderLoop<'_> {

@@ -20,13 +20,24 @@ pub enum TrainError {
         /// The underlying I/O error.
         error: std::io::Error,
     },
-    /// A checkpoint, weights file or scene bundle that is not what this crate writes (no
-    /// safetensors header, wrong format tag, missing or malformed metadata or tensors, a bundle
-    /// whose parts do not fit together or whose encoder fingerprint differs), or weights or a
-    /// bundle description that could not be written.
+    /// A checkpoint or weights file that is not what this crate writes (no safetensors header,
+    /// wrong format tag, missing or malformed metadata or tensors), or weights that could not be
+    /// written.
     #[error("checkpoint {}: {message}", path.display())]
     Checkpoint {
         /// The file or bundle directory rejected, or the file being written.
+        path: PathBuf,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// A scene bundle, or one of its files, that is not what this crate writes: a missing
+    /// folder or file, a `bundle.json` key of the wrong value (the message names the key), parts
+    /// that do not fit together, an encoder fingerprint that differs, a camera the networks
+    /// cannot decode; or a bundle file that could not be written. `path` is the file at fault
+    /// (`bundle.json`, `nets.safetensors`) or the bundle folder.
+    #[error("{}: {message}", path.display())]
+    Bundle {
+        /// The bundle file or folder rejected, or the file being written.
         path: PathBuf,
         /// What is wrong with it.
         message: String,

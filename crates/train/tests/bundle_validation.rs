@@ -181,3 +181,77 @@ fn a_reflection_is_rejected() {
     });
     assert_rejected(&dir, &["determinant -1", "reflection", "determinant +1"]);
 }
+
+/// Asserts that `SceneBundle::load` refuses the bundle in `dir` naming `bundle.json` and every
+/// part of `problem` (values that only the scene or the networks can contradict).
+fn assert_load_rejected(dir: &Path, problem: &[&str]) {
+    let file = dir.join(INFO_FILE).display().to_string();
+    let msg = SceneBundle::load(dir)
+        .map(|_| ())
+        .expect_err("the bad bundle.json was accepted")
+        .to_string();
+    assert!(msg.contains(&file), "does not name {file}: {msg}");
+    assert!(!msg.starts_with("checkpoint"), "{msg}");
+    for p in problem {
+        assert!(msg.contains(p), "does not say `{p}`: {msg}");
+    }
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+#[test]
+fn a_camera_smaller_than_the_networks_decode_is_rejected_at_load() {
+    let min = valid_bundle().min_view_side();
+    assert!(min >= 2, "{min}");
+    // The networks need the feature map to keep 2x2 positions after pooling.
+    let (w, h) = valid_bundle().feature_size(min, min);
+    assert!(w.min(h) >= 2, "{w}x{h}");
+    let (w, h) = valid_bundle().feature_size(min - 1, min - 1);
+    assert!(w.min(h) < 2, "{w}x{h}");
+    let dir = edited("tiny-camera", |json| {
+        let cam = bad_camera(json);
+        cam["width"] = serde_json::json!(1);
+        cam["height"] = serde_json::json!(1);
+        cam["cx"] = serde_json::json!(0.5);
+        cam["cy"] = serde_json::json!(0.5);
+    });
+    assert_load_rejected(
+        &dir,
+        &[
+            &format!("camera {BAD} ({BAD_NAME}) is 1x1"),
+            &format!("at least {min} pixels"),
+        ],
+    );
+}
+
+/// A case: its name, the edit of `bundle.json`, and the words the error must hold.
+type Case = (&'static str, fn(&mut Value), &'static [&'static str]);
+
+#[test]
+fn bundle_json_values_that_do_not_fit_are_named_by_key() {
+    let cases: [Case; 4] = [
+        (
+            "feature-dim",
+            |j| j["feature_dim"] = serde_json::json!(FEATURES + 1),
+            &["feature_dim is 5"],
+        ),
+        (
+            "background-len",
+            |j| j["feature_background"] = serde_json::json!([0.0]),
+            &["feature_background has 1 values"],
+        ),
+        (
+            "scene-std-len",
+            |j| j["scene_std"] = serde_json::json!([1.0]),
+            &["scene_mean and scene_std"],
+        ),
+        (
+            "encoder-widths",
+            |j| j["encoder_widths"] = serde_json::json!([1, 2]),
+            &["encoder_widths is [1, 2]"],
+        ),
+    ];
+    for (name, edit, problem) in cases {
+        let dir = edited(name, edit);
+        assert_load_rejected(&dir, problem);
+    }
+}

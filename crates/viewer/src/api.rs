@@ -13,13 +13,23 @@
 //! | `GET /api/jobs/{id}/gaussians` | the baked scene, as `/api/gaussians` |
 //!
 //! Every error is a 4xx or 5xx status with [`ErrorBody`]: 400 for a malformed or invalid
-//! request, 404 for an unknown style, job or route, 409 for what the scene or the server's
-//! state does not allow (stylizing a `.ply`, a second bake), 413 for an upload beyond the size
-//! limits.
+//! request (including a view smaller than the networks decode and more than
+//! [`MAX_REQUEST_STYLES`] styles), 404 for an unknown style, job or route, 405 for a wrong
+//! method, 409 for what the scene or the server's state does not allow (stylizing a `.ply`, a
+//! second bake), 413 for an upload beyond the size or pixel limits, 414 for a URI longer than
+//! [`MAX_URI_BYTES`], 503 when the server's memory budget for work in flight is full (try again
+//! shortly).
 
 use serde::{Deserialize, Serialize};
 
 use crate::scene::CameraJson;
+
+/// Most entries in the `styles` list of a stylize or bake request. Entries naming the same
+/// style are merged (their weights added) before any work.
+pub const MAX_REQUEST_STYLES: usize = 8;
+
+/// Longest request URI (path and query) answered; longer ones get 414.
+pub const MAX_URI_BYTES: usize = 8 << 10;
 
 /// The body of every error answer.
 #[derive(Clone, Debug, Serialize, Deserialize)]

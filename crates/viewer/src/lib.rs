@@ -14,14 +14,23 @@
 //!   through the real pipeline (render features, lift, transform with the paintings' statistics,
 //!   decode in tiles), and bake jobs whose baked scene the page can load.
 //!
-//! Requests run concurrently: stylizations (at most two at once, the others wait) and uploads
-//! on Tokio's blocking threads, bakes on a thread of their own (one at a time), so a slow
-//! stylization does not hold up the scene data or another tab. Bad requests are answered with a 4xx status and `{"error": "..."}`.
+//! Requests run concurrently: stylizations and upload decodes (at most two at once, the others
+//! wait) on Tokio's blocking threads, bakes on a thread of their own (one at a time), so a slow
+//! stylization does not hold up the scene data or another tab.
+//!
+//! Every request's cost is bounded before work starts: a stylize or bake request names at most
+//! [`api::MAX_REQUEST_STYLES`] styles (shared, never copied per entry), an upload is refused by
+//! its header's pixel count before decoding ([`ViewerConfig::max_upload_pixels`]), and the
+//! estimated memory of all work in flight stays within [`ViewerConfig::memory_budget`]
+//! ([`budget`]; 503 when full). Every error, including the HTTP layer's own (wrong method,
+//! over-long URI, malformed body), is a 4xx or 5xx status with `{"error": "..."}`.
 
 #![warn(missing_docs)]
 
 pub mod api;
 pub mod assets;
+pub mod budget;
+mod connection;
 pub mod scene;
 mod server;
 mod state;
@@ -53,11 +62,19 @@ pub struct ViewerConfig {
     pub max_view_side: u32,
     /// Most uploaded styles kept (the oldest upload is dropped beyond it).
     pub max_uploads: usize,
+    /// Most pixels (width x height, read from the header before decoding) of an uploaded
+    /// image.
+    pub max_upload_pixels: u64,
+    /// Memory, in bytes, that the work in flight (uploads being decoded, stylizations running
+    /// or waiting for a slot) may take by its estimate ([`Budget`](crate::budget::Budget)); a
+    /// request that would pass it is answered 503 at once.
+    pub memory_budget: u64,
 }
 
 impl ViewerConfig {
     /// The defaults for `scene`: loopback, port 8080, style side 512, tile budget 1 GiB, uploads
-    /// up to 20 MiB, views up to 2048 pixels a side, 16 uploads kept.
+    /// up to 20 MiB and 4096 x 4096 pixels, views up to 2048 pixels a side, 16 uploads kept,
+    /// 4 GiB of work in flight.
     pub fn new(scene: impl Into<PathBuf>) -> ViewerConfig {
         ViewerConfig {
             scene: scene.into(),
@@ -69,6 +86,8 @@ impl ViewerConfig {
             max_upload_bytes: 20 << 20,
             max_view_side: 2048,
             max_uploads: 16,
+            max_upload_pixels: 4096 * 4096,
+            memory_budget: 4 << 30,
         }
     }
 }

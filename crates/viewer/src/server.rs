@@ -6,14 +6,16 @@ use std::sync::Arc;
 
 use axum::body::Bytes;
 use axum::extract::rejection::JsonRejection;
+use axum::extract::Request;
 use axum::extract::{DefaultBodyLimit, Path, Query, State as Shared};
-use axum::http::{header, StatusCode};
+use axum::http::{header, Method, StatusCode, Uri};
+use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use serde::Deserialize;
 
-use crate::api::{BakeRequest, ErrorBody, JobStarted, StylizeRequest};
+use crate::api::{BakeRequest, ErrorBody, JobStarted, StylizeRequest, MAX_URI_BYTES};
 use crate::state::{ApiError, State};
 use crate::{ViewerConfig, ViewerError};
 
@@ -136,7 +138,21 @@ async fn upload(
         Err(e) => return e.into_response(),
     };
     let name = q.name.unwrap_or_default();
-    match blocking(move || s.upload(&name, &data)).await {
+    // The header's pixel count is checked, and the decoding's memory reserved, before any
+    // pixel is decoded; decoding then waits for a slot as stylizations do.
+    let cost = match s.upload_cost(&name, &data) {
+        Ok(c) => c,
+        Err(e) => return e.into_response(),
+    };
+    let _reserved = match s.budget.reserve(cost) {
+        Ok(r) => r,
+        Err(m) => return ApiError(StatusCode::SERVICE_UNAVAILABLE, m).into_response(),
+    };
+    let Ok(_slot) = s.stylize_slots.acquire().await else {
+        return stopping();
+    };
+    let state = s.clone();
+    match blocking(move || state.upload(&name, &data)).await {
         Ok(info) => (StatusCode::CREATED, Json(info)).into_response(),
         Err(e) => e.into_response(),
     }
@@ -150,16 +166,22 @@ async fn stylize(
         Ok(r) => r,
         Err(e) => return e.into_response(),
     };
+    // Checked and costed before any work; the reservation is held while waiting for a slot,
+    // so the queue too is bounded by the budget.
+    let (camera, cost) = match s.stylize_camera(&req) {
+        Ok(c) => c,
+        Err(e) => return e.into_response(),
+    };
+    let _reserved = match s.budget.reserve(cost) {
+        Ok(r) => r,
+        Err(m) => return ApiError(StatusCode::SERVICE_UNAVAILABLE, m).into_response(),
+    };
     // Waiting for a slot holds up no other request.
     let Ok(_slot) = s.stylize_slots.acquire().await else {
-        return ApiError(
-            StatusCode::SERVICE_UNAVAILABLE,
-            "the server is stopping".into(),
-        )
-        .into_response();
+        return stopping();
     };
     let state = s.clone();
-    match blocking(move || state.stylize(&req)).await {
+    match blocking(move || state.stylize(&req, &camera)).await {
         Ok(png) => bytes("image/png", Arc::new(png)),
         Err(e) => e.into_response(),
     }
@@ -193,8 +215,78 @@ async fn job_gaussians(Shared(s): Shared<AppState>, Path(id): Path<String>) -> R
     }
 }
 
+fn stopping() -> Response {
+    ApiError(
+        StatusCode::SERVICE_UNAVAILABLE,
+        "the server is stopping".into(),
+    )
+    .into_response()
+}
+
 async fn not_found() -> Response {
     ApiError(StatusCode::NOT_FOUND, "no such page or API route".into()).into_response()
+}
+
+async fn method_not_allowed(method: Method, uri: Uri) -> Response {
+    ApiError(
+        StatusCode::METHOD_NOT_ALLOWED,
+        format!("{method} is not allowed on {}", uri.path()),
+    )
+    .into_response()
+}
+
+/// Longest error text taken over from a response of the HTTP layer into the JSON body.
+const MAX_ERROR_TEXT: usize = 4096;
+
+/// Refuses an over-long URI (414) before routing, and gives every error answer that is not
+/// already JSON (the framework's own rejections: a body that is not JSON, a bad query or path
+/// parameter) the `{"error": ...}` body, with the framework's text as the message.
+async fn errors_as_json(request: Request, next: Next) -> Response {
+    let uri_len = request
+        .uri()
+        .path_and_query()
+        .map_or(0, |p| p.as_str().len());
+    if uri_len > MAX_URI_BYTES {
+        let mut answer = ApiError(
+            StatusCode::URI_TOO_LONG,
+            format!("the request URI is {uri_len} bytes; at most {MAX_URI_BYTES} are accepted"),
+        )
+        .into_response();
+        answer.headers_mut().insert(
+            header::CONNECTION,
+            header::HeaderValue::from_static("close"),
+        );
+        return answer;
+    }
+    let mut response = next.run(request).await;
+    // One request a connection, so that every request head passes the connection guard.
+    response.headers_mut().insert(
+        header::CONNECTION,
+        header::HeaderValue::from_static("close"),
+    );
+    let status = response.status();
+    let is_json = response
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|t| t.starts_with("application/json"));
+    if !(status.is_client_error() || status.is_server_error()) || is_json {
+        return response;
+    }
+    let (_, body) = response.into_parts();
+    let text = match axum::body::to_bytes(body, MAX_ERROR_TEXT).await {
+        Ok(b) if !b.is_empty() => String::from_utf8_lossy(&b).trim().to_string(),
+        _ => status
+            .canonical_reason()
+            .unwrap_or("request refused")
+            .to_string(),
+    };
+    let mut answer = ApiError(status, text).into_response();
+    answer.headers_mut().insert(
+        header::CONNECTION,
+        header::HeaderValue::from_static("close"),
+    );
+    answer
 }
 
 fn router(state: AppState) -> Router {
@@ -214,6 +306,8 @@ fn router(state: AppState) -> Router {
         .route("/api/jobs/{id}", get(job))
         .route("/api/jobs/{id}/gaussians", get(job_gaussians))
         .fallback(not_found)
+        .method_not_allowed_fallback(method_not_allowed)
+        .layer(middleware::from_fn(errors_as_json))
         .with_state(state)
 }
 
@@ -288,6 +382,7 @@ pub fn start(config: ViewerConfig) -> Result<Running, ViewerError> {
     let app = router(state.clone());
     let thread = std::thread::spawn(move || {
         runtime.block_on(async move {
+            let listener = crate::connection::Guarded::new(listener, addr);
             let _ = axum::serve(listener, app)
                 .with_graceful_shutdown(async {
                     let _ = rx.await;

@@ -15,7 +15,10 @@ use pipeline::stylize::{self, StyleImage};
 use pipeline::{Event, Stage};
 use train::{BakeConfig, SceneBundle};
 
-use crate::api::{BakeRequest, JobInfo, SceneInfo, StyleInfo, StylizeRequest, WeightedStyle};
+use crate::api::{
+    BakeRequest, JobInfo, SceneInfo, StyleInfo, StylizeRequest, WeightedStyle, MAX_REQUEST_STYLES,
+};
+use crate::budget::Budget;
 use crate::scene::{pack_gaussians, stride, CameraJson};
 use crate::{ViewerConfig, ViewerError};
 
@@ -51,7 +54,8 @@ impl ApiError {
 /// A style and its thumbnail.
 struct StoredStyle {
     info: StyleInfo,
-    image: StyleImage,
+    /// Shared by every request that uses it (never copied per request entry).
+    image: Arc<StyleImage>,
     thumbnail: Arc<Vec<u8>>,
     uploaded: bool,
     /// Its statistics at every encoder level, once a request has needed them (without colour
@@ -82,9 +86,17 @@ pub(crate) struct State {
     jobs: Mutex<HashMap<String, Arc<Mutex<Job>>>>,
     /// Raised when the server stops: a running bake ends after its current iteration.
     pub stop: AtomicBool,
-    /// Stylizations running at once ([`STYLIZE_SLOTS`]); more wait for a slot.
+    /// Stylizations and upload decodes running at once ([`STYLIZE_SLOTS`]); more wait for a
+    /// slot.
     pub stylize_slots: tokio::sync::Semaphore,
+    /// The memory of the work in flight ([`ViewerConfig::memory_budget`]).
+    pub budget: Budget,
 }
+
+/// Bytes per pixel an upload takes while it is decoded and converted: the decoded samples (up
+/// to 8 bytes a pixel for 16-bit RGBA), the `f32` RGB image (12) and its resized copy (12),
+/// rounded up.
+const UPLOAD_BYTES_PER_PIXEL: u64 = 40;
 
 /// Most stylizations computed at once: each holds up to the tile budget of network memory, and
 /// two already share the cores; more requests wait their turn.
@@ -164,14 +176,13 @@ impl State {
                     name: image.name.clone(),
                 },
                 thumbnail: Arc::new(thumbnail(&image.image)?),
-                image,
+                image: Arc::new(image),
                 uploaded: false,
                 encoded: None,
             });
         }
         Ok(State {
             next_id: AtomicU64::new(styles.len() as u64),
-            config,
             scene,
             name,
             cameras,
@@ -180,6 +191,8 @@ impl State {
             jobs: Mutex::new(HashMap::new()),
             stop: AtomicBool::new(false),
             stylize_slots: tokio::sync::Semaphore::new(STYLIZE_SLOTS),
+            budget: Budget::new(config.memory_budget),
+            config,
         })
     }
 
@@ -225,8 +238,36 @@ impl State {
             .ok_or_else(|| ApiError::not_found(format!("no style `{id}`")))
     }
 
+    /// The size of an uploaded image from its header, refused (413) beyond
+    /// [`ViewerConfig::max_upload_pixels`] before anything is decoded, and the memory its
+    /// decoding takes by estimate.
+    pub(crate) fn upload_cost(&self, name: &str, bytes: &[u8]) -> Result<u64, ApiError> {
+        if bytes.is_empty() {
+            return Err(ApiError::bad(
+                "the upload is empty: send an image file as the body",
+            ));
+        }
+        let shown = PathBuf::from(format!("upload `{}`", clean_name(name)));
+        let (w, h) = gaussian::dataset::images::encoded_size(bytes, &shown)
+            .map_err(|e| ApiError::bad(e.to_string()))?;
+        let pixels = w as u64 * h as u64;
+        let max = self.config.max_upload_pixels;
+        if pixels > max {
+            return Err(ApiError(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                format!(
+                    "{}: the image is {w}x{h} = {pixels} pixels; an upload may have at most \
+                     {max} pixels",
+                    shown.display()
+                ),
+            ));
+        }
+        Ok(pixels * UPLOAD_BYTES_PER_PIXEL)
+    }
+
     /// `POST /api/styles`: decodes an uploaded image under the size limits and keeps it (the
-    /// oldest upload is dropped beyond [`ViewerConfig::max_uploads`]).
+    /// oldest upload is dropped beyond [`ViewerConfig::max_uploads`]). The caller has checked
+    /// its size ([`State::upload_cost`]).
     pub(crate) fn upload(&self, name: &str, bytes: &[u8]) -> Result<StyleInfo, ApiError> {
         if bytes.is_empty() {
             return Err(ApiError::bad(
@@ -261,11 +302,11 @@ impl State {
         let stored = StoredStyle {
             info: info.clone(),
             thumbnail: Arc::new(thumbnail(&img).map_err(ApiError::internal)?),
-            image: StyleImage {
+            image: Arc::new(StyleImage {
                 name,
                 path: shown,
                 image: img,
-            },
+            }),
             uploaded: true,
             encoded: None,
         };
@@ -280,33 +321,35 @@ impl State {
         Ok(info)
     }
 
-    /// The style images of a request and their normalised weights (`None` for one style).
+    /// The distinct styles of a request (entries naming the same style merged, their weights
+    /// added) with their images, at most [`MAX_REQUEST_STYLES`] entries.
     fn styles_of(
         &self,
         chosen: &[WeightedStyle],
-    ) -> Result<(Vec<StyleImage>, Option<Vec<f64>>), ApiError> {
+    ) -> Result<Vec<(WeightedStyle, Arc<StyleImage>)>, ApiError> {
         if chosen.is_empty() {
             return Err(ApiError::bad("choose at least one style"));
         }
+        if chosen.len() > MAX_REQUEST_STYLES {
+            return Err(ApiError::bad(format!(
+                "{} styles in one request; a mixture has at most {MAX_REQUEST_STYLES}",
+                chosen.len()
+            )));
+        }
         let styles = lock(&self.styles);
-        let mut images = Vec::new();
+        let mut out: Vec<(WeightedStyle, Arc<StyleImage>)> = Vec::new();
         for c in chosen {
+            if let Some((seen, _)) = out.iter_mut().find(|(s, _)| s.id == c.id) {
+                seen.weight += c.weight;
+                continue;
+            }
             let s = styles
                 .iter()
                 .find(|s| s.info.id == c.id)
                 .ok_or_else(|| ApiError::not_found(format!("no style `{}`", c.id)))?;
-            images.push(s.image.clone());
+            out.push((c.clone(), s.image.clone()));
         }
-        let weights = if chosen.len() > 1 {
-            let w: Vec<f64> = chosen.iter().map(|c| c.weight).collect();
-            Some(
-                stylize::normalised_weights(&w, w.len())
-                    .map_err(|e| ApiError::bad(e.to_string()))?,
-            )
-        } else {
-            None
-        };
-        Ok((images, weights))
+        Ok(out)
     }
 
     /// The one target of a request: its styles' statistics (cached per style), mixed by the
@@ -317,12 +360,23 @@ impl State {
         colour: Option<&ndarray::Array4<f32>>,
     ) -> Result<stylize::StyleTarget, ApiError> {
         let bundle = self.bundle()?;
-        let (images, weights) = self.styles_of(chosen)?;
+        let chosen = self.styles_of(chosen)?;
+        let weights = if chosen.len() > 1 {
+            let w: Vec<f64> = chosen.iter().map(|(c, _)| c.weight).collect();
+            Some(
+                stylize::normalised_weights(&w, w.len())
+                    .map_err(|e| ApiError::bad(e.to_string()))?,
+            )
+        } else {
+            None
+        };
         let encoded = if colour.is_some() {
+            // At most MAX_REQUEST_STYLES images, each at most the style side.
+            let images: Vec<StyleImage> = chosen.iter().map(|(_, i)| (**i).clone()).collect();
             stylize::encode_styles(bundle, &images, colour).map_err(ApiError::internal)?
         } else {
             let mut out = Vec::with_capacity(chosen.len());
-            for (c, img) in chosen.iter().zip(&images) {
+            for (c, img) in &chosen {
                 let cached = lock(&self.styles)
                     .iter()
                     .find(|s| s.info.id == c.id)
@@ -330,7 +384,7 @@ impl State {
                 let t = match cached {
                     Some(t) => t,
                     None => {
-                        let t = stylize::encode_styles(bundle, std::slice::from_ref(img), None)
+                        let t = stylize::encode_styles(bundle, std::slice::from_ref(&**img), None)
                             .map_err(ApiError::internal)?
                             .remove(0);
                         if let Some(s) = lock(&self.styles).iter_mut().find(|s| s.info.id == c.id) {
@@ -348,8 +402,10 @@ impl State {
         Ok(targets.remove(0))
     }
 
-    /// `POST /api/stylize`: the stylized view as a PNG.
-    pub(crate) fn stylize(&self, req: &StylizeRequest) -> Result<Vec<u8>, ApiError> {
+    /// The camera of a stylize request, checked (400): valid, at most the view-size limit, and
+    /// after `max_side` still large enough for the networks ([`SceneBundle::check_view_size`]).
+    /// Also the request's estimated working memory.
+    pub(crate) fn stylize_camera(&self, req: &StylizeRequest) -> Result<(Camera, u64), ApiError> {
         let bundle = self.bundle()?;
         stylize::check_alpha(req.alpha).map_err(|e| ApiError::bad(e.to_string()))?;
         let mut camera = req
@@ -366,6 +422,40 @@ impl State {
                 camera = camera.scaled(max as f64 / side as f64);
             }
         }
+        let k = camera.intrinsics;
+        bundle
+            .check_view_size(k.width, k.height)
+            .map_err(ApiError::bad)?;
+        if req.styles.len() > MAX_REQUEST_STYLES {
+            return Err(ApiError::bad(format!(
+                "{} styles in one request; a mixture has at most {MAX_REQUEST_STYLES}",
+                req.styles.len()
+            )));
+        }
+        Ok((camera, self.stylize_cost(bundle, &camera)))
+    }
+
+    /// The working memory of stylizing `camera`'s view, by estimate: the tile budget of the
+    /// networks, the feature map and its lifted copy at the feature resolution (each kept
+    /// twice while it is transformed), and the image with its colour render and PNG.
+    fn stylize_cost(&self, bundle: &SceneBundle, camera: &Camera) -> u64 {
+        let k = camera.intrinsics;
+        let (fw, fh) = bundle.feature_size(k.width, k.height);
+        let channels = (bundle.info.feature_dim + bundle.lifter.out_channels()) as u64;
+        let features = fw as u64 * fh as u64 * channels * 4 * 2;
+        let image = k.width as u64 * k.height as u64 * 12 * 3;
+        self.config.tile_budget + features + image
+    }
+
+    /// `POST /api/stylize`: the stylized view as a PNG, for a camera checked by
+    /// [`State::stylize_camera`].
+    pub(crate) fn stylize(
+        &self,
+        req: &StylizeRequest,
+        camera: &Camera,
+    ) -> Result<Vec<u8>, ApiError> {
+        let bundle = self.bundle()?;
+        let camera = *camera;
         let content = if req.preserve_colour {
             let r = render_colour(&bundle.scene, &camera, bundle.info.background)
                 .map_err(ApiError::internal)?;

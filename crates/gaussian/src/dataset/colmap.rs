@@ -229,6 +229,17 @@ pub fn read_model(dir: &Path) -> Result<ColmapModel, DatasetError> {
     })
 }
 
+/// A point's position, or why it is refused: a coordinate that is not finite.
+fn finite_xyz(id: u64, xyz: [f64; 3]) -> Result<[f64; 3], String> {
+    if xyz.iter().all(|v| v.is_finite()) {
+        Ok(xyz)
+    } else {
+        Err(format!(
+            "point {id}: position {xyz:?} is not finite (every coordinate must be a finite number)"
+        ))
+    }
+}
+
 /// Reads only the 3D points of the model in `dir` (binary or text), if there are any.
 pub fn read_points(dir: &Path) -> Result<Option<Vec<ColmapPoint>>, DatasetError> {
     let bin = dir.join("points3D.bin");
@@ -405,7 +416,7 @@ pub fn parse_points3d_bin(bytes: &[u8], path: &Path) -> Result<Vec<ColmapPoint>,
     for i in 0..n {
         let point = (|| {
             let id = c.u64()?;
-            let xyz = [c.f64()?, c.f64()?, c.f64()?];
+            let xyz = finite_xyz(id, [c.f64()?, c.f64()?, c.f64()?])?;
             let rgb = [c.u8()?, c.u8()?, c.u8()?];
             let error = c.f64()?;
             let nt = c
@@ -570,6 +581,7 @@ pub fn parse_points3d_txt(bytes: &[u8], path: &Path) -> Result<Vec<ColmapPoint>,
             }
             let id = field(&t, 0, "POINT3D_ID")?;
             let xyz = [field(&t, 1, "X")?, field(&t, 2, "Y")?, field(&t, 3, "Z")?];
+            let xyz = finite_xyz(id, xyz)?;
             let rgb = [field(&t, 4, "R")?, field(&t, 5, "G")?, field(&t, 6, "B")?];
             let error = field(&t, 7, "ERROR")?;
             let track = (0..(t.len() - 8) / 2)

@@ -135,6 +135,20 @@ pub fn load_rgb(path: &Path, background: [f32; 3]) -> Result<RgbImage, DatasetEr
     Ok(to_rgb(img, background))
 }
 
+/// The size `(width, height)` of an image held in memory, read from its header alone (nothing
+/// is decoded), so a caller can refuse an image by its pixel count before decoding it. `name`
+/// stands for the path in errors.
+pub fn encoded_size(bytes: &[u8], name: &Path) -> Result<(u32, u32), DatasetError> {
+    let mut r = ImageReader::new(std::io::Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(|error| DatasetError::Io {
+            path: name.to_path_buf(),
+            error,
+        })?;
+    r.limits(decode_limits(false));
+    r.into_dimensions().map_err(|e| decode_error(name, e))
+}
+
 /// Decodes an image held in memory (e.g. an upload) as [`load_rgb`] decodes a file: the header
 /// is read first and a side above [`MAX_IMAGE_SIDE`] refused, then the pixels are decoded under
 /// the same [`image::Limits`]. `name` stands for the path in errors.

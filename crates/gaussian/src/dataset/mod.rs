@@ -446,6 +446,17 @@ impl Dataset {
         } else {
             model_dir.join("images.txt")
         };
+        for im in &images {
+            relative_image_path(
+                &format!("image {} `{}`", im.id, im.name),
+                &im.name,
+                "images folder",
+            )
+            .map_err(|problem| DatasetError::Malformed {
+                path: images_file.clone(),
+                problem,
+            })?;
+        }
         let mut cameras = Vec::with_capacity(images.len());
         let mut distortions = Vec::with_capacity(images.len());
         for im in &images {
@@ -738,6 +749,42 @@ fn fit_camera(cam: &Camera, path: &Path, (w, h): (u32, u32)) -> Result<Camera, D
         });
     }
     Ok(cam.resized(w, h))
+}
+
+/// An image name from a dataset's description (`what`, e.g. `file_path "x.png"`) as a path
+/// relative to its folder (`folder`, for messages), with `.` components dropped and `..`
+/// components applied, or why it is refused: it is empty, absolute (a root, or on Windows a
+/// drive or UNC prefix) or leaves the folder. Judged on the path's components alone, so no
+/// name reaches the file system outside the dataset.
+pub(crate) fn relative_image_path(what: &str, name: &str, folder: &str) -> Result<PathBuf, String> {
+    use std::path::Component;
+    let mut rel = PathBuf::new();
+    let mut depth = 0usize;
+    for c in Path::new(name).components() {
+        match c {
+            Component::Prefix(_) | Component::RootDir => {
+                return Err(format!(
+                    "{what} is absolute; it must be relative to the {folder}"
+                ))
+            }
+            Component::CurDir => {}
+            Component::ParentDir => {
+                if depth == 0 {
+                    return Err(format!("{what} leaves the {folder}"));
+                }
+                depth -= 1;
+                rel.pop();
+            }
+            Component::Normal(part) => {
+                depth += 1;
+                rel.push(part);
+            }
+        }
+    }
+    if depth == 0 {
+        return Err(format!("{what} names no file"));
+    }
+    Ok(rel)
 }
 
 /// Finds the file of each image (`dir/images/name` or `dir/images_n/name`) and sizes each

@@ -28,7 +28,7 @@
 //!   (focal lengths, principal point) are not finite with positive focal lengths, e.g. an
 //!   angle so small that the focal length overflows.
 
-use std::path::{Component, Path, PathBuf};
+use std::path::{Path, PathBuf};
 
 use glam::DMat4;
 use serde::Deserialize;
@@ -129,8 +129,12 @@ pub fn parse_transforms(text: &str, path: &Path) -> Result<Transforms, DatasetEr
             .map_err(|p| malformed(path, format!("at the size `w` x `h`: {p}")))?;
     }
     for (i, f) in t.frames.iter().enumerate() {
-        relative_image_path(&f.file_path)
-            .map_err(|p| malformed(path, format!("frame {i}: {p}")))?;
+        super::relative_image_path(
+            &format!("file_path {:?}", f.file_path),
+            &f.file_path,
+            "scene folder",
+        )
+        .map_err(|p| malformed(path, format!("frame {i}: {p}")))?;
         frame_matrix(f)
             .map_err(|p| malformed(path, format!("frame {i} (`{}`): {p}", f.file_path)))?;
     }
@@ -154,40 +158,6 @@ fn pixel_count(key: &str, x: f64) -> Result<u32, String> {
     Ok(n as u32)
 }
 
-/// A frame's `file_path` as a path relative to the scene folder, with `.` components dropped
-/// and `..` components applied, or why it is refused: it is empty, absolute (a root, or on
-/// Windows a drive or UNC prefix) or leaves the scene folder.
-fn relative_image_path(file_path: &str) -> Result<PathBuf, String> {
-    let p = Path::new(file_path);
-    let mut rel = PathBuf::new();
-    let mut depth = 0usize;
-    for c in p.components() {
-        match c {
-            Component::Prefix(_) | Component::RootDir => {
-                return Err(format!(
-                    "file_path {file_path:?} is absolute; it must be relative to the scene folder"
-                ))
-            }
-            Component::CurDir => {}
-            Component::ParentDir => {
-                if depth == 0 {
-                    return Err(format!("file_path {file_path:?} leaves the scene folder"));
-                }
-                depth -= 1;
-                rel.pop();
-            }
-            Component::Normal(name) => {
-                depth += 1;
-                rel.push(name);
-            }
-        }
-    }
-    if depth == 0 {
-        return Err(format!("file_path {file_path:?} names no file"));
-    }
-    Ok(rel)
-}
-
 /// The frame's camera-to-world matrix (3x4 or 4x4 rows), checked to be rigid.
 pub fn frame_matrix(frame: &Frame) -> Result<DMat4, String> {
     let rows = &frame.transform_matrix;
@@ -205,7 +175,7 @@ pub fn frame_matrix(frame: &Frame) -> Result<DMat4, String> {
     Ok(m)
 }
 
-/// The image file of a frame whose `file_path` is `rel` (see [`relative_image_path`]):
+/// The image file of a frame whose `file_path` is `rel` (see [`super::relative_image_path`]):
 /// `dir/rel` if it names a file with an extension, else `dir/rel.png`.
 fn frame_image(dir: &Path, rel: &Path) -> Option<PathBuf> {
     let p = dir.join(rel);
@@ -303,8 +273,12 @@ pub(super) fn load(
     let mut paths = Vec::with_capacity(t.frames.len());
     let mut names = Vec::with_capacity(t.frames.len());
     for (i, frame) in t.frames.iter().enumerate() {
-        let rel = relative_image_path(&frame.file_path)
-            .map_err(|p| malformed(&json, format!("frame {i}: {p}")))?;
+        let rel = super::relative_image_path(
+            &format!("file_path {:?}", frame.file_path),
+            &frame.file_path,
+            "scene folder",
+        )
+        .map_err(|p| malformed(&json, format!("frame {i}: {p}")))?;
         let path = frame_image(dir, &rel).ok_or_else(|| {
             malformed(
                 &json,

@@ -507,8 +507,7 @@ mod fast {
 
     /// Gaussians ahead of the current block whose coefficients are prefetched: the loads of a
     /// block's 48 cache lines of coefficients otherwise wait for memory one after the other
-    /// (one and two blocks ahead measured alike, four and eight slower; `docs/performance.md`,
-    /// "SSIM blocks and SH prefetch").
+    /// (`docs/performance.md`, "SSIM blocks and SH prefetch").
     const AHEAD: usize = 2 * LANES;
 
     /// Asks for the coefficients of the block [`AHEAD`] Gaussians after `i0` (a hint: no effect

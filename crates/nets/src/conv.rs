@@ -99,9 +99,9 @@ pub const WINOGRAD_MIN_CHANNELS: usize = 16;
 /// Smallest sum of the input and output channel counts for which [`ConvAlgorithm::Winograd`] is
 /// the default, in the forward pass, the input gradient and the weight gradient. Measured at
 /// 256x256 on two threads of an otherwise idle machine (`NETS_CONV_TABLE=algorithms cargo bench
-/// -p dsgs-nets --bench conv`, see `docs/performance.md`): Winograd takes 0.5 to 0.7 of the direct
-/// time on every layer from 64->64 up, in all three passes (0.76 for the 64->64 weight gradient);
-/// on the layers with 3 channels on one side it is slower.
+/// -p dsgs-nets --bench conv`, see `docs/performance.md`): Winograd takes 0.50 to 0.77 of the
+/// direct time on every layer from 64->64 up, in all three passes (the highest at 64->64); on the
+/// layers with 3 channels on one side it is slower.
 pub const WINOGRAD_MIN_CHANNEL_SUM: usize = 128;
 
 thread_local! {

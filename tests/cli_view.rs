@@ -454,9 +454,9 @@ fn hostile_requests_are_refused_within_bounded_memory() {
     let scene = json_of(&get(&s, "/api/scene").1);
     let camera = scene["cameras"][0].clone();
 
-    let many = vec![json!({"id": "s0"}); 6000];
+    let many = vec![json!({"id": "s0", "weight": 1.0}); 6000];
     let long_list = json!({"camera": camera, "styles": many}).to_string();
-    assert!(long_list.len() > 60_000, "{}", long_list.len());
+    assert!(long_list.len() > 140_000, "{}", long_list.len());
     let bomb = zero_png(16384);
     assert!(bomb.len() < 2 << 20, "bomb of {} bytes", bomb.len());
     let at_limit = zero_png(4096);

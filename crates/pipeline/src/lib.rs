@@ -94,6 +94,7 @@ pub mod pretrain_decoder;
 pub mod render;
 pub mod shard;
 pub mod stylize;
+pub mod stylize_image;
 pub mod weights;
 
 pub use error::{Error, Result};

@@ -20,7 +20,8 @@
 //! drawn from `--eval-content` and `--eval-style` when given (images training never sees),
 //! otherwise from the training images.
 //!
-//! Outputs: `OUT/decoder.safetensors` (encoder and trained decoder, canonical weights),
+//! Outputs: `OUT/decoder.safetensors` (encoder and trained decoder, canonical weights: those of
+//! the last checkpoint while training runs, the final ones when it completes),
 //! `OUT/checkpoint.safetensors`, written at the checkpoint interval and again at the end, so a
 //! finished run can be continued with more iterations, and `OUT/evaluations.tsv`, the held-out
 //! curve of the whole run across resumptions.

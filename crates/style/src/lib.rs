@@ -12,6 +12,8 @@
 //!   each one function with its gradients.
 //! * [`fold`]: a style's transform folded into the decoder's first convolution.
 //! * [`stylize`](mod@stylize): feed-forward stylization of images.
+//! * [`texture`]: a texture distance through Gram matrices, which sees the correlations between
+//!   channels that the channel statistics of the style loss do not.
 //!
 //! Everything is generic over the workspace's numeric trait [`base::Real`] (`f32` in production,
 //! `f64` in gradient checks against central differences and the float64 oracle; the very same type
@@ -85,6 +87,7 @@ pub mod objective;
 pub mod spatial;
 pub mod stats;
 pub mod stylize;
+pub mod texture;
 
 pub use adain::{
     adain, adain_alpha, adain_backward, adain_mix, adain_with_stats, blend, instance_normalize,
@@ -108,3 +111,4 @@ pub use stats::{
     resize_mask_nearest, ChannelMoments, ChannelStats, STATS_EPS,
 };
 pub use stylize::{encode_style, stylize, stylize_image};
+pub use texture::{gram, gram_distance};

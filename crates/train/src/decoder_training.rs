@@ -58,8 +58,8 @@ pub const DECODER_CHECKPOINT_FORMAT: &str = "dsgs-decoder-checkpoint-v1";
 
 /// The checkpoint inside a decoder-training output folder, replaced each time one is written.
 pub const DECODER_CHECKPOINT_FILE: &str = crate::driver::CHECKPOINT_FILE;
-/// The final weights inside a decoder-training output folder (encoder and decoder), written
-/// when training completes.
+/// The weights inside a decoder-training output folder (encoder and decoder), written at each
+/// checkpoint and when training completes.
 pub const DECODER_WEIGHTS_FILE: &str = "decoder.safetensors";
 /// The held-out curve inside a decoder-training output folder: one tab-separated row per
 /// evaluation (`step pairs loss content style`), rewritten atomically at each evaluation. A
@@ -603,7 +603,13 @@ impl TrainingLoop for DecoderLoop<'_> {
     }
 
     fn save_checkpoint(&self, path: &Path) -> Result<(), TrainError> {
-        self.t.save_checkpoint(path)
+        self.t.save_checkpoint(path)?;
+        // The weights at this checkpoint beside it, so that a long run's decoder can be tried
+        // (e.g. by `dsgs stylize-image`) while it trains; replaced by the final weights.
+        if let Some(dir) = path.parent() {
+            self.t.save_weights(&dir.join(DECODER_WEIGHTS_FILE))?;
+        }
+        Ok(())
     }
 
     fn start(&mut self, sink: &dyn Sink) -> Result<(), TrainError> {

@@ -1,0 +1,295 @@
+//! `dsgs stylize-image`: 2D AdaIN stylization of photographs with any networks, standard or
+//! fullres: the per-image reference against which the 3D results are judged, and the
+//! measurement behind each decoder's card.
+//!
+//! Every content photo is stylized with every style image (and, with `mix`, with their
+//! mixture): `g((1 - alpha) phi_k(c) + alpha adain(phi_k(c), s))`, where `phi` is the encoder
+//! and `g` the decoder at the chosen variant's resolution; with colour preservation each style
+//! is first colour-matched to the photo. The outputs are cropped to the photo's size and
+//! clamped to `[0, 1]`.
+//!
+//! Each output is measured against its style image with the encoder's features at every level:
+//! the style loss ([`style::style_loss`], channel means and deviations, as the training losses
+//! and `dsgs eval` measure it), the texture distance ([`style::gram_distance`], the correlations
+//! between channels), and the content loss against the photo's own deepest features
+//! ([`style::content_loss`]).
+//!
+//! Outputs in `OUT/`: one PNG per pair, `CONTENT__STYLE.png`; `contact_sheet.png` (first row:
+//! the style images; then one row per photo: the photo, then its outputs in the order of the
+//! styles); `report.json` ([`StylizeImageReport`]).
+
+use std::path::{Path, PathBuf};
+
+use ndarray::Array4;
+use serde::{Deserialize, Serialize};
+use style::{ChannelStats, StyleFeatureStats};
+use train::Variant;
+
+use crate::error::{bail, Context, Result};
+use crate::image_io::{self, nchw_from_rgb, rgb_from_nchw, RgbImage};
+use crate::pretrain_decoder::NetworkFiles;
+use crate::stylize::{check_alpha, normalised_weights};
+use crate::{Control, Stage, Tally};
+
+/// The default longest side of content photos and style images, in pixels.
+pub const DEFAULT_IMAGE_SIDE: u32 = 512;
+
+/// What to run.
+#[derive(Clone, Debug)]
+pub struct StylizeImageSettings {
+    /// Content photos: files, or folders whose image files are taken in name order.
+    pub contents: Vec<PathBuf>,
+    /// Style images: files or folders, as `contents`.
+    pub styles: Vec<PathBuf>,
+    /// The encoder and decoder.
+    pub networks: NetworkFiles,
+    /// Standard (pooling) or fullres networks.
+    pub variant: Variant,
+    /// Style strength in `[0, 1]`.
+    pub alpha: f64,
+    /// Also stylize with the mixture of all styles, with these weights (one per style image).
+    pub mix: Option<Vec<f64>>,
+    /// Match each style's colours to the photo first.
+    pub preserve_colour: bool,
+    /// Longest side of the photos after loading (0: as they are).
+    pub content_side: u32,
+    /// Longest side of the style images after loading (0: as they are).
+    pub style_side: u32,
+    /// Output folder.
+    pub out_dir: PathBuf,
+}
+
+/// The measures of one output.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PairReport {
+    /// The photo's file stem.
+    pub content: String,
+    /// The style's file stem, or `mix`.
+    pub style: String,
+    /// The output file, relative to the output folder.
+    pub file: String,
+    /// Style loss against the style image's statistics (summed over levels).
+    pub style_loss: f64,
+    /// Texture distance to the style image (Gram matrices, summed over levels).
+    pub texture_distance: f64,
+    /// Content loss against the photo's deepest features.
+    pub content_loss: f64,
+}
+
+/// `report.json`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StylizeImageReport {
+    /// `standard` or `fullres`.
+    pub variant: String,
+    /// Style strength.
+    pub alpha: f64,
+    /// Whether the style colours were matched to each photo.
+    pub preserve_colour: bool,
+    /// Every output, photo by photo, styles in order.
+    pub pairs: Vec<PairReport>,
+    /// Means over all outputs of the three measures: style, texture, content.
+    pub mean_style_loss: f64,
+    /// Mean texture distance.
+    pub mean_texture_distance: f64,
+    /// Mean content loss.
+    pub mean_content_loss: f64,
+}
+
+/// The image files of `sources`: files as given, folders' image files (`.png`, `.jpg`,
+/// `.jpeg`) in name order. A missing path or a folder without images is an error naming it.
+pub fn image_files(sources: &[PathBuf], role: &str) -> Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    for s in sources {
+        if s.is_dir() {
+            let mut found: Vec<PathBuf> = std::fs::read_dir(s)
+                .with_context(|| format!("reading the {role} folder {}", s.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.is_file() && is_image_name(p))
+                .collect();
+            if found.is_empty() {
+                bail!("{role} folder {}: no .png or .jpg files", s.display());
+            }
+            found.sort();
+            out.extend(found);
+        } else if s.is_file() {
+            out.push(s.clone());
+        } else {
+            bail!("{role} {}: no such file or folder", s.display());
+        }
+    }
+    if out.is_empty() {
+        bail!("no {role} images given");
+    }
+    Ok(out)
+}
+
+fn is_image_name(p: &Path) -> bool {
+    p.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["png", "jpg", "jpeg"].contains(&e.to_ascii_lowercase().as_str()))
+}
+
+fn stem(p: &Path) -> String {
+    p.file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "image".into())
+}
+
+/// Runs the stylizations, reporting [`Stage::Stylize`] progress (one unit per output), and
+/// writes the outputs.
+pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<StylizeImageReport> {
+    check_alpha(settings.alpha)?;
+    let content_files = image_files(&settings.contents, "content")?;
+    let style_files = image_files(&settings.styles, "style")?;
+    let mix = match &settings.mix {
+        Some(w) => Some(normalised_weights(w, style_files.len())?),
+        None => None,
+    };
+    // Every input is read before anything is computed or written.
+    let load = |p: &PathBuf, side: u32| image_io::load_style_image(p, side);
+    let contents: Vec<RgbImage> = content_files
+        .iter()
+        .map(|p| load(p, settings.content_side))
+        .collect::<Result<_>>()?;
+    let styles: Vec<RgbImage> = style_files
+        .iter()
+        .map(|p| load(p, settings.style_side))
+        .collect::<Result<_>>()?;
+    let res = settings.variant.resolution();
+    let encoder = settings.networks.load_encoder()?.with_resolution(res);
+    let decoder = settings.networks.load_decoder()?.with_resolution(res);
+    if decoder.in_channels() != *encoder.widths().last().unwrap_or(&0) {
+        bail!(
+            "the decoder takes {} channels, the encoder's deepest level has {}",
+            decoder.in_channels(),
+            encoder.widths().last().unwrap_or(&0)
+        );
+    }
+    std::fs::create_dir_all(&settings.out_dir)
+        .with_context(|| format!("creating {}", settings.out_dir.display()))?;
+
+    let mut names: Vec<String> = style_files.iter().map(|p| stem(p)).collect();
+    if mix.is_some() {
+        names.push("mix".into());
+    }
+    let total = contents.len() * names.len();
+    let mut tally = Tally::start(Stage::Stylize, total, control.sink);
+    // The statistics of the plain style images, for the measures (and the transform without
+    // colour preservation).
+    let style_stats: Vec<StyleFeatureStats<f32>> = styles
+        .iter()
+        .map(|s| style::encode_style(&encoder, &nchw_from_rgb(s)))
+        .collect::<std::result::Result<_, _>>()?;
+    let style_feats: Vec<Vec<Array4<f32>>> = styles
+        .iter()
+        .map(|s| encoder.forward(nchw_from_rgb(s).view()))
+        .collect::<std::result::Result<_, _>>()?;
+
+    let mut pairs = Vec::new();
+    let mut rows = Vec::new();
+    for (ci, (content, cfile)) in contents.iter().zip(&content_files).enumerate() {
+        let x = nchw_from_rgb(content);
+        let feats = encoder.forward(x.view())?;
+        let deepest = feats.last().expect("encoder depth >= 1");
+        // The target statistics of each style for this photo.
+        let targets: Vec<ChannelStats<f32>> = if settings.preserve_colour {
+            styles
+                .iter()
+                .map(|s| {
+                    let matched = style::preserve_colour(&nchw_from_rgb(s), &x)?;
+                    Ok(style::encode_style(&encoder, &matched)?.deepest().clone())
+                })
+                .collect::<Result<_>>()?
+        } else {
+            style_stats.iter().map(|s| s.deepest().clone()).collect()
+        };
+        let mut all = targets.clone();
+        if let Some(w) = &mix {
+            let members: Vec<(&ChannelStats<f32>, f64)> =
+                targets.iter().zip(w.iter().copied()).collect();
+            all.push(style::mix_stats(&members)?);
+        }
+        let mut row = Vec::with_capacity(all.len() + 1);
+        for (si, target) in all.iter().enumerate() {
+            let t = style::adain_alpha(deepest, target, settings.alpha)?;
+            let y = decoder.forward(t.view())?;
+            let y = train::bundle::crop(y, content.width, content.height)?;
+            let img = image_io::clamped(&rgb_from_nchw(&y)?);
+            let out_feats = encoder.forward(nchw_from_rgb(&img).view())?;
+            // The measures: against the style image (for the mixture, the weighted sum over
+            // the style images).
+            let (mut sl, mut td) = (0.0, 0.0);
+            let parts: Vec<(usize, f64)> = match (&mix, si < styles.len()) {
+                (_, true) => vec![(si, 1.0)],
+                (Some(w), false) => w.iter().copied().enumerate().collect(),
+                (None, false) => unreachable!("a mixture column only with weights"),
+            };
+            for (k, wk) in parts {
+                sl += wk * style::style_loss(&out_feats, &style_stats[k].levels)? as f64;
+                td += wk * style::gram_distance(&out_feats, &style_feats[k])?;
+            }
+            let cl = style::content_loss(out_feats.last().expect("depth >= 1"), deepest)? as f64;
+            let file = format!("{}__{}.png", stem(cfile), names[si]);
+            image_io::write_png(&settings.out_dir.join(&file), &img)?;
+            pairs.push(PairReport {
+                content: stem(cfile),
+                style: names[si].clone(),
+                file,
+                style_loss: sl,
+                texture_distance: td,
+                content_loss: cl,
+            });
+            row.push(img);
+            tally.advance(1, &format!("photo {} of {}", ci + 1, contents.len()));
+        }
+        rows.push((content.clone(), row));
+    }
+    tally.finish();
+    write_sheet(settings, &styles, mix.is_some(), &rows)?;
+    let n = pairs.len().max(1) as f64;
+    let mean = |f: fn(&PairReport) -> f64| pairs.iter().map(f).sum::<f64>() / n;
+    let report = StylizeImageReport {
+        variant: settings.variant.as_str().into(),
+        alpha: settings.alpha,
+        preserve_colour: settings.preserve_colour,
+        mean_style_loss: mean(|p| p.style_loss),
+        mean_texture_distance: mean(|p| p.texture_distance),
+        mean_content_loss: mean(|p| p.content_loss),
+        pairs,
+    };
+    let json = serde_json::to_vec_pretty(&report).context("encoding the report")?;
+    let path = settings.out_dir.join("report.json");
+    base::write_atomic(&path, &json).with_context(|| format!("writing {}", path.display()))?;
+    Ok(report)
+}
+
+/// `contact_sheet.png`: the style images (and a blank cell for the mixture) above the photos
+/// and their outputs, every cell the size of the first photo's at most 256 pixels a side.
+fn write_sheet(
+    settings: &StylizeImageSettings,
+    styles: &[RgbImage],
+    mixed: bool,
+    rows: &[(RgbImage, Vec<RgbImage>)],
+) -> Result<()> {
+    let first = &rows[0].0;
+    let s = (256.0 / first.width.max(first.height) as f64).min(1.0);
+    let (w, h) = (
+        ((first.width as f64 * s).round() as u32).max(1),
+        ((first.height as f64 * s).round() as u32).max(1),
+    );
+    let cols = 1 + styles.len() + usize::from(mixed);
+    let (w, h) = image_io::sheet_cell_size(w, h, cols, rows.len() + 1);
+    let mut header = vec![image_io::blank(w, h)];
+    header.extend(styles.iter().map(|s| image_io::thumbnail(s, w, h)));
+    if mixed {
+        header.push(image_io::blank(w, h));
+    }
+    let mut sheet = vec![header];
+    for (photo, outs) in rows {
+        let mut row = vec![image_io::thumbnail(photo, w, h)];
+        row.extend(outs.iter().map(|o| image_io::thumbnail(o, w, h)));
+        sheet.push(row);
+    }
+    let img = image_io::contact_sheet(&sheet)?;
+    image_io::write_png(&settings.out_dir.join("contact_sheet.png"), &img)
+}

@@ -361,19 +361,21 @@ fn parse_header(bytes: &[u8], path: &Path) -> Result<Header, PlyError> {
         let raw = &bytes[pos..pos + nl];
         pos += nl + 1;
         let raw = raw.strip_suffix(b"\r").unwrap_or(raw);
-        let Ok(line) = std::str::from_utf8(raw) else {
-            return Err(header_err(path, line_no, "header line is not valid text"));
-        };
+        // The magic line first, on the raw bytes: an image or any other file is named as not a
+        // PLY file rather than by what its first bytes happen to be.
         if line_no == 1 {
-            if line.trim_end() != "ply" {
+            if raw.trim_ascii_end() != b"ply" {
                 return Err(header_err(
                     path,
                     1,
-                    "file does not start with the `ply` magic line",
+                    "not a PLY file: it does not start with the `ply` magic line",
                 ));
             }
             continue;
         }
+        let Ok(line) = std::str::from_utf8(raw) else {
+            return Err(header_err(path, line_no, "header line is not valid text"));
+        };
         let mut words = line.split_ascii_whitespace();
         let Some(keyword) = words.next() else {
             continue; // tolerate blank lines

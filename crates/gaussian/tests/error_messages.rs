@@ -309,3 +309,50 @@ fn rotations_that_cannot_be_normalised_are_refused() {
         );
     }
 }
+
+// ---------------------------------------------------------------------------------------------
+// the wrong kind of file or folder is named as such
+
+/// An image (or any file not starting with the `ply` line) given as a scene is named as not a
+/// PLY file, whatever bytes it starts with.
+#[test]
+fn a_file_that_is_not_a_ply_is_named_so() {
+    let jpeg = shared_path("data/styles/mondrian.jpg");
+    let err = load_ply(&jpeg).unwrap_err().to_string();
+    assert!(
+        err.contains("not a PLY file") && err.contains("mondrian.jpg"),
+        "{err}"
+    );
+    let e = parse_ply(
+        b"plywood\nformat ascii 1.0\nend_header\n",
+        Path::new("x.ply"),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("not a PLY file"), "{e}");
+}
+
+/// A dataset folder that does not exist, or a file given as one, is named as such rather than
+/// as a folder without a known layout.
+#[test]
+fn a_missing_dataset_folder_is_named_so() {
+    let dir = scratch_dir("errors", "missing-dataset");
+    let missing = dir.join("no-such-scene");
+    let err = Dataset::load(&missing, &LoadOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("no-such-scene") && err.contains("dataset folder not found"),
+        "{err}"
+    );
+    let file = dir.join("scene.txt");
+    std::fs::write(&file, "x").unwrap();
+    let err = Dataset::load(&file, &LoadOptions::default())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("scene.txt") && err.contains("not a folder"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

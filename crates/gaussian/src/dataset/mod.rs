@@ -379,6 +379,18 @@ impl Dataset {
     /// in that order of preference.
     pub fn load(dir: impl AsRef<Path>, options: &LoadOptions) -> Result<Dataset, DatasetError> {
         let dir = dir.as_ref();
+        if !dir.is_dir() {
+            return Err(DatasetError::Malformed {
+                path: dir.to_path_buf(),
+                problem: if dir.exists() {
+                    "not a folder: a dataset is a folder holding a COLMAP model, \
+                     transforms_train.json or poses_bounds.npy"
+                        .into()
+                } else {
+                    "dataset folder not found".into()
+                },
+            });
+        }
         if colmap::model_dir(dir).is_some() {
             Dataset::load_colmap(dir, options)
         } else if dir.join("transforms_train.json").is_file() {

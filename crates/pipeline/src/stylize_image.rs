@@ -6,7 +6,8 @@
 //! mixture): `g((1 - alpha) phi_k(c) + alpha adain(phi_k(c), s))`, where `phi` is the encoder
 //! and `g` the decoder at the chosen variant's resolution; with colour preservation each style
 //! is first colour-matched to the photo. The outputs are cropped to the photo's size and
-//! clamped to `[0, 1]`.
+//! clamped to `[0, 1]`. With a standard encoder that pools with floor rounding (the compressed
+//! relu4_1 encoder), each photo is first centre-cropped to a multiple of the total pooling.
 //!
 //! Each output is measured against its style image with the encoder's features at every level:
 //! the style loss ([`style::style_loss`], channel means and deviations, as the training losses
@@ -21,6 +22,7 @@
 use std::path::{Path, PathBuf};
 
 use ndarray::Array4;
+use nets::PoolRounding;
 use serde::{Deserialize, Serialize};
 use style::{ChannelStats, StyleFeatureStats};
 use train::Variant;
@@ -123,6 +125,25 @@ pub fn image_files(sources: &[PathBuf], role: &str) -> Result<Vec<PathBuf>> {
     Ok(out)
 }
 
+/// `img` centre-cropped to the largest size whose sides are multiples of `m` (at least `m`).
+fn crop_to_multiple(img: RgbImage, m: u32) -> RgbImage {
+    let (w, h) = ((img.width / m * m).max(m), (img.height / m * m).max(m));
+    if (w, h) == (img.width, img.height) || w > img.width || h > img.height {
+        return img;
+    }
+    let (x0, y0) = ((img.width - w) / 2, (img.height - h) / 2);
+    let mut data = Vec::with_capacity((w * h * 3) as usize);
+    for y in y0..y0 + h {
+        let start = ((y * img.width + x0) * 3) as usize;
+        data.extend_from_slice(&img.data[start..start + (w * 3) as usize]);
+    }
+    RgbImage {
+        width: w,
+        height: h,
+        data,
+    }
+}
+
 fn is_image_name(p: &Path) -> bool {
     p.extension()
         .and_then(|e| e.to_str())
@@ -158,6 +179,20 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
     let res = settings.variant.resolution();
     let encoder = settings.networks.load_encoder()?.with_resolution(res);
     let decoder = settings.networks.load_decoder()?.with_resolution(res);
+    // An encoder that pools with floor rounding drops the last row or column of odd sizes, so
+    // its decoder gives back less than the photo: such photos are centre-cropped to a multiple
+    // of the total pooling first.
+    let contents: Vec<RgbImage> = if settings.variant == Variant::Standard
+        && encoder.pool_rounding() == PoolRounding::Floor
+    {
+        let m = 1u32 << encoder.depth().saturating_sub(1).min(16);
+        contents
+            .into_iter()
+            .map(|c| crop_to_multiple(c, m))
+            .collect()
+    } else {
+        contents
+    };
     if decoder.in_channels() != *encoder.widths().last().unwrap_or(&0) {
         bail!(
             "the decoder takes {} channels, the encoder's deepest level has {}",
@@ -292,4 +327,33 @@ fn write_sheet(
     }
     let img = image_io::contact_sheet(&sheet)?;
     image_io::write_png(&settings.out_dir.join("contact_sheet.png"), &img)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn photos_are_cropped_to_the_centre_multiple() {
+        let (w, h) = (21u32, 10u32);
+        let img = RgbImage {
+            width: w,
+            height: h,
+            data: (0..w * h * 3).map(|i| i as f32).collect(),
+        };
+        let c = crop_to_multiple(img.clone(), 8);
+        assert_eq!((c.width, c.height), (16, 8));
+        // Centred: columns 2..18 of rows 1..9.
+        for y in 0..8 {
+            for x in 0..16 {
+                let src = (((y + 1) * w + x + 2) * 3) as usize;
+                let dst = ((y * 16 + x) * 3) as usize;
+                assert_eq!(c.data[dst..dst + 3], img.data[src..src + 3]);
+            }
+        }
+        // Already a multiple, or too small to crop: unchanged.
+        assert_eq!(crop_to_multiple(c.clone(), 8).data, c.data);
+        let small = crop_to_multiple(img.clone(), 32);
+        assert_eq!((small.width, small.height), (w, h));
+    }
 }

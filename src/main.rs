@@ -101,7 +101,7 @@ struct ViewArgs {
     #[arg(long, default_value_t = pipeline::stylize::DEFAULT_STYLE_SIDE, value_parser = at_least_one::<u32>())]
     style_size: u32,
     /// Working memory of the networks per stylized view, in MiB (1 to 1048576).
-    #[arg(long, default_value_t = train::bundle::DEFAULT_TILE_BUDGET_BYTES >> 20, value_parser = mebibytes())]
+    #[arg(long, default_value_t = runtime::DEFAULT_TILE_BUDGET_BYTES >> 20, value_parser = mebibytes())]
     tile_budget: u64,
     /// Most pixels (width x height) of an uploaded style image, read from its header before
     /// decoding (at least 1).
@@ -895,7 +895,7 @@ struct StyleArgs {
     decoder: Option<PathBuf>,
     /// Working memory of the networks per frame, in MiB: frames are decoded in tiles that fit
     /// it (any budget gives the same images; 1 to 1048576).
-    #[arg(long, default_value_t = train::bundle::DEFAULT_TILE_BUDGET_BYTES >> 20, value_parser = mebibytes())]
+    #[arg(long, default_value_t = runtime::DEFAULT_TILE_BUDGET_BYTES >> 20, value_parser = mebibytes())]
     tile_budget: u64,
 }
 
@@ -1481,8 +1481,8 @@ fn bundle_with(
     dir: &Path,
     variant: Option<Variant>,
     decoder: Option<&Path>,
-) -> Result<train::SceneBundle> {
-    Ok(pipeline::stylize::load_bundle(dir, variant, decoder)?)
+) -> Result<runtime::SceneBundle> {
+    Ok(pipeline::open::load_bundle(dir, variant, decoder)?)
 }
 
 fn demo(a: DemoArgs) -> Result<()> {

@@ -221,10 +221,10 @@ fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
     for t in &targets {
         let (mut frames, mut style_sum, mut content_sum) = (Vec::new(), 0.0f64, 0.0f64);
         for (c, colour_image) in cams.iter().zip(&colour) {
-            let view = stylize::render_feature_view(&bundle, c).unwrap();
-            let (img, _) =
-                stylize::stylize_view(&bundle, &view, t, settings.alpha, settings.tile_budget)
-                    .unwrap();
+            let img = bundle
+                .frame(c, t.stats.deepest(), settings.alpha, settings.tile_budget)
+                .unwrap()
+                .image;
             let f = deepest(&img);
             style_sum += style::style_loss(&f, &t.stats.levels).unwrap() as f64;
             let colour_deepest = deepest(colour_image).pop().unwrap();

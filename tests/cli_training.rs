@@ -17,7 +17,8 @@ use dsgs_testkit::shared_path;
 use gaussian::ply::{load_ply, save_ply};
 use gaussian::FeatureGaussians;
 use nets::NetWeights;
-use train::{DecoderTrainConfig, SceneBundle};
+use runtime::SceneBundle;
+use train::DecoderTrainConfig;
 
 /// The real relu3_1 encoder and decoder saved as one canonical weights file.
 fn save_networks(dir: &Path) -> PathBuf {

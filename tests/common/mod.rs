@@ -12,7 +12,8 @@ use gaussian::FeatureGaussians;
 use ndarray::{Array1, Array4};
 use nets::{Decoder, Encoder, Lifter};
 use pipeline::cameras::{select, CameraRequest, CameraSource, KnownCameras};
-use train::{BundleInfo, CameraRecord, SceneBundle, Variant};
+use runtime::{BundleInfo, CameraRecord, SceneBundle};
+use train::Variant;
 
 /// The `dsgs` binary.
 pub fn dsgs() -> Command {

@@ -1,4 +1,5 @@
-//! What every dsgs crate shares, and nothing else: the numeric trait all kernels are generic
+//! What every dsgs crate shares, and nothing else: the typed events by which long work reports
+//! to whoever runs it ([`event`]), the numeric trait all kernels are generic
 //! over ([`Real`], `f32` or `f64`), the atomic file write every output goes through
 //! ([`write_atomic`], with [`remove_unfinished_writes`] for a process that must exit in the middle
 //! of one: it deletes the temporary files of the writes still in flight), the content hash
@@ -40,6 +41,7 @@
 
 #![warn(missing_docs)]
 
+pub mod event;
 pub mod fs;
 pub mod hash;
 pub mod memory;

@@ -15,9 +15,8 @@ use std::time::Instant;
 
 use anyhow::{bail, Result};
 use pipeline::cameras::KnownCameras;
-use pipeline::stylize::{
-    load_bundle, load_styles, render_feature_view, style_targets, stylize_view, DEFAULT_STYLE_SIDE,
-};
+use pipeline::open::load_bundle;
+use pipeline::stylize::{load_styles, style_targets, DEFAULT_STYLE_SIDE};
 use pipeline::{image_io, Event, Sink, Stage};
 
 const USAGE: &str = "usage: stylize_frame BUNDLE STYLE OUT.png [CAMERA]";
@@ -87,20 +86,20 @@ fn main() -> Result<()> {
         target.name, styles[0].image.width, styles[0].image.height
     ));
 
-    let view = render_feature_view(&bundle, cam)?;
+    let view = bundle.feature_view(cam)?;
     let shape = view.features.shape();
     step(format!(
         "rasterized the feature map, {} channels at {}x{}",
         shape[1], shape[3], shape[2]
     ));
 
-    let (image, seconds) = stylize_view(
-        &bundle,
+    let frame = bundle.stylize(
         &view,
-        target,
+        target.stats.deepest(),
         1.0,
-        train::bundle::DEFAULT_TILE_BUDGET_BYTES,
+        runtime::DEFAULT_TILE_BUDGET_BYTES,
     )?;
+    let (image, seconds) = (frame.image, frame.seconds);
     step(format!(
         "lifted and transformed in {:.2} s, decoded in {:.2} s",
         seconds.lift_transform, seconds.decode

@@ -30,8 +30,9 @@ use serde::Serialize;
 use train::{BakeConfig, BakeReport, Variant};
 
 use crate::cameras::check_image_size;
+use crate::open::load_bundle;
 use crate::shard::{Invocation, Part, Shard};
-use crate::stylize::{check_style_settings, load_bundle, load_styles, style_targets};
+use crate::stylize::{check_style_settings, load_styles, style_targets};
 use crate::{config, Control};
 use train::RunOutcome;
 
@@ -227,7 +228,7 @@ pub fn checkpoint_dir(ply: &Path) -> PathBuf {
 /// Checks the size of every target view: each camera of the bundle scaled by
 /// `resolution_scale` (rounded as `gaussian::Camera::scaled` rounds) must be within the image
 /// size limits. The error names the camera, the bundle and the scale.
-pub fn check_target_sizes(info: &train::BundleInfo, scale: f64, bundle: &Path) -> Result<()> {
+pub fn check_target_sizes(info: &runtime::BundleInfo, scale: f64, bundle: &Path) -> Result<()> {
     for (i, c) in info.cameras.iter().enumerate() {
         let w = (c.width as f64 * scale).round().max(1.0);
         let h = (c.height as f64 * scale).round().max(1.0);
@@ -249,7 +250,7 @@ pub fn check_target_sizes(info: &train::BundleInfo, scale: f64, bundle: &Path) -
 /// target cameras, all checked.
 struct Prepared {
     cfg: BakeConfig,
-    bundle: train::SceneBundle,
+    bundle: runtime::SceneBundle,
     stats: style::ChannelStats<f32>,
     cameras: train::bake::BakeCameras,
     fingerprint: String,

@@ -193,12 +193,12 @@ impl KnownCameras {
     }
 
     /// The cameras stored in a bundle.
-    pub fn from_bundle(bundle: &train::SceneBundle, origin: &str) -> KnownCameras {
+    pub fn from_bundle(bundle: &runtime::SceneBundle, origin: &str) -> KnownCameras {
         KnownCameras::from_bundle_info(&bundle.info, origin)
     }
 
     /// The cameras recorded in a bundle's description.
-    pub fn from_bundle_info(info: &train::BundleInfo, origin: &str) -> KnownCameras {
+    pub fn from_bundle_info(info: &runtime::BundleInfo, origin: &str) -> KnownCameras {
         KnownCameras {
             cameras: info.cameras(),
             held_out: info.cameras.iter().map(|c| c.held_out).collect(),
@@ -210,8 +210,8 @@ impl KnownCameras {
     /// The cameras of a directory: a scene bundle's (when it holds `bundle.json`, at the
     /// bundle's training resolution), else a dataset's.
     pub fn from_dir(dir: &std::path::Path) -> Result<KnownCameras> {
-        if dir.join(train::bundle::INFO_FILE).is_file() {
-            let info = train::BundleInfo::load(dir)
+        if dir.join(runtime::bundle::INFO_FILE).is_file() {
+            let info = runtime::BundleInfo::load(dir)
                 .with_context(|| format!("reading the cameras of the bundle {}", dir.display()))?;
             return Ok(KnownCameras::from_bundle_info(
                 &info,

@@ -59,8 +59,8 @@ use glam::DVec3;
 use ndarray::Array4;
 use nets::{Encoder, Resolution};
 use rayon::prelude::*;
+use runtime::DEFAULT_TILE_BUDGET_BYTES;
 use serde::{Deserialize, Serialize};
-use train::bundle::DEFAULT_TILE_BUDGET_BYTES;
 
 use crate::image_io::{clamped, nchw_from_rgb, RgbImage};
 
@@ -699,7 +699,7 @@ impl<'e> StreamedConsistency<'e> {
 
     /// The same stream with the encoder's working memory in the perceptual distance bounded by
     /// `tile_budget` bytes ([`perceptual_distance`]; default
-    /// [`train::bundle::DEFAULT_TILE_BUDGET_BYTES`]).
+    /// [`runtime::DEFAULT_TILE_BUDGET_BYTES`]).
     pub fn with_tile_budget(mut self, tile_budget: u64) -> Self {
         self.tile_budget = tile_budget;
         self

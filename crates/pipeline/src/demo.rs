@@ -389,7 +389,7 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
     }
 
     // 4. stylize an orbit
-    let bundle = stylize::load_bundle(&bundle_dir, Some(s.variant), s.decoder.as_deref())?;
+    let bundle = crate::open::load_bundle(&bundle_dir, Some(s.variant), s.decoder.as_deref())?;
     let known = KnownCameras::from_bundle(&bundle, &bundle_dir.display().to_string());
     let request = CameraRequest {
         frames: Some(s.frames),
@@ -407,7 +407,7 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
         mp4: false,
         fps: 12.0,
         sheet_views: 6,
-        tile_budget: train::bundle::DEFAULT_TILE_BUDGET_BYTES,
+        tile_budget: runtime::DEFAULT_TILE_BUDGET_BYTES,
         part: Default::default(),
     };
     let inputs = record::Inputs::new(s, &bundle_dir, &settings)?;
@@ -496,7 +496,8 @@ mod record {
     use super::DemoSettings;
     use crate::error::{Context, Result};
     use crate::eval::EvalReport;
-    use crate::stylize::{StageSeconds, StylizeOutput, StylizeSettings};
+    use crate::stylize::{StylizeOutput, StylizeSettings};
+    use runtime::StageSeconds;
 
     /// `OUT/{stage}.done.json`.
     pub fn path(out_dir: &Path, stage: &str) -> PathBuf {

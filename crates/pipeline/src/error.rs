@@ -38,6 +38,8 @@ pub enum Error {
     },
     /// Training, checkpointing or resuming failed.
     Train(train::TrainError),
+    /// A scene bundle could not be opened, checked or run.
+    Runtime(runtime::RuntimeError),
     /// A network operation or weights file failed.
     Net(nets::NetError),
     /// A PyTorch checkpoint could not be read.
@@ -64,6 +66,7 @@ impl Error {
         Some(match self {
             Error::Message(_) | Error::Interrupted(_) | Error::Context { .. } => return None,
             Error::Train(e) => e,
+            Error::Runtime(e) => e,
             Error::Net(e) => e,
             Error::Checkpoint(e) => e,
             Error::Style(e) => e,
@@ -116,6 +119,7 @@ macro_rules! from_below {
 
 from_below!(
     Train(train::TrainError),
+    Runtime(runtime::RuntimeError),
     Net(nets::NetError),
     Checkpoint(nets::checkpoint::CheckpointError),
     Style(style::StyleError),

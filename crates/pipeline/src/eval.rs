@@ -40,9 +40,9 @@ use gaussian::dataset::images::image_size;
 use gaussian::Camera;
 use ndarray::Array4;
 use nets::Encoder;
+use runtime::SceneBundle;
 use serde::{Deserialize, Serialize};
 use style::{ChannelMoments, ChannelStats};
-use train::SceneBundle;
 
 use crate::cameras::evenly_spaced;
 use crate::consistency::{
@@ -51,8 +51,9 @@ use crate::consistency::{
 use crate::image_io::{self, nchw_from_rgb, RgbImage};
 use crate::render::{render_colour, SceneInput};
 use crate::shard::Part;
-use crate::stylize::{self, StageSeconds, COLOUR_VIEWS};
+use crate::stylize::{self, COLOUR_VIEWS};
 use crate::{Sink, Stage, Tally};
+use runtime::StageSeconds;
 
 /// Offsets along the sequence of the short- and long-range comparisons: short range compares
 /// view `i` with `i + 1`.
@@ -122,7 +123,7 @@ pub struct EvalSettings {
     /// Masking thresholds of the warps (`--alpha-threshold`, `--depth-tolerance`).
     pub warp: WarpOptions,
     /// Working memory of the networks while decoding a frame, in bytes (`--tile-budget`, in
-    /// MiB; see [`stylize::stylize_view`]).
+    /// MiB; see [`runtime::SceneBundle::stylize`]).
     pub tile_budget: u64,
     /// Also evaluate the per-frame 2D baseline of each style ([`baseline_view`]; on unless
     /// `--no-baseline`).
@@ -314,7 +315,7 @@ pub fn baseline_view(
         alpha,
     )?;
     let (h, w) = (x.dim().2, x.dim().3);
-    let y = train::bundle::crop(y, w as u32, h as u32)?;
+    let y = runtime::frame::crop(y, w as u32, h as u32)?;
     Ok(image_io::clamped(&image_io::rgb_from_nchw(&y)?))
 }
 
@@ -564,7 +565,7 @@ fn evaluate_block(
     let mut out = ShardSums::default();
     for (i, c) in cameras.iter().enumerate().take(views.end).skip(views.start) {
         let colour = render_colour(&bundle.scene, c, bundle.info.background)?;
-        let features = stylize::render_feature_view(bundle, c)?;
+        let features = bundle.feature_view(c)?;
         tally.advance(1, "render");
         let colour_image = image_io::clamped(&colour.image);
         let losses = block
@@ -578,13 +579,13 @@ fn evaluate_block(
             let img = if is_baseline {
                 baseline_view(bundle, &colour_image, target, settings.alpha)?
             } else {
-                let (img, s) = stylize::stylize_view(
-                    bundle,
+                let frame = bundle.stylize(
                     &features,
-                    target,
+                    target.stats.deepest(),
                     settings.alpha,
                     settings.tile_budget,
                 )?;
+                let (img, s) = (frame.image, frame.seconds);
                 out.seconds.raster += s.raster;
                 out.seconds.lift_transform += s.lift_transform;
                 out.seconds.decode += s.decode;

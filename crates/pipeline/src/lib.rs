@@ -90,6 +90,7 @@ pub mod eval;
 pub mod fit_features;
 pub mod fit_geometry;
 pub mod image_io;
+pub mod open;
 pub mod pretrain_decoder;
 pub mod render;
 pub mod shard;
@@ -97,8 +98,8 @@ pub mod stylize;
 pub mod stylize_image;
 pub mod weights;
 
+pub use base::event::{Event, Metric, Quiet, Sink, Stage, Tally};
 pub use error::{Error, Result};
-pub use train::event::{Event, Metric, Quiet, Sink, Stage, Tally};
 pub use train::RunOutcome;
 
 use std::path::Path;

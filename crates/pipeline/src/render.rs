@@ -36,7 +36,7 @@ pub enum SceneInput {
         /// The directory it was loaded from.
         path: PathBuf,
         /// The loaded bundle.
-        bundle: Box<train::SceneBundle>,
+        bundle: Box<runtime::SceneBundle>,
     },
 }
 
@@ -44,7 +44,7 @@ impl SceneInput {
     /// Opens a bundle directory or a `.ply` file.
     pub fn open(path: &Path) -> Result<SceneInput> {
         if path.is_dir() {
-            let bundle = crate::stylize::open_bundle(path)?;
+            let bundle = crate::open::open_bundle(path)?;
             Ok(SceneInput::Bundle {
                 path: path.to_path_buf(),
                 bundle: Box::new(bundle),

@@ -1,10 +1,9 @@
 //! `dsgs stylize`: zero-shot stylization of a scene bundle along a camera sequence.
 //!
 //! A frame, top down ([`run`]): rasterize the camera's feature map
-//! ([`render_feature_view`], `SceneBundle::render_features`), then per style the target
-//! statistics (`SceneBundle::target_stats`), lift, transform and decode
-//! (`SceneBundle::decode_timed`) and clamp ([`stylize_view`]). Each camera's feature map is
-//! rasterized once and kept in memory ([`FeatureView`]), so every further style costs only the
+//! ([`SceneBundle::feature_view`]), then per style lift, transform, decode and clamp
+//! ([`SceneBundle::stylize`]; the steps are in [`runtime::frame`]). Each camera's feature map is
+//! rasterized once and kept in memory ([`runtime::FeatureView`]), so every further style costs only the
 //! lift, the transform and the decode of that map.
 //!
 //! Styles:
@@ -34,12 +33,11 @@ use crate::error::{bail, Context, Result};
 use gaussian::dataset::images::resize;
 use gaussian::Camera;
 use ndarray::Array4;
-use serde::{Deserialize, Serialize};
+use runtime::{SceneBundle, StageSeconds};
 use style::{ChannelStats, StyleFeatureStats};
-use train::{SceneBundle, Variant};
 
 use crate::cameras::evenly_spaced;
-use crate::image_io::{self, rgb_from_nchw, RgbImage};
+use crate::image_io::{self, RgbImage};
 use crate::render::{render_colour, ColourRender};
 use crate::shard::Part;
 use crate::{Sink, Stage, Tally};
@@ -48,62 +46,6 @@ use crate::{Sink, Stage, Tally};
 pub const COLOUR_VIEWS: usize = 8;
 /// Default longest side of style images.
 pub const DEFAULT_STYLE_SIDE: u32 = 512;
-
-/// Reads a scene bundle directory ([`SceneBundle::load`]), first saying plainly when `dir` is
-/// not there (`bundle folder X not found`) or holds no `bundle.json` (`X: no bundle.json`).
-pub fn open_bundle(dir: &Path) -> Result<SceneBundle> {
-    let info = train::bundle::INFO_FILE;
-    let holds = format!(
-        "a scene bundle is a folder holding {}, {} and {info}",
-        train::bundle::SCENE_FILE,
-        train::bundle::NETS_FILE
-    );
-    if !dir.exists() {
-        bail!("bundle folder {} not found", dir.display());
-    }
-    if !dir.is_dir() {
-        bail!("{}: not a folder ({holds})", dir.display());
-    }
-    if !dir.join(info).exists() {
-        bail!("{}: no {info} ({holds})", dir.display());
-    }
-    SceneBundle::load(dir).with_context(|| format!("loading the scene bundle {}", dir.display()))
-}
-
-/// Loads a bundle ([`open_bundle`]), optionally switching the variant and replacing the decoder
-/// (a canonical `.safetensors` or a PyTorch checkpoint holding a decoder).
-pub fn load_bundle(
-    dir: &Path,
-    variant: Option<Variant>,
-    decoder: Option<&Path>,
-) -> Result<SceneBundle> {
-    let bundle = open_bundle(dir)?;
-    let variant = variant.unwrap_or(bundle.info.variant);
-    if let (Some(p), true) = (decoder, bundle.info.decoder_mode.trains_decoder()) {
-        bail!(
-            "the bundle {} was trained with its own {} decoder (fit-features --decoder-mode {}); \
-             its features fit no other decoder, so --decoder {} cannot replace it",
-            dir.display(),
-            bundle.info.decoder_mode.as_str(),
-            bundle.info.decoder_mode.as_str(),
-            p.display()
-        );
-    }
-    let dec = match decoder {
-        None => bundle.decoder.clone(),
-        Some(p) => crate::weights::load_any(p)
-            .with_context(|| format!("reading the decoder {}", p.display()))?
-            .decoder
-            .with_context(|| format!("{} holds no decoder", p.display()))?,
-    };
-    let from = decoder.map_or_else(|| dir.display().to_string(), |p| p.display().to_string());
-    bundle.with_decoder(dec, variant).with_context(|| {
-        format!(
-            "using the decoder of {from} with the bundle {}",
-            dir.display()
-        )
-    })
-}
 
 /// A loaded style image with its output name.
 #[derive(Clone, Debug)]
@@ -300,28 +242,6 @@ pub fn mix_targets(encoded: Vec<StyleTarget>, weights: Option<&[f64]>) -> Result
     }])
 }
 
-/// A camera's rasterized feature map (`[1, F, h, w]` at the feature resolution).
-#[derive(Clone, Debug)]
-pub struct FeatureView {
-    /// The camera.
-    pub camera: Camera,
-    /// The rasterized feature map, `[1, F, h, w]`.
-    pub features: Array4<f32>,
-    /// Wall time of the rasterization, in seconds.
-    pub raster_seconds: f64,
-}
-
-/// Rasterizes the feature map of one camera.
-pub fn render_feature_view(bundle: &SceneBundle, camera: &Camera) -> Result<FeatureView> {
-    let t = Instant::now();
-    let features = bundle.render_features(camera)?;
-    Ok(FeatureView {
-        camera: *camera,
-        features,
-        raster_seconds: t.elapsed().as_secs_f64(),
-    })
-}
-
 /// Checks that the bundle's networks can stylize every camera's view
 /// ([`SceneBundle::check_view_size`]), naming the first camera too small by its index.
 pub fn check_view_sizes(bundle: &SceneBundle, cameras: &[Camera]) -> Result<()> {
@@ -332,43 +252,6 @@ pub fn check_view_sizes(bundle: &SceneBundle, cameras: &[Camera]) -> Result<()> 
         }
     }
     Ok(())
-}
-
-/// Wall time of the stages of one decoded view, in seconds.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct StageSeconds {
-    /// Rasterizing the feature map.
-    pub raster: f64,
-    /// Lifting the feature map and transforming it to the style's statistics.
-    pub lift_transform: f64,
-    /// Decoding the transformed features into an image.
-    pub decode: f64,
-}
-
-/// Decodes a cached view for a target at strength `alpha` (checked: [`check_alpha`]), in tiles
-/// whose network working memory stays within about `tile_budget` bytes
-/// ([`SceneBundle::decode_in_tiles`]; the image does not depend on it): the clamped RGB image
-/// and the stage times (raster time from the cache).
-pub fn stylize_view(
-    bundle: &SceneBundle,
-    view: &FeatureView,
-    target: &StyleTarget,
-    alpha: f64,
-    tile_budget: u64,
-) -> Result<(RgbImage, StageSeconds)> {
-    check_alpha(alpha)?;
-    let stats = bundle.target_stats(target.stats.deepest(), alpha)?;
-    let k = view.camera.intrinsics;
-    let (img, [lt, dec]) =
-        bundle.decode_in_tiles(&view.features, &stats, k.width, k.height, tile_budget)?;
-    Ok((
-        image_io::clamped(&rgb_from_nchw(&img)?),
-        StageSeconds {
-            raster: view.raster_seconds,
-            lift_transform: lt,
-            decode: dec,
-        },
-    ))
 }
 
 /// Settings of `dsgs stylize`.
@@ -569,12 +452,18 @@ pub fn run(
     };
     let mut total = StageSeconds::default();
     for i in range.clone() {
-        let view = render_feature_view(bundle, &cameras[i])?;
+        let view = bundle.feature_view(&cameras[i])?;
         total.raster += view.raster_seconds;
         tally.advance(1, "rasterize");
         for (target, (_, frames)) in targets.iter().zip(&mut out.outputs) {
-            let (img, s) =
-                stylize_view(bundle, &view, target, settings.alpha, settings.tile_budget)?;
+            let frame = bundle.stylize(
+                &view,
+                target.stats.deepest(),
+                settings.alpha,
+                settings.tile_budget,
+            )?;
+            let s = frame.seconds;
+            let img = frame.image;
             total.lift_transform += s.lift_transform;
             total.decode += s.decode;
             out.decoded += 1;

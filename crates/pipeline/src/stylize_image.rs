@@ -248,7 +248,7 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
         for (si, target) in all.iter().enumerate() {
             let t = style::adain_alpha(deepest, target, settings.alpha)?;
             let y = decoder.forward(t.view())?;
-            let y = train::bundle::crop(y, content.width, content.height)?;
+            let y = runtime::frame::crop(y, content.width, content.height)?;
             let img = image_io::clamped(&rgb_from_nchw(&y)?);
             let out_feats = encoder.forward(nchw_from_rgb(&img).view())?;
             // The measures: against the style image (for the mixture, the weighted sum over

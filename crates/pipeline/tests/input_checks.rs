@@ -22,7 +22,8 @@ use pipeline::eval::EvalSettings;
 use pipeline::render::{render_views, DepthStyle, RenderKind, SceneInput};
 use pipeline::stylize::{StylizeSettings, DEFAULT_STYLE_SIDE};
 use pipeline::{Control, Quiet};
-use train::{BundleInfo, CameraRecord, SceneBundle, Variant};
+use runtime::{BundleInfo, CameraRecord, SceneBundle};
+use train::Variant;
 
 use dsgs_testkit::error_chain as chain;
 
@@ -133,7 +134,7 @@ fn stylize_settings(out: &Path, styles: Vec<PathBuf>) -> StylizeSettings {
         mp4: false,
         fps: 10.0,
         sheet_views: 2,
-        tile_budget: train::bundle::DEFAULT_TILE_BUDGET_BYTES,
+        tile_budget: runtime::DEFAULT_TILE_BUDGET_BYTES,
         part: Default::default(),
     }
 }
@@ -166,7 +167,7 @@ fn eval_settings(styles: Vec<PathBuf>) -> EvalSettings {
         preserve_colour: false,
         style_side: 64,
         warp: WarpOptions::default(),
-        tile_budget: train::bundle::DEFAULT_TILE_BUDGET_BYTES,
+        tile_budget: runtime::DEFAULT_TILE_BUDGET_BYTES,
         baseline: false,
         part: Default::default(),
     }
@@ -472,13 +473,13 @@ fn eval_refuses_a_strength_or_weights_out_of_range() {
 fn a_missing_bundle_is_said_once() {
     let dir = scratch("missing-bundle");
     let gone = dir.join("gone");
-    let text = chain(&pipeline::stylize::load_bundle(&gone, None, None).unwrap_err());
+    let text = chain(&pipeline::open::load_bundle(&gone, None, None).unwrap_err());
     assert_eq!(text, format!("bundle folder {} not found", gone.display()));
     // An empty folder, for stylize and for render.
     let empty = dir.join("empty");
     std::fs::create_dir_all(&empty).unwrap();
     let want = format!("{}: no bundle.json", empty.display());
-    let text = chain(&pipeline::stylize::load_bundle(&empty, None, None).unwrap_err());
+    let text = chain(&pipeline::open::load_bundle(&empty, None, None).unwrap_err());
     assert!(text.starts_with(&want), "{text}");
     names_once(&text, "empty");
     let text = chain(&SceneInput::open(&empty).err().unwrap());
@@ -487,7 +488,7 @@ fn a_missing_bundle_is_said_once() {
     // A bundle.json that cannot be read: the system's reason is shown once.
     let odd = dir.join("odd");
     std::fs::create_dir_all(odd.join("bundle.json")).unwrap();
-    let text = chain(&pipeline::stylize::load_bundle(&odd, None, None).unwrap_err());
+    let text = chain(&pipeline::open::load_bundle(&odd, None, None).unwrap_err());
     assert!(text.contains("bundle.json: cannot be read: "), "{text}");
     let reason = text.rsplit("cannot be read: ").next().unwrap();
     names_once(&text, reason);

@@ -1,7 +1,7 @@
 //! Baking a style into a plain 3DGS scene.
 //!
 //! A [`SceneBundle`] renders a stylized view by rasterizing its per-Gaussian features and decoding
-//! them ([`crate::bundle`]); a 3DGS viewer only shows SH colours. Baking fits the SH colours of
+//! them ([`runtime::frame`]); a 3DGS viewer only shows SH colours. Baking fits the SH colours of
 //! the bundle's frozen geometry to stylized renders, so that the geometry alone, saved in the
 //! official `.ply` layout without features, reproduces the style:
 //!
@@ -59,16 +59,16 @@ use serde::{Deserialize, Serialize};
 use style::ChannelStats;
 
 use crate::adam::{Adam, AdamConfig};
-use crate::bundle::SceneBundle;
 use crate::checkpoint::{StateReader, StateWriter};
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 use crate::error::TrainError;
-use crate::event::{Quiet, Stage, Tally};
 use crate::geometry::View;
 use crate::loss::{photometric_loss_with_grad, psnr};
 use crate::model::{F_DC, F_REST, OPACITY, SCALING};
 use crate::render::{render_color, render_color_backward};
+use base::event::{Quiet, Stage, Tally};
 use base::Fnv1a;
+use runtime::bundle::SceneBundle;
 
 /// The SH degree the baked scene stores (the official 3DGS layout).
 pub const STORED_SH_DEGREE: usize = 3;
@@ -151,7 +151,7 @@ impl Default for BakeConfig {
             held_out: 4,
             resolution_scale: 1.0,
             render_batch: 4,
-            tile_budget_mib: crate::bundle::DEFAULT_TILE_BUDGET_BYTES >> 20,
+            tile_budget_mib: runtime::DEFAULT_TILE_BUDGET_BYTES >> 20,
             seed: 0,
             checkpoint_interval: crate::driver::DEFAULT_CHECKPOINT_INTERVAL,
             log_interval: 0,
@@ -353,20 +353,6 @@ pub fn bake_cameras(cameras: &[Camera], config: &BakeConfig) -> Result<BakeCamer
     Ok(BakeCameras { train, held_out })
 }
 
-/// An NCHW `[1, 3, H, W]` image as row-major interleaved RGB, clamped to `[0, 1]`.
-fn to_hwc_clamped(image: &ndarray::Array4<f32>) -> Vec<f32> {
-    let (h, w) = (image.shape()[2], image.shape()[3]);
-    let mut out = Vec::with_capacity(h * w * 3);
-    for y in 0..h {
-        for x in 0..w {
-            for c in 0..3 {
-                out.push(image[[0, c, y, x]].clamp(0.0, 1.0));
-            }
-        }
-    }
-    out
-}
-
 /// The stylized view of `camera`: features rendered and decoded under `stats` (in tiles within
 /// `tile_budget` bytes, [`SceneBundle::decode_in_tiles`]), clamped to
 /// `[0, 1]`, row-major RGB; with `composite`, blended over the bundle's background with the
@@ -381,13 +367,7 @@ pub fn stylized_view(
     let k = camera.intrinsics;
     let features = bundle.render_features(camera)?;
     let (image, _) = bundle.decode_in_tiles(&features, stats, k.width, k.height, tile_budget)?;
-    if image.shape()[1] != 3 {
-        return Err(TrainError::Shape(format!(
-            "the decoder makes {} channels, a colour image needs 3",
-            image.shape()[1]
-        )));
-    }
-    let mut rgb = to_hwc_clamped(&image);
+    let mut rgb = runtime::frame::rgb_clamped(&image)?.data;
     if composite {
         let bg = bundle.info.background;
         let alpha = render_color(camera, &bundle.scene, 0, bg)?.raster.alpha;

@@ -46,12 +46,12 @@ use serde::{Deserialize, Serialize};
 use style::{adain_with_stats, decoder_training_loss, encode_style, StyleFeatureStats};
 
 use crate::adam::{Adam, AdamConfig};
-use crate::bundle::{weights_fingerprint, Variant};
 use crate::checkpoint::{StateReader, StateWriter};
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 use crate::error::TrainError;
-use crate::event::{Event, Metric, Sink, Stage};
 use crate::image_folder::{stack, ImageSet};
+use base::event::{Event, Metric, Sink, Stage};
+use runtime::bundle::{weights_fingerprint, Variant};
 
 /// The `format` metadata of a decoder-training checkpoint.
 pub const DECODER_CHECKPOINT_FORMAT: &str = "dsgs-decoder-checkpoint-v1";

@@ -24,7 +24,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use crate::error::TrainError;
-use crate::event::{Event, Quiet, Sink, Stage};
+use base::event::{Event, Quiet, Sink, Stage};
 
 /// The checkpoint file every loop writes in its output folder, replaced each time.
 pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";

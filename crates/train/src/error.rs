@@ -58,6 +58,9 @@ pub enum TrainError {
     /// The rasterizer refused its input.
     #[error(transparent)]
     Raster(#[from] raster::RasterError),
+    /// A scene bundle could not be made, saved or run.
+    #[error(transparent)]
+    Runtime(#[from] runtime::RuntimeError),
     /// A stop request ended a step that leaves nothing usable behind.
     #[error("interrupted while {0}")]
     Interrupted(String),

@@ -5,7 +5,7 @@
 //! Geometry, encoder and decoder are frozen. Per Gaussian there is a feature of `F` channels
 //! (initialised `N(0, feature_init_std^2)` from the seed); the lifter `l = relu(W r + b)` is
 //! initialised like PyTorch's default `Conv2d` (uniform in `+-1/sqrt(F)`, see
-//! [`conv_default_init`]). Feature maps follow the bundle's convention ([`crate::bundle`]):
+//! [`conv_default_init`]). Feature maps follow the bundle's convention ([`runtime::frame`]):
 //! features are rasterized at the variant's feature resolution ([`feature_size`]) with the
 //! camera's intrinsics rescaled to it, over a zero feature background.
 //!
@@ -65,7 +65,7 @@
 //!   [`FeatureTrainConfig::lr_decoder`];
 //! - [`FeatureNorm::AfterRaster`] aligns the lifted features with the unnormalised `relu_k_1`
 //!   and normalises each lifted window over its own pixels before the transform (stylization
-//!   then normalises over the whole view, see [`crate::bundle`]).
+//!   then normalises over the whole view, see [`runtime::frame`]).
 //!
 //! Evaluation ([`FeatureTrainer::evaluate_fixed`]): the mean loss, with the full loss weights
 //! (content and style terms included, also during the warm-up), over `eval_pairs` fixed samples
@@ -101,9 +101,6 @@ use style::{
 };
 
 use crate::adam::{Adam, AdamConfig};
-use crate::bundle::{
-    feature_size, weights_fingerprint, BundleInfo, CameraRecord, DecoderMode, SceneBundle, Variant,
-};
 use crate::checkpoint::{StateReader, StateWriter};
 use crate::decoder_training::{
     check_same_params, conv_default_init, init_decoder_with, init_mlp_decoder, mix,
@@ -111,10 +108,13 @@ use crate::decoder_training::{
 };
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 use crate::error::TrainError;
-use crate::event::{Event, Metric, Quiet, Sink, Stage, Tally};
 use crate::geometry::{load_views, View};
 use crate::image_folder::{to_tensor, ImageSet};
+use base::event::{Event, Metric, Quiet, Sink, Stage, Tally};
 use base::Fnv1a;
+use runtime::bundle::{
+    feature_size, weights_fingerprint, BundleInfo, CameraRecord, DecoderMode, SceneBundle, Variant,
+};
 
 /// The `format` metadata of a feature-training checkpoint.
 pub const FEATURE_CHECKPOINT_FORMAT: &str = "dsgs-feature-checkpoint-v1";
@@ -1829,7 +1829,7 @@ impl FeatureTrainer {
 
     /// Writes the bundle of the current state into `dir`.
     pub fn save_bundle(&self, dir: &Path) -> Result<(), TrainError> {
-        self.bundle().save(dir)
+        Ok(self.bundle().save(dir)?)
     }
 
     /// The checkpoint as safetensors bytes.

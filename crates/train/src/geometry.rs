@@ -69,12 +69,12 @@ use crate::checkpoint::{CheckpointParts, GeometryCheckpoint};
 use crate::density::{scale_interval, scale_point, DensifyConfig, DensifyReport};
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop, DEFAULT_CHECKPOINT_INTERVAL};
 use crate::error::TrainError;
-use crate::event::{Event, Metric, Sink, Stage};
 use crate::init::{gaussians_from_points, random_points_in_box, PointCloud};
 use crate::loss::{photometric_loss_with_grad, psnr, LossTerms};
 use crate::model::{ColourGrads, GaussianModel, LearningRates, OPACITY};
 use crate::render::{render_color, render_color_backward_before_sh};
 use crate::ssim::{ssim, ImageShape};
+use base::event::{Event, Metric, Sink, Stage};
 
 /// Settings of a geometry run. Defaults are those of the original 3DGS code.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -20,14 +20,14 @@
 //!   crops, batches.
 //! * [`decoder_training`]: AdaIN decoder training ([`DecoderTrainer`], [`DecoderTrainConfig`]).
 //! * [`features`]: feature training on frozen geometry, the third stage ([`FeatureTrainer`],
-//!   [`FeatureTrainConfig`]), producing a [`SceneBundle`].
+//!   [`FeatureTrainConfig`]), producing a `runtime::SceneBundle`.
 //! * [`bake`](mod@bake): fitting SH colours to the stylized views of a bundle.
 //!
 //! Running them:
 //!
 //! * [`driver`]: the one training-loop driver ([`drive`], [`TrainingLoop`]) under every loop:
 //!   stop flag, periodic and stop checkpoints, progress and log events, the final output.
-//! * [`event`]: the typed [`Event`]s every loop reports to a caller's [`Sink`]; nothing in this
+//! * `base::event`: the typed events every loop reports to a caller's sink; nothing in this
 //!   crate prints.
 //!
 //! # Example
@@ -96,13 +96,11 @@
 
 pub mod adam;
 pub mod bake;
-pub mod bundle;
 pub mod checkpoint;
 pub mod decoder_training;
 pub mod density;
 pub mod driver;
 pub mod error;
-pub mod event;
 pub mod features;
 pub mod geometry;
 pub mod image_folder;
@@ -115,18 +113,18 @@ pub mod ssim;
 
 pub use adam::{Adam, AdamConfig, ParamState};
 pub use bake::{bake, BakeCameras, BakeConfig, BakeReport};
-pub use bundle::{BundleInfo, CameraRecord, DecoderMode, SceneBundle, Variant};
+pub use base::event::{Event, Metric, Quiet, Sink, Stage};
 pub use checkpoint::GeometryCheckpoint;
 pub use decoder_training::{DecoderTrainConfig, DecoderTrainer};
 pub use density::{DensifyConfig, DensifyReport};
 pub use driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 pub use error::TrainError;
-pub use event::{Event, Metric, Quiet, Sink, Stage};
 pub use features::{FeatureEvaluation, FeatureInputs, FeatureTrainConfig, FeatureTrainer};
 pub use geometry::{Evaluation, GeometryConfig, GeometryTrainer, StepReport, TrainSummary, View};
 pub use image_folder::ImageSet;
 pub use init::{gaussians_from_points, random_points_in_box, PointCloud};
 pub use model::{ColourGrads, GaussianGrads, GaussianModel, LearningRates};
+pub use runtime::{DecoderMode, Variant};
 pub use schedule::ExponentialLr;
 pub use ssim::ImageShape;
 pub use style::FeatureNorm;

@@ -10,9 +10,9 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use dsgs_testkit::scratch_dir;
+use runtime::bundle::{BundleInfo, SceneBundle, INFO_FILE, MAX_IMAGE_SIDE};
+use runtime::RuntimeError;
 use serde_json::Value;
-use train::bundle::{BundleInfo, SceneBundle, INFO_FILE, MAX_IMAGE_SIDE};
-use train::TrainError;
 
 /// Feature channels of the test bundle.
 const FEATURES: usize = 4;
@@ -60,7 +60,7 @@ fn edit_matrix(json: &mut Value, f: impl Fn(usize, usize, f64) -> f64) {
 fn assert_rejected(dir: &Path, problem: &[&str]) {
     let file = dir.join(INFO_FILE).display().to_string();
     let camera = format!("camera {BAD} ({BAD_NAME})");
-    let check = |result: Result<(), TrainError>| {
+    let check = |result: Result<(), RuntimeError>| {
         let msg = result.expect_err("the bad camera was accepted").to_string();
         assert!(msg.contains(&file), "does not name {file}: {msg}");
         assert!(msg.contains(&camera), "does not name {camera}: {msg}");

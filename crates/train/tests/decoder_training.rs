@@ -16,7 +16,7 @@ use known_optimum::{perturb, positive_image, InvertibleNets};
 use nets::{Decoder, NetWeights, Resolution};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
-use train::bundle::Variant;
+use runtime::bundle::Variant;
 use train::decoder_training::{
     init_decoder, DecoderStepReport, DecoderTrainConfig, DecoderTrainer, DECODER_CHECKPOINT_FILE,
     DECODER_WEIGHTS_FILE,

@@ -13,7 +13,7 @@ use common::{
     fixture_networks, net_bits, render_views, shared_images, sphere_cameras, synthetic_scene,
 };
 use dsgs_testkit::{scratch_dir, shared_path};
-use train::bundle::Variant;
+use runtime::bundle::Variant;
 use train::features::{
     FeatureInputs, FeatureSetup, FeatureStepReport, FeatureTrainConfig, FeatureTrainer,
 };

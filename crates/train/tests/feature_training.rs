@@ -26,10 +26,11 @@ use nets::Resolution;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
+use runtime::bundle::{CameraRecord, SceneBundle, Variant};
+use runtime::frame::render_feature_map;
 use safetensors::tensor::TensorView;
 use safetensors::SafeTensors;
 use style::{channel_stats, STATS_EPS};
-use train::bundle::{render_feature_map, CameraRecord, SceneBundle, Variant};
 use train::features::{
     CropWindow, FeatureInputs, FeatureTrainConfig, FeatureTrainer, BUNDLE_DIR,
     FEATURE_CHECKPOINT_FILE,

@@ -38,9 +38,9 @@ use dsgs_testkit::fuzz::{
 use dsgs_testkit::scratch_dir;
 use glam::DVec3;
 use ndarray::Array2;
+use runtime::bundle::{BundleInfo, SceneBundle, INFO_FILE};
 use serde_json::{json, Value};
 use style::ChannelStats;
-use train::bundle::{BundleInfo, SceneBundle, INFO_FILE};
 use train::checkpoint::{checkpoint_step, GeometryCheckpoint};
 use train::{AdamConfig, DecoderTrainConfig, DecoderTrainer, GaussianModel, LearningRates};
 

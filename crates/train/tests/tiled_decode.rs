@@ -16,14 +16,14 @@ mod common;
 use common::small_bundle;
 use ndarray::{s, Array2};
 use proptest::prelude::*;
+use runtime::bundle::feature_size;
 use style::ChannelStats;
-use train::bundle::feature_size;
 use train::{FeatureNorm, Variant};
 
 /// Lift, transform and decode the whole feature map at once, then crop: the definition the
 /// tiles must reproduce.
 fn whole(
-    bundle: &train::SceneBundle,
+    bundle: &runtime::SceneBundle,
     features: &ndarray::Array4<f32>,
     stats: &ChannelStats<f32>,
     width: u32,

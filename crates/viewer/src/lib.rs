@@ -82,7 +82,7 @@ impl ViewerConfig {
             bind: IpAddr::V4(Ipv4Addr::LOCALHOST),
             port: 8080,
             style_side: pipeline::stylize::DEFAULT_STYLE_SIDE,
-            tile_budget: train::bundle::DEFAULT_TILE_BUDGET_BYTES,
+            tile_budget: runtime::DEFAULT_TILE_BUDGET_BYTES,
             max_upload_bytes: 20 << 20,
             max_view_side: 2048,
             max_uploads: 16,

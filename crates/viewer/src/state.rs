@@ -13,7 +13,8 @@ use pipeline::image_io::{self, RgbImage};
 use pipeline::render::{render_colour, SceneInput};
 use pipeline::stylize::{self, StyleImage};
 use pipeline::{Event, Stage};
-use train::{BakeConfig, SceneBundle};
+use runtime::SceneBundle;
+use train::BakeConfig;
 
 use crate::api::{
     BakeRequest, JobInfo, SceneInfo, StyleInfo, StylizeRequest, WeightedStyle, MAX_REQUEST_STYLES,
@@ -464,11 +465,15 @@ impl State {
             None
         };
         let target = self.target(&req.styles, content.as_ref())?;
-        let view = stylize::render_feature_view(bundle, &camera).map_err(ApiError::internal)?;
-        let (img, _) =
-            stylize::stylize_view(bundle, &view, &target, req.alpha, self.config.tile_budget)
-                .map_err(ApiError::internal)?;
-        image_io::encode_png(&img).map_err(ApiError::internal)
+        let frame = bundle
+            .frame(
+                &camera,
+                target.stats.deepest(),
+                req.alpha,
+                self.config.tile_budget,
+            )
+            .map_err(ApiError::internal)?;
+        image_io::encode_png(&frame.image).map_err(ApiError::internal)
     }
 
     /// `POST /api/bake`: checks the request and starts the bake on a thread of its own.

@@ -13,7 +13,7 @@ use ndarray::{Array1, Array4};
 use nets::{ConvLayer, Decoder, Encoder, Lifter, Resolution};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use train::bundle::{BundleInfo, CameraRecord, SceneBundle};
+use runtime::bundle::{BundleInfo, CameraRecord, SceneBundle};
 use train::geometry::View;
 use train::image_folder::ImageSet;
 use train::render::render_color;

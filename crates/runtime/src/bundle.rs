@@ -15,41 +15,24 @@
 //! [`MAX_IMAGE_SIDE`], focal lengths finite and positive, principal point finite, every entry of
 //! `camera_from_world` finite, its last row `0 0 0 1` and its rotation part orthonormal with
 //! determinant +1 (a rigid transform, as the dataset loaders of `gaussian::dataset` require).
-//! A bad camera is reported as a [`TrainError::Bundle`] naming `bundle.json`, the camera's
+//! A bad camera is reported as a [`RuntimeError::Bundle`] naming `bundle.json`, the camera's
 //! index and name, and the problem. [`SceneBundle::load`] also refuses cameras smaller than the
 //! networks can decode ([`SceneBundle::min_view_side`]) and `bundle.json` values that do not fit
 //! the scene or the networks, naming the key.
 //!
-//! Rendering a stylized view (the module's convention, shared by training and stylization):
-//!
-//! 1. Rasterize the features at the *feature resolution*: the image size reduced by the
-//!    encoder's pooling for the standard variant, the image size itself for fullres
-//!    ([`SceneBundle::feature_size`]). The camera's intrinsics are rescaled to that size.
-//! 2. Lift: `l = relu(W r + b)` ([`nets::Lifter`]).
-//! 3. Transform: `t = std_s * l + mean_s`, with the style's deepest-level statistics. Strength
-//!    `alpha` interpolates the target statistics between the scene's own mean statistics
-//!    ([`BundleInfo::scene_mean`], [`BundleInfo::scene_std`], measured on the training views)
-//!    and the style's, so `alpha = 0` reconstructs the scene. A bundle of the design ablation
-//!    ([`FeatureNorm::AfterRaster`], [`BundleInfo::normalize`]) first normalises the lifted map
-//!    with its own per-channel mean and std over the whole view ([`SceneBundle::view_stats`]):
-//!    `t = std_s * (l - mean_l) / std_l + mean_s`.
-//! 4. Decode and crop to the requested image size (the standard decoder's upsampling can
-//!    overshoot by up to `2^levels - 1` pixels).
+//! How a bundle renders a stylized view is in [`crate::frame`].
 
 use std::path::{Path, PathBuf};
-use std::time::Instant;
 
 use gaussian::camera::check_rigid;
 use gaussian::ply::{load_ply, save_ply};
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
 use glam::DMat4;
-use ndarray::{s, Array2, Array4};
 use nets::{Decoder, Encoder, Lifter, NetWeights, Resolution};
-use raster::{render, Channels, RenderOptions};
 use serde::{Deserialize, Serialize};
-use style::{ChannelMoments, ChannelStats, FeatureNorm};
+use style::FeatureNorm;
 
-use crate::error::TrainError;
+use crate::error::RuntimeError;
 use base::Fnv1a;
 
 /// The scene inside a bundle directory: the official 3DGS PLY layout plus the `f_feat_*`
@@ -62,13 +45,6 @@ pub const INFO_FILE: &str = "bundle.json";
 
 /// The value of [`BundleInfo::format`].
 pub const BUNDLE_FORMAT: &str = "dsgs-bundle-1";
-
-/// Default working memory of the networks while decoding a frame ([`SceneBundle::decode`]):
-/// 1 GiB, in which the fullres relu3_1 decoder takes tiles of about 300x300 pixels.
-pub const DEFAULT_TILE_BUDGET_BYTES: u64 = 1 << 30;
-
-/// Rows of the feature map lifted at a time by [`SceneBundle::view_stats`].
-pub const VIEW_STATS_ROWS: usize = 16;
 
 /// The largest image width or height a bundle camera may have (the project's one image-size
 /// limit, defined with the cameras).
@@ -129,7 +105,7 @@ pub enum DecoderMode {
     /// features and the lifter.
     Scratch,
     /// A per-pixel MLP from features to colour
-    /// ([`init_mlp_decoder`](crate::decoder_training::init_mlp_decoder)) trained inside stage 3
+    /// (`train::decoder_training::init_mlp_decoder`) trained inside stage 3
     /// only. It decodes each feature pixel to one image pixel, so it needs the fullres variant.
     Mlp,
 }
@@ -279,7 +255,7 @@ pub struct BundleInfo {
     #[serde(default)]
     pub decoder_mode: DecoderMode,
     /// Where the features are normalised (absent in older bundles: before rasterization, the
-    /// paper's design); see step 3 of the module documentation.
+    /// paper's design); see step 3 of [`crate::frame`].
     #[serde(default)]
     pub normalize: FeatureNorm,
 }
@@ -318,13 +294,13 @@ impl BundleInfo {
     /// its scene or networks (enough for its cameras).
     ///
     /// Checked: the JSON, the format tag, and every camera ([`CameraRecord::check`]). A bad
-    /// camera gives a [`TrainError::Bundle`] on `bundle.json` whose message names the
+    /// camera gives a [`RuntimeError::Bundle`] on `bundle.json` whose message names the
     /// camera by index and name and says what is wrong, e.g. `camera 3 (r_12): fx is 0; the
     /// focal length must be finite and positive`.
     ///
     /// A missing folder or description is said once, plainly: `X: bundle folder not found`,
     /// `X: no bundle.json (...)`.
-    pub fn load(dir: &Path) -> Result<BundleInfo, TrainError> {
+    pub fn load(dir: &Path) -> Result<BundleInfo, RuntimeError> {
         let info_path = dir.join(INFO_FILE);
         let bytes = std::fs::read(&info_path).map_err(|e| {
             if e.kind() != std::io::ErrorKind::NotFound {
@@ -411,8 +387,8 @@ mod null_as_nan {
     }
 }
 
-fn bundle_err(path: &Path, message: impl Into<String>) -> TrainError {
-    TrainError::Bundle {
+fn bundle_err(path: &Path, message: impl Into<String>) -> RuntimeError {
+    RuntimeError::Bundle {
         path: path.to_path_buf(),
         message: message.into(),
     }
@@ -426,12 +402,12 @@ fn holds() -> String {
 /// The error of a file or folder that could not be read, created or written: `{path}: {what}:
 /// {io}`. The I/O error's text is part of the message and not returned as its source, so that
 /// a printed error chain shows it once.
-fn io_err(path: &Path, what: &str, e: &std::io::Error) -> TrainError {
+fn io_err(path: &Path, what: &str, e: &std::io::Error) -> RuntimeError {
     bundle_err(path, format!("{what}: {e}"))
 }
 
 /// The error of a bundle path that is missing or not a folder.
-fn not_a_folder(dir: &Path) -> TrainError {
+fn not_a_folder(dir: &Path) -> RuntimeError {
     if dir.exists() {
         bundle_err(dir, format!("not a folder ({})", holds()))
     } else {
@@ -486,7 +462,7 @@ impl SceneBundle {
 
     /// Checks that the parts fit together: feature width = lifter input, lifter output =
     /// decoder input = encoder's deepest width, statistics and background sizes.
-    pub fn validate(&self) -> Result<(), TrainError> {
+    pub fn validate(&self) -> Result<(), RuntimeError> {
         let c = self.lifter.out_channels();
         let f = self.info.feature_dim;
         let deepest = *self.encoder.widths().last().unwrap_or(&0);
@@ -568,12 +544,12 @@ impl SceneBundle {
         if problems.is_empty() {
             Ok(())
         } else {
-            Err(TrainError::Config(problems.join("; ")))
+            Err(RuntimeError::Config(problems.join("; ")))
         }
     }
 
     /// Writes the bundle into `dir` (created if needed); each file is written atomically.
-    pub fn save(&self, dir: &Path) -> Result<(), TrainError> {
+    pub fn save(&self, dir: &Path) -> Result<(), RuntimeError> {
         self.validate()?;
         std::fs::create_dir_all(dir).map_err(|e| io_err(dir, "cannot be created", &e))?;
         save_ply(dir.join(SCENE_FILE), &self.scene)?;
@@ -595,7 +571,7 @@ impl SceneBundle {
     /// Reads a bundle directory written by [`SceneBundle::save`], with the networks set to the
     /// bundle's variant. A missing folder or `bundle.json` is reported as by
     /// [`BundleInfo::load`].
-    pub fn load(dir: &Path) -> Result<SceneBundle, TrainError> {
+    pub fn load(dir: &Path) -> Result<SceneBundle, RuntimeError> {
         if !dir.is_dir() {
             return Err(not_a_folder(dir));
         }
@@ -633,7 +609,7 @@ impl SceneBundle {
             info,
         };
         bundle.validate().map_err(|e| match e {
-            TrainError::Config(m) => bundle_err(&dir.join(INFO_FILE), m),
+            RuntimeError::Config(m) => bundle_err(&dir.join(INFO_FILE), m),
             other => other,
         })?;
         Ok(bundle)
@@ -645,9 +621,9 @@ impl SceneBundle {
         mut self,
         decoder: Decoder<f32>,
         variant: Variant,
-    ) -> Result<Self, TrainError> {
+    ) -> Result<Self, RuntimeError> {
         if decoder.in_channels() != self.lifter.out_channels() {
-            return Err(TrainError::Config(format!(
+            return Err(RuntimeError::Config(format!(
                 "the decoder takes {} channels, but this bundle's features lift to {} \
                  (it was made with other weights)",
                 decoder.in_channels(),
@@ -655,7 +631,7 @@ impl SceneBundle {
             )));
         }
         if decoder.is_pointwise() && variant != Variant::Fullres {
-            return Err(TrainError::Config(format!(
+            return Err(RuntimeError::Config(format!(
                 "the decoder is a per-pixel MLP, which needs the fullres variant, not {}",
                 variant.as_str()
             )));
@@ -701,198 +677,6 @@ impl SceneBundle {
     pub fn feature_size(&self, width: u32, height: u32) -> (u32, u32) {
         feature_size(&self.encoder, self.info.variant, width, height)
     }
-
-    /// Rasterizes the features seen by `camera` at the feature resolution: `[1, F, h, w]`.
-    pub fn render_features(&self, camera: &Camera) -> Result<Array4<f32>, TrainError> {
-        render_feature_map(
-            &self.scene,
-            camera,
-            self.feature_size(camera.intrinsics.width, camera.intrinsics.height),
-            &self.info.feature_background,
-        )
-    }
-
-    /// The target statistics for strength `alpha`: `alpha * style + (1 - alpha) * scene`.
-    pub fn target_stats(
-        &self,
-        style: &ChannelStats<f32>,
-        alpha: f64,
-    ) -> Result<ChannelStats<f32>, TrainError> {
-        let c = self.lifter.out_channels();
-        if style.channels() != c || style.batch() != 1 {
-            return Err(TrainError::Shape(format!(
-                "style statistics are {}x{}, expected 1x{c}",
-                style.batch(),
-                style.channels()
-            )));
-        }
-        let a = alpha as f32;
-        let mix = |s: &Array2<f32>, scene: &[f32]| {
-            Array2::from_shape_fn((1, c), |(_, j)| a * s[[0, j]] + (1.0 - a) * scene[j])
-        };
-        ChannelStats::new(
-            mix(&style.mean, &self.info.scene_mean),
-            mix(&style.std, &self.info.scene_std),
-        )
-        .map_err(|e| TrainError::Shape(e.to_string()))
-    }
-
-    /// The per-channel mean and std of the lifted feature map over the whole view, which a
-    /// bundle of the design ablation ([`FeatureNorm::AfterRaster`]) normalises with; `None`
-    /// for the paper's design. The map is lifted [`VIEW_STATS_ROWS`] rows at a time and the
-    /// moments merged in row order ([`ChannelMoments`]), so the result does not depend on how
-    /// the frame is decoded.
-    pub fn view_stats(
-        &self,
-        features: &Array4<f32>,
-    ) -> Result<Option<ChannelStats<f32>>, TrainError> {
-        if self.info.normalize == FeatureNorm::BeforeRaster {
-            return Ok(None);
-        }
-        let shape = |e: String| TrainError::Shape(e);
-        let (n, _, fh, _) = features.dim();
-        let mut moments = ChannelMoments::new(n, self.lifter.out_channels());
-        for y0 in (0..fh).step_by(VIEW_STATS_ROWS) {
-            let band = features.slice(s![.., .., y0..(y0 + VIEW_STATS_ROWS).min(fh), ..]);
-            let lifted = self
-                .lifter
-                .forward(band)
-                .map_err(|e| shape(e.to_string()))?;
-            moments.add(&lifted).map_err(|e| shape(e.to_string()))?;
-        }
-        Ok(Some(moments.stats().map_err(|e| shape(e.to_string()))?))
-    }
-
-    /// Lifts, transforms and decodes a feature map from [`SceneBundle::render_features`] into
-    /// an RGB image `[1, 3, height, width]` (cropped; values as the decoder makes them), in
-    /// tiles within [`DEFAULT_TILE_BUDGET_BYTES`] ([`SceneBundle::decode_in_tiles`]).
-    pub fn decode(
-        &self,
-        features: &Array4<f32>,
-        stats: &ChannelStats<f32>,
-        width: u32,
-        height: u32,
-    ) -> Result<Array4<f32>, TrainError> {
-        Ok(self
-            .decode_in_tiles(features, stats, width, height, DEFAULT_TILE_BUDGET_BYTES)?
-            .0)
-    }
-
-    /// [`SceneBundle::decode`], also returning the wall time of lift + transform and of the
-    /// decoder, in seconds.
-    pub fn decode_timed(
-        &self,
-        features: &Array4<f32>,
-        stats: &ChannelStats<f32>,
-        width: u32,
-        height: u32,
-    ) -> Result<(Array4<f32>, [f64; 2]), TrainError> {
-        self.decode_in_tiles(features, stats, width, height, DEFAULT_TILE_BUDGET_BYTES)
-    }
-
-    /// The side of the square output tiles [`SceneBundle::decode_in_tiles`] uses for a
-    /// feature map of `feature_hw` decoded to `width x height` within `budget_bytes`.
-    pub fn decode_tile_side(
-        &self,
-        feature_hw: (usize, usize),
-        width: u32,
-        height: u32,
-        budget_bytes: u64,
-    ) -> usize {
-        let (oh, ow) = self.decoder.output_size(feature_hw);
-        let (decoder_bytes, halo) = self.decoder.tile_cost(feature_hw);
-        // The lifted map and its transform live beside the features' crop, at the features'
-        // resolution.
-        let scale = (feature_hw.0 * feature_hw.1) as f64 / (oh * ow).max(1) as f64;
-        let lift_bytes =
-            scale * 4.0 * (self.lifter.in_channels() + 2 * self.lifter.out_channels()) as f64;
-        nets::tiled::tile_side(
-            budget_bytes,
-            decoder_bytes + lift_bytes,
-            halo,
-            height as usize,
-            width as usize,
-        )
-    }
-
-    /// [`SceneBundle::decode_timed`] one output tile at a time, the tile side chosen so that
-    /// the networks' working memory stays within about `budget_bytes`
-    /// ([`SceneBundle::decode_tile_side`]).
-    ///
-    /// A stylized frame, top down: [`SceneBundle::render_features`] (rasterize the per-Gaussian
-    /// features at the feature resolution), then here, per tile of the image: crop the
-    /// features to the region the decoder needs for the tile ([`Decoder::input_region`]), lift
-    /// to the encoder width, transform with the target statistics
-    /// (`T(x) = std(s) x + mean(s)`, from [`SceneBundle::target_stats`]), decode the tile
-    /// ([`Decoder::forward_region`]). Lifting and the transform act on each pixel alone and the
-    /// decoder's tiles equal the whole image's ([`nets::tiled`]), so the image is the same,
-    /// bit for bit, for any budget; no map wider than the features covers the whole frame.
-    /// A bundle of the design ablation normalises each lifted tile with the statistics of the
-    /// whole view ([`SceneBundle::view_stats`]) before the transform.
-    pub fn decode_in_tiles(
-        &self,
-        features: &Array4<f32>,
-        stats: &ChannelStats<f32>,
-        width: u32,
-        height: u32,
-        budget_bytes: u64,
-    ) -> Result<(Array4<f32>, [f64; 2]), TrainError> {
-        let net = |e: nets::NetError| TrainError::Shape(e.to_string());
-        let (_, _, fh, fw) = features.dim();
-        let (oh, ow) = self.decoder.output_size((fh, fw));
-        let (th, tw) = (height as usize, width as usize);
-        if oh < th || ow < tw {
-            return Err(TrainError::Shape(format!(
-                "decoded image is {ow}x{oh}, smaller than the requested {tw}x{th}"
-            )));
-        }
-        let side = self.decode_tile_side((fh, fw), width, height, budget_bytes);
-        let t0 = Instant::now();
-        let view_stats = self.view_stats(features)?;
-        let stats_seconds = t0.elapsed().as_secs_f64();
-        let mut image = Array4::<f32>::zeros((1, self.decoder.out_channels(), th, tw));
-        let mut seconds = [stats_seconds, 0.0];
-        for r in nets::tiled::grid(th, tw, side) {
-            let t0 = Instant::now();
-            let need = self.decoder.input_region((fh, fw), r).map_err(net)?;
-            let part = nets::tiled::crop(features.view(), &need);
-            let mut lifted = self.lifter.forward(part.view()).map_err(net)?;
-            drop(part);
-            let shape = |e: style::StyleError| TrainError::Shape(e.to_string());
-            if let Some(v) = &view_stats {
-                lifted = style::normalize(&lifted, v).map_err(shape)?;
-            }
-            let t = style::style_transform(&lifted, stats).map_err(shape)?;
-            drop(lifted);
-            let t1 = Instant::now();
-            let y = self
-                .decoder
-                .forward_region(t.view(), (fh, fw), r)
-                .map_err(net)?;
-            image
-                .slice_mut(s![.., .., r.y0..r.y1, r.x0..r.x1])
-                .assign(&y);
-            let t2 = Instant::now();
-            seconds[0] += (t1 - t0).as_secs_f64();
-            seconds[1] += (t2 - t1).as_secs_f64();
-        }
-        Ok((image, seconds))
-    }
-}
-
-/// Crops `[N, C, H', W']` to `[N, C, height, width]` (top-left), failing if it is smaller.
-pub fn crop(image: Array4<f32>, width: u32, height: u32) -> Result<Array4<f32>, TrainError> {
-    let (h, w) = (image.shape()[2], image.shape()[3]);
-    let (th, tw) = (height as usize, width as usize);
-    if h < th || w < tw {
-        return Err(TrainError::Shape(format!(
-            "decoded image is {w}x{h}, smaller than the requested {tw}x{th}"
-        )));
-    }
-    if h == th && w == tw {
-        return Ok(image);
-    }
-    Ok(image.slice(s![.., .., ..th, ..tw]).to_owned())
 }
 
 /// The feature-map size for an image of `width x height` under `encoder` and `variant`: the
@@ -915,25 +699,6 @@ pub fn feature_size(
             (w as u32, h as u32)
         }
     }
-}
-
-/// Rasterizes `scene`'s features from `camera`, with the intrinsics rescaled to `size`.
-pub fn render_feature_map(
-    scene: &FeatureGaussians<f32>,
-    camera: &Camera,
-    size: (u32, u32),
-    background: &[f32],
-) -> Result<Array4<f32>, TrainError> {
-    let cam = camera.resized(size.0, size.1);
-    let opts = RenderOptions::new(Channels::Features, background.to_vec());
-    let out = render(&cam, scene, &opts)?;
-    let f = scene.feature_dim;
-    let (w, h) = (size.0 as usize, size.1 as usize);
-    // The rasterizer's image is HWC; the networks take NCHW.
-    let img = &out.raster.image;
-    Ok(Array4::from_shape_fn((1, f, h, w), |(_, c, y, x)| {
-        img[(y * w + x) * f + c]
-    }))
 }
 
 /// Path of a file inside a bundle directory.

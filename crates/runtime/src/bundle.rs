@@ -28,7 +28,7 @@ use gaussian::camera::check_rigid;
 use gaussian::ply::{load_ply, save_ply};
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
 use glam::DMat4;
-use nets::{Decoder, Encoder, Lifter, NetWeights, Resolution};
+use nets::{Decoder, Encoder, Lifter, NetWeights, PoolRounding, Resolution};
 use serde::{Deserialize, Serialize};
 use style::FeatureNorm;
 
@@ -676,6 +676,37 @@ impl SceneBundle {
     /// The feature-map size `(width, height)` for an image of `width x height`.
     pub fn feature_size(&self, width: u32, height: u32) -> (u32, u32) {
         feature_size(&self.encoder, self.info.variant, width, height)
+    }
+
+    /// The camera of the feature map that a frame of `camera` is decoded from.
+    ///
+    /// Fullres, and the standard variant of an encoder that pools with ceil rounding: `camera`
+    /// resized to [`SceneBundle::feature_size`], whose decoded image covers the frame (it may
+    /// overshoot and is cropped). The standard variant of an encoder that pools with floor
+    /// rounding (the 16x-compressed relu4_1 pair) would decode an image smaller than the frame
+    /// for a side that is not a multiple of the pooling factor `f = 2^(depth - 1)`; its feature
+    /// map is instead the frame's image plane scaled by exactly `1 / f` (feature pixel `i` covers
+    /// image pixels `f i .. f (i + 1)`, as the encoder's pooling grid does), `ceil(side / f)`
+    /// pixels a side, so the decoded image covers the frame and is cropped like the others.
+    pub fn feature_camera(&self, camera: &Camera) -> Camera {
+        let k = camera.intrinsics;
+        let floor = self.info.variant == Variant::Standard
+            && self.encoder.pool_rounding() == PoolRounding::Floor;
+        if !floor {
+            let (w, h) = self.feature_size(k.width, k.height);
+            return camera.resized(w, h);
+        }
+        let f = 1u32 << (self.encoder.depth().max(1) - 1);
+        let s = 1.0 / f as f64;
+        let intrinsics = Intrinsics {
+            fx: k.fx * s,
+            fy: k.fy * s,
+            cx: k.cx * s,
+            cy: k.cy * s,
+            width: k.width.div_ceil(f),
+            height: k.height.div_ceil(f),
+        };
+        Camera::new(intrinsics, camera.camera_from_world)
     }
 }
 

@@ -127,12 +127,15 @@ impl SceneBundle {
         })
     }
 
-    /// Rasterizes the features seen by `camera` at the feature resolution: `[1, F, h, w]`.
+    /// Rasterizes the features seen by `camera` at the feature resolution: `[1, F, h, w]`, with
+    /// the camera of [`SceneBundle::feature_camera`].
     pub fn render_features(&self, camera: &Camera) -> Result<Array4<f32>, RuntimeError> {
+        let feature_camera = self.feature_camera(camera);
+        let k = feature_camera.intrinsics;
         render_feature_map(
             &self.scene,
-            camera,
-            self.feature_size(camera.intrinsics.width, camera.intrinsics.height),
+            &feature_camera,
+            (k.width, k.height),
             &self.info.feature_background,
         )
     }

@@ -1,0 +1,116 @@
+//! Frames of the standard variant with an encoder that pools with floor rounding (the real
+//! 16x-compressed relu4_1 pair): every frame size decodes to the whole frame, and the feature
+//! map's camera is the frame's scaled by exactly `1 / 8`, so its pixel grid is the encoder's
+//! pooling grid.
+
+use dsgs_testkit::shared_path;
+use gaussian::camera_path::look_at;
+use gaussian::{FeatureGaussians, Intrinsics};
+use glam::DVec3;
+use ndarray::{Array1, Array2, Array4};
+use nets::checkpoint::load_checkpoint;
+use nets::{Decoder, Encoder, Lifter, PoolRounding};
+use runtime::{BundleInfo, CameraRecord, SceneBundle, Variant, DEFAULT_TILE_BUDGET_BYTES};
+use style::ChannelStats;
+
+/// Feature channels of the test scene.
+const F: usize = 4;
+
+/// A bundle of a few Gaussians with the compressed relu4_1 pair and a fixed lifter.
+fn compressed_bundle() -> SceneBundle {
+    let load = |rel: &str| load_checkpoint(&shared_path(&format!("weights/{rel}"))).unwrap();
+    let encoder: Encoder =
+        Encoder::from_state_dict(&load("compressed-16x-relu4_1/4SE.pth")).unwrap();
+    let decoder: Decoder =
+        Decoder::from_state_dict(&load("compressed-16x-relu4_1/4SD.pth")).unwrap();
+    assert_eq!(encoder.pool_rounding(), PoolRounding::Floor);
+    let c = *encoder.widths().last().unwrap();
+    let mut scene = FeatureGaussians::<f32> {
+        sh_degree: 0,
+        feature_dim: F,
+        ..Default::default()
+    };
+    for i in 0..30 {
+        let t = i as f32 / 30.0;
+        scene
+            .means
+            .push([t - 0.5, (3.0 * t).sin() * 0.4, (5.0 * t).cos() * 0.3]);
+        scene.log_scales.push([0.12f32.ln(); 3]);
+        scene.quats.push([1.0, 0.0, 0.0, 0.0]);
+        scene.opacity_logits.push(2.0);
+        scene.sh.push([0.5, -0.2, 0.1]);
+        scene
+            .features
+            .extend((0..F).map(|j| ((i + j) % 5) as f32 / 5.0));
+    }
+    let lifter = Lifter::new(
+        Array4::from_shape_fn((c, F, 1, 1), |(o, i, _, _)| 0.05 * ((o + 2 * i) % 7) as f32),
+        Array1::zeros(c),
+    )
+    .unwrap();
+    let info = BundleInfo::new(
+        &encoder,
+        Variant::Standard,
+        F,
+        [0.0; 3],
+        (vec![0.0; c], vec![1.0; c]),
+        vec![CameraRecord::new("view", &camera(64, 48), false)],
+    );
+    SceneBundle {
+        scene,
+        encoder,
+        decoder,
+        lifter,
+        info,
+    }
+}
+
+fn camera(width: u32, height: u32) -> gaussian::Camera {
+    let k = Intrinsics {
+        fx: 0.9 * width as f64,
+        fy: 0.9 * width as f64,
+        cx: width as f64 / 2.0,
+        cy: height as f64 / 2.0,
+        width,
+        height,
+    };
+    look_at(k, DVec3::new(0.3, -0.2, -3.0), DVec3::ZERO, DVec3::NEG_Y).unwrap()
+}
+
+#[test]
+fn frames_of_any_size_decode_to_the_whole_frame() {
+    let bundle = compressed_bundle();
+    bundle.validate().unwrap();
+    let c = bundle.lifter.out_channels();
+    let style = ChannelStats::new(
+        Array2::from_shape_fn((1, c), |(_, j)| 0.1 * (j % 5) as f32),
+        Array2::from_elem((1, c), 0.3),
+    )
+    .unwrap();
+    // Sides that are and are not multiples of the pooling factor 8.
+    for (w, h) in [(64, 48), (37, 29), (41, 56)] {
+        let cam = camera(w, h);
+        let frame = bundle
+            .frame(&cam, &style, 1.0, DEFAULT_TILE_BUDGET_BYTES)
+            .unwrap();
+        assert_eq!((frame.image.width, frame.image.height), (w, h));
+        assert_eq!(frame.image.data.len(), 3 * (w * h) as usize);
+        let fc = bundle.feature_camera(&cam).intrinsics;
+        assert_eq!((fc.width, fc.height), (w.div_ceil(8), h.div_ceil(8)));
+    }
+}
+
+#[test]
+fn the_feature_camera_is_the_frame_scaled_by_the_pooling_factor() {
+    let bundle = compressed_bundle();
+    for (w, h) in [(64, 48), (37, 29)] {
+        let cam = camera(w, h);
+        let fc = bundle.feature_camera(&cam);
+        assert_eq!(fc.camera_from_world, cam.camera_from_world);
+        let (k, kf) = (cam.intrinsics, fc.intrinsics);
+        // Scaling by a power of two is exact in floating point.
+        for (a, b) in [(k.fx, kf.fx), (k.fy, kf.fy), (k.cx, kf.cx), (k.cy, kf.cy)] {
+            assert_eq!(b * 8.0, a);
+        }
+    }
+}

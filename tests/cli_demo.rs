@@ -13,6 +13,7 @@ fn size_of(p: &std::path::Path) -> (u32, u32) {
 }
 
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn a_toy_demo_runs_every_stage_and_a_rerun_skips_them() {
     let dir = scratch("demo");
     let out = dir.join("out");

@@ -24,6 +24,7 @@ fn num(v: &Value, path: &[&str]) -> f64 {
 }
 
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn eval_report_and_frames_agree() {
     let dir = scratch("eval");
     let bundle = common::save_tiny_bundle(&dir);
@@ -169,6 +170,7 @@ fn bad_eval_input_is_refused_with_a_message() {
 /// preservation along 11 orbit views (so there are long-range pairs): every number is the same,
 /// bit for bit.
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
     let bundle = common::tiny_bundle();
     let mut req = CameraRequest::new(CameraSource::Orbit);

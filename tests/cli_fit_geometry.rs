@@ -63,6 +63,7 @@ fn write_dataset(dir: &Path, n: usize) {
 }
 
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn config_flags_outputs_and_exact_resume() {
     let dir = scratch("fit-geometry");
     let data = dir.join("data");
@@ -236,6 +237,7 @@ fn a_stopped_run_writes_a_checkpoint_that_resumes() {
 /// gives the uninterrupted run's scene, byte for byte.
 #[cfg(unix)]
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn sigterm_mid_run_writes_a_checkpoint_that_resumes_exactly() {
     let dir = scratch("fit-geometry-sigterm");
     let data = dir.join("data");

@@ -48,6 +48,7 @@ fn stylize(bundle: &Path, out: &Path, shard: Option<&str>) -> std::process::Comm
 }
 
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn stylize_in_three_shards_assembles_to_the_one_process_output() {
     let dir = scratch("shard-stylize");
     let bundle = save_tiny_bundle(&dir);
@@ -104,6 +105,7 @@ fn stylize_in_three_shards_assembles_to_the_one_process_output() {
 }
 
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn eval_in_shards_assembles_to_the_one_process_report() {
     let dir = scratch("shard-eval");
     let bundle = save_tiny_bundle(&dir);
@@ -154,6 +156,7 @@ fn eval_in_shards_assembles_to_the_one_process_report() {
 }
 
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn bake_targets_in_shards_fit_to_the_one_process_ply() {
     let dir = scratch("shard-bake");
     let bundle = save_tiny_bundle(&dir);

@@ -138,6 +138,7 @@ fn tiny_pretrain(dir: &Path) -> Tiny {
 }
 
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn pretrain_decoder_writes_weights_and_config_and_resumes_exactly() {
     let dir = scratch("pretrain-decoder");
     let inputs = tiny_pretrain(&dir);
@@ -333,6 +334,7 @@ fn tiny_features(dir: &Path) -> Tiny {
 }
 
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn fit_features_writes_a_bundle_that_stylizes() {
     let dir = scratch("fit-features");
     let inputs = tiny_features(&dir);
@@ -495,6 +497,7 @@ fn tiny_bake(dir: &Path) -> Tiny {
 }
 
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn bake_writes_a_plain_ply_and_a_report() {
     let dir = scratch("bake");
     let inputs = tiny_bake(&dir);
@@ -579,6 +582,7 @@ fn bake_writes_a_plain_ply_and_a_report() {
 /// stop writes resumes to the uninterrupted run's decoder, byte for byte.
 #[cfg(unix)]
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn pretrain_decoder_stopped_by_sigterm_resumes_exactly() {
     let dir = scratch("pretrain-decoder-sigterm");
     let no_periodic_checkpoints = ["--checkpoint-every", "0"];
@@ -606,6 +610,7 @@ fn pretrain_decoder_stopped_by_sigterm_resumes_exactly() {
 /// uninterrupted run's bundle, every file byte for byte.
 #[cfg(unix)]
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn fit_features_stopped_by_sigterm_resumes_exactly() {
     let dir = scratch("fit-features-sigterm");
     let (full, cut) = tiny_features(&dir).stop_and_resume(&dir, "out", 500, &[], |_, _| {});
@@ -618,6 +623,7 @@ fn fit_features_stopped_by_sigterm_resumes_exactly() {
 /// report.
 #[cfg(unix)]
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn bake_stopped_by_sigterm_resumes_exactly() {
     let dir = scratch("bake-sigterm");
     let (full, cut) =
@@ -639,6 +645,7 @@ fn bake_stopped_by_sigterm_resumes_exactly() {
 /// trains, records its design in the bundle, stylizes and evaluates, and resumes bit for bit;
 /// the combinations that cannot work are refused with the reason.
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn fit_features_ablation_switches() {
     let dir = scratch("fit-features-ablations");
     let inputs = tiny_features(&dir);
@@ -778,6 +785,7 @@ fn fit_features_ablation_switches() {
 /// on schedule and at the end, printed with the samples' kind; training views and styles with
 /// `--no-eval`; a painting that does not exist is named.
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn fit_features_evaluates_held_out_views_and_paintings() {
     let dir = scratch("fit-features-evaluation");
     let inputs = tiny_features(&dir);

@@ -439,6 +439,7 @@ type Answer = (&'static str, (u16, Vec<u8>), u16, &'static str);
 /// Every answer must be its documented status with a JSON `{error}` message, the server's peak
 /// resident memory must stay under 2 GB, and a normal request must still succeed afterwards.
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn hostile_requests_are_refused_within_bounded_memory() {
     const CLIENTS: usize = 8;
     const PEAK_BOUND: u64 = 2_000_000_000;

@@ -55,6 +55,7 @@ fn ran(r: &DemoReport) -> Vec<&'static str> {
 }
 
 #[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn a_rerun_skips_every_finished_stage_and_a_changed_style_reruns_stylize() {
     let dir = scratch_dir("demo-stages", "rerun");
     let out = dir.join("out");

@@ -1,6 +1,6 @@
 //! One million Gaussians at 1920x1080: forward and backward complete with bounded memory.
-//! Heavy (seconds in release), so ignored by default:
-//! `cargo test --release -p raster --test large -- --ignored --nocapture`.
+//! Seconds in release, so part of the full test set only:
+//! `cargo test --release -p dsgs-raster --test large -- --include-ignored`.
 
 mod common;
 
@@ -8,7 +8,7 @@ use common::Rng;
 use raster::{rasterize, rasterize_backward, Cotangents, Splats};
 
 #[test]
-#[ignore = "heavy: 1M Gaussians at 1080p; run with --ignored in release"]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn a_million_gaussians_at_1080p() {
     let (w, h, n, d) = (1920u32, 1080u32, 1_000_000usize, 3usize);
     let mut rng = Rng(5);

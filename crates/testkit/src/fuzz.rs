@@ -88,9 +88,10 @@ const SPREAD_CUTS: usize = 256;
 /// served: the requesting thread records the size and sleeps for good, and the target's
 /// watchdog fails the test naming the case and the size. Install it in each fuzz test file:
 ///
-/// ```ignore
+/// ```no_run
 /// #[global_allocator]
 /// static ALLOC: dsgs_testkit::fuzz::CappedAlloc = dsgs_testkit::fuzz::CappedAlloc;
+/// # fn main() {}
 /// ```
 pub struct CappedAlloc;
 

@@ -50,10 +50,7 @@ fn split(views: Vec<View>) -> (Vec<View>, Vec<View>) {
 }
 
 #[test]
-#[cfg_attr(
-    debug_assertions,
-    ignore = "minutes without optimisation: run with --release"
-)]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn fits_a_known_scene_to_30_db_on_held_out_views() {
     let truth = synthetic_scene(300, 1);
     let cameras = sphere_cameras(40, 4.0, 64, 80.0);

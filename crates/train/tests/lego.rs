@@ -13,10 +13,7 @@ use train::init::{gaussians_from_points, random_points_in_box};
 use train::Run;
 
 #[test]
-#[cfg_attr(
-    debug_assertions,
-    ignore = "minutes without optimisation: run with --release"
-)]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
 fn a_short_lego_run_raises_held_out_psnr() {
     let dir = dsgs_testkit::shared_path("data/scenes/lego");
     let options = LoadOptions {

@@ -353,7 +353,7 @@ impl TileBins {
             .zip(binned.par_iter_mut())
             .enumerate()
             .for_each(|(b, (((out, means2d), radii), binned))| {
-                pulp::Arch::new().dispatch(RectBlock {
+                base::isa::dispatch(RectBlock {
                     first: (b * RECT_BLOCK) as u32,
                     means2d,
                     radii,
@@ -814,7 +814,7 @@ mod tests {
             means2d.len()
         ];
         let mut binned = vec![7; 3];
-        pulp::Arch::new().dispatch(RectBlock {
+        base::isa::dispatch(RectBlock {
             first,
             means2d,
             radii,

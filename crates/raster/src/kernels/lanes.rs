@@ -348,7 +348,7 @@ pub(crate) fn pack(splats: &Splats<f32>, height: u32) -> Vec<LaneSplat> {
         .collect();
     packed
         .par_chunks_mut(PACK_BLOCK)
-        .for_each(|block| pulp::Arch::new().dispatch(ReachRows { block, height }));
+        .for_each(|block| base::isa::dispatch(ReachRows { block, height }));
     packed
 }
 

@@ -94,7 +94,7 @@ use base::Real;
 use ndarray::Array4;
 use rayon::prelude::*;
 
-use crate::conv::{bias_relu, in_fixed_groups, sum_in_order, SyncPtr};
+use crate::conv_parts::{bias_relu, in_fixed_groups, sum_in_order, SyncPtr};
 use crate::matmul::{matmul, GemmBackend};
 
 /// Outputs per tile side (`m` of F(m x m, 3 x 3)).

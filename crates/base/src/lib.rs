@@ -7,7 +7,8 @@
 //! ([`memory`]; the libraries never do), beside the one way the libraries fill their large
 //! buffers ([`memory::filled`], on the threads of the current rayon pool), and the scheduling
 //! policy a program may run its long commands under ([`pool::with_workers_awake`]; the
-//! libraries never do).
+//! libraries never do), and the one point where vector kernels enter code compiled for the
+//! machine's instruction set ([`isa::dispatch`], detected once per process).
 //!
 //! It sits below every other crate of the workspace and depends on none of them.
 //!
@@ -44,6 +45,7 @@
 pub mod event;
 pub mod fs;
 pub mod hash;
+pub mod isa;
 pub mod memory;
 pub mod pool;
 pub mod real;

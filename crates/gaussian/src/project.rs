@@ -377,13 +377,13 @@ pub fn project<T: Real>(
     out
 }
 
-/// Runs `op` compiled for the best instruction set `pulp` finds at run time when `T` is `f32`
+/// Runs `op` compiled for the process's instruction set ([`base::isa`]) when `T` is `f32`
 /// (the compiler vectorises its loop over Gaussians; IEEE operations give the same bits on
 /// every instruction set, and no multiply-add is fused), as plain code otherwise.
 #[inline(always)]
 fn in_isa<T: Real, Op: pulp::WithSimd<Output = ()>>(op: Op) {
     if T::as_f32_slice(&[]).is_some() {
-        pulp::Arch::new().dispatch(op)
+        base::isa::dispatch(op)
     } else {
         op.with_simd(pulp::Scalar::new())
     }

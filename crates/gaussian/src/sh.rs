@@ -625,12 +625,11 @@ mod fast {
             center: [center[0], center[1], center[2]],
             out: out.as_chunks_mut::<3>().0,
         };
-        let arch = pulp::Arch::new();
         match nb {
-            1 => arch.dispatch(ColorsNb::<1>(op)),
-            4 => arch.dispatch(ColorsNb::<4>(op)),
-            9 => arch.dispatch(ColorsNb::<9>(op)),
-            _ => arch.dispatch(ColorsNb::<16>(op)),
+            1 => base::isa::dispatch(ColorsNb::<1>(op)),
+            4 => base::isa::dispatch(ColorsNb::<4>(op)),
+            9 => base::isa::dispatch(ColorsNb::<9>(op)),
+            _ => base::isa::dispatch(ColorsNb::<16>(op)),
         }
         true
     }
@@ -717,12 +716,11 @@ mod fast {
             d_sh,
             d_means,
         };
-        let arch = pulp::Arch::new();
         match nb {
-            1 => arch.dispatch(BackwardNb::<1>(op)),
-            4 => arch.dispatch(BackwardNb::<4>(op)),
-            9 => arch.dispatch(BackwardNb::<9>(op)),
-            _ => arch.dispatch(BackwardNb::<16>(op)),
+            1 => base::isa::dispatch(BackwardNb::<1>(op)),
+            4 => base::isa::dispatch(BackwardNb::<4>(op)),
+            9 => base::isa::dispatch(BackwardNb::<9>(op)),
+            _ => base::isa::dispatch(BackwardNb::<16>(op)),
         }
     }
 

@@ -67,6 +67,7 @@ use base::Real;
 use ndarray::{Array1, Array4, ArrayView1, ArrayView4, ArrayViewMut2, Axis};
 use rayon::prelude::*;
 
+use crate::conv_parts::{bias_relu, in_fixed_groups, sum_in_order, SyncPtr};
 use crate::matmul::{backend_for, matmul, GemmBackend, Pass};
 
 /// Target number of output pixels per tile (a good GEMM width).
@@ -143,20 +144,6 @@ pub fn algorithm_for<T: Real>(c: usize, o: usize) -> ConvAlgorithm {
     ALGORITHM
         .with(|a| a.get())
         .unwrap_or_else(|| ConvAlgorithm::default_for::<T>(c, o))
-}
-
-/// A raw pointer that may be sent to other threads; users guarantee disjoint writes.
-#[derive(Clone, Copy)]
-pub(crate) struct SyncPtr<T>(pub(crate) *mut T);
-// SAFETY: only used to write disjoint regions from parallel tasks (see each use).
-unsafe impl<T> Send for SyncPtr<T> {}
-// SAFETY: as above.
-unsafe impl<T> Sync for SyncPtr<T> {}
-
-impl<T> SyncPtr<T> {
-    pub(crate) fn get(self) -> *mut T {
-        self.0
-    }
 }
 
 /// The tiles `(image, first row, last row + 1)` of an output of `n` images of `h_out` rows.
@@ -314,17 +301,6 @@ pub(crate) fn conv_valid<T: Real>(
     out
 }
 
-/// `v + b`, through a ReLU when `relu`.
-#[inline]
-pub(crate) fn bias_relu<T: Real>(v: T, b: T, relu: bool) -> T {
-    let t = v + b;
-    if !relu || t > T::zero() {
-        t
-    } else {
-        T::zero()
-    }
-}
-
 /// Gradients of a valid cross-correlation with respect to its weights and bias, given the padded
 /// input `xp [N,C,Hp,Wp]`, the output gradient `dy [N,O,Hp-K+1,Wp-K+1]` and the kernel size.
 pub(crate) fn conv_valid_param_grads<T: Real>(
@@ -368,29 +344,6 @@ fn bias_grad<T: Real>(dys: &[T], n: usize, o: usize, plane_out: usize) -> Array1
         })
         .collect();
     Array1::from_vec(db)
-}
-
-/// Runs `jobs` split into `groups` fixed contiguous groups, the groups in parallel, `run` taking
-/// one group's jobs in order; returns the groups' results in group order. The split depends only
-/// on the job and group counts, never on the thread count.
-pub(crate) fn in_fixed_groups<J: Sync, R: Send>(
-    jobs: &[J],
-    groups: usize,
-    run: impl Fn(&[J]) -> R + Sync + Send,
-) -> Vec<R> {
-    (0..groups)
-        .into_par_iter()
-        .map(|g| run(&jobs[g * jobs.len() / groups..(g + 1) * jobs.len() / groups]))
-        .collect()
-}
-
-/// Element `idx` of the groups' partial sums ([`in_fixed_groups`]), added in group order.
-pub(crate) fn sum_in_order<T: Real>(partials: &[Vec<T>], idx: usize) -> T {
-    let mut s = partials[0][idx];
-    for p in &partials[1..] {
-        s += p[idx];
-    }
-    s
 }
 
 /// Weight gradient `[O, C, K, K]` (flat) of a valid `K x K` cross-correlation, by implicit GEMM:

@@ -103,6 +103,7 @@
 
 pub mod checkpoint;
 pub mod conv;
+mod conv_parts;
 pub mod decoder;
 pub mod encoder;
 pub mod error;

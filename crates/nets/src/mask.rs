@@ -21,10 +21,9 @@ impl ReluMask {
     /// The mask of a ReLU output (positive output iff positive input).
     pub(crate) fn of_output<T: Real>(y: &[T]) -> ReluMask {
         let mut bits = vec![0u64; y.len().div_ceil(64)];
-        let arch = pulp::Arch::new();
         bits.par_chunks_mut(WORDS_PER_TASK)
             .zip(y.par_chunks(64 * WORDS_PER_TASK))
-            .for_each(|(words, ys)| arch.dispatch(Pack { words, ys }));
+            .for_each(|(words, ys)| base::isa::dispatch(Pack { words, ys }));
         ReluMask { len: y.len(), bits }
     }
 
@@ -35,10 +34,9 @@ impl ReluMask {
             self.len,
             "ReLU mask applied to a gradient of another size"
         );
-        let arch = pulp::Arch::new();
         g.par_chunks_mut(64 * WORDS_PER_TASK)
             .zip(self.bits.par_chunks(WORDS_PER_TASK))
-            .for_each(|(gs, words)| arch.dispatch(Select { words, gs }));
+            .for_each(|(gs, words)| base::isa::dispatch(Select { words, gs }));
     }
 }
 

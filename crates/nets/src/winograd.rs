@@ -94,7 +94,7 @@ use base::Real;
 use ndarray::Array4;
 use rayon::prelude::*;
 
-use crate::conv::{bias_relu, in_fixed_groups, sum_in_order, SyncPtr};
+use crate::conv_parts::{bias_relu, in_fixed_groups, sum_in_order, SyncPtr};
 use crate::matmul::{matmul, GemmBackend};
 
 /// Outputs per tile side (`m` of F(m x m, 3 x 3)).
@@ -260,7 +260,6 @@ pub(crate) fn conv3x3_valid<T: Real>(
     let mut out = Array4::<T>::uninit((n, o, h_out, w_out));
     let out_ptr = SyncPtr(out.as_mut_ptr().cast::<T>());
     let plane_in = hp * wp;
-    let arch = pulp::Arch::new();
     // Scratch buffers are recycled through a pool, so at most one set per running job exists.
     let pool: Mutex<Vec<Scratch<T>>> = Mutex::new(Vec::new());
     jobs.par_iter().for_each(|&(img, t0, t1)| {
@@ -280,7 +279,7 @@ pub(crate) fn conv3x3_valid<T: Real>(
         m.resize(E * o * nt, T::zero());
         rows.resize(4 * A * (tw + 1), T::zero());
         let runs = runs(t0, t1, tw);
-        arch.dispatch(InputStage {
+        base::isa::dispatch(InputStage {
             x_img: &xs[img * c * plane_in..(img + 1) * c * plane_in],
             dims: [c, hp, wp],
             nt,
@@ -291,7 +290,7 @@ pub(crate) fn conv3x3_valid<T: Real>(
         if guard {
             let len = t1 - t0;
             guard_scratch.sums.resize(len, T::zero());
-            arch.dispatch(NormStage {
+            base::isa::dispatch(NormStage {
                 v: &v,
                 nt,
                 sums: &mut guard_scratch.sums,
@@ -317,7 +316,7 @@ pub(crate) fn conv3x3_valid<T: Real>(
                 );
             }
         }
-        arch.dispatch(OutputStage {
+        base::isa::dispatch(OutputStage {
             m: &m,
             o,
             nt,
@@ -543,7 +542,6 @@ pub(crate) fn conv3x3_valid_weight_grad<T: Real>(
     let groups = groups.clamp(1, jobs.len().max(1));
     let plane_in = hp * wp;
     let plane_out = h_out * w_out;
-    let arch = pulp::Arch::new();
     let partials: Vec<Vec<T>> = in_fixed_groups(&jobs, groups, |group| {
         let nt = per_job;
         let mut du = vec![T::zero(); E * o * c];
@@ -559,7 +557,7 @@ pub(crate) fn conv3x3_valid_weight_grad<T: Real>(
                     row[t1 - t0..].fill(T::zero());
                 }
             }
-            arch.dispatch(InputStage {
+            base::isa::dispatch(InputStage {
                 x_img: &xs[img * c * plane_in..(img + 1) * c * plane_in],
                 dims: [c, hp, wp],
                 nt,
@@ -567,7 +565,7 @@ pub(crate) fn conv3x3_valid_weight_grad<T: Real>(
                 scratch: &mut rows,
                 v: &mut v,
             });
-            arch.dispatch(GradientStage {
+            base::isa::dispatch(GradientStage {
                 dy_img: &dys[img * o * plane_out..(img + 1) * o * plane_out],
                 o,
                 nt,

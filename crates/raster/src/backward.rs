@@ -54,25 +54,14 @@ use gaussian::Real;
 use rayon::prelude::*;
 
 use crate::error::{check_len, RasterError};
-use crate::forward::Splats;
 use crate::kernels::record::{CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY};
 use crate::kernels::{lanes, prefetch, scalar, Kernel, Token};
+pub use crate::splats::Cotangents;
+use crate::splats::Splats;
 use crate::tiles::TileBins;
 
 /// Default budget for the per-intersection gradient records: 2^24 reals (128 MiB in `f64`).
 pub const DEFAULT_GRADIENT_BUFFER_VALUES: usize = 1 << 24;
-
-/// Cotangents of the rasterizer outputs (row-major, like [`crate::Rasterized`]). `None` is a zero
-/// cotangent.
-#[derive(Clone, Copy, Debug)]
-pub struct Cotangents<'a, T> {
-    /// `height * width * channel_count` values.
-    pub image: &'a [T],
-    /// `height * width` values, on the alpha image.
-    pub alpha: Option<&'a [T]>,
-    /// `height * width` values, on the accumulated depth image `sum_i w_i z_i`.
-    pub depth: Option<&'a [T]>,
-}
 
 /// Gradients with respect to every rasterizer input.
 #[derive(Clone, Debug, PartialEq)]
@@ -307,10 +296,9 @@ pub fn rasterize_backward_with<T: Real>(
                             .run(lanes::BackwardTile {
                                 splats,
                                 packed: packed32,
-                                bins,
+                                tile: bins.tile_view(t),
                                 background,
                                 cot,
-                                t,
                                 scratch: lane_scratch,
                                 rec,
                                 bg_grad,
@@ -320,11 +308,10 @@ pub fn rasterize_backward_with<T: Real>(
                         _ => scalar::backward_tile(
                             splats,
                             &packed,
-                            bins,
+                            bins.tile_view(t),
                             kept_rows.map(|lists| &lists[t]),
                             background,
                             cot,
-                            t,
                             scalar_scratch,
                             fill_uninit(rec, T::zero()),
                             bg,

@@ -82,20 +82,22 @@ pub mod forward;
 pub mod kernels;
 pub mod render;
 pub mod rows;
+pub mod splats;
 pub mod stats;
 pub mod tiles;
 
 pub use backward::{
     fold_normalized_depth_cotangent, rasterize_backward, rasterize_backward_with,
-    rasterize_backward_with_budget, Cotangents, SplatGrads, DEFAULT_GRADIENT_BUFFER_VALUES,
+    rasterize_backward_with_budget, SplatGrads, DEFAULT_GRADIENT_BUFFER_VALUES,
 };
 pub use error::RasterError;
-pub use forward::{rasterize, rasterize_binned, rasterize_binned_with, Rasterized, Splats};
+pub use forward::{rasterize, rasterize_binned, rasterize_binned_with, Rasterized};
 pub use kernels::{Isa, Kernel};
 pub use render::{
     add_view_direction_term, render, render_backward, render_backward_before_sh,
     render_backward_features, render_window, Channels, GradsBeforeSh, PixelWindow, Render,
     RenderOptions, SceneGrads,
 };
+pub use splats::{Cotangents, Splats};
 pub use stats::{ndc_grad_norms, screen_radii, DensificationStats};
 pub use tiles::{tile_grid, tile_rect, TileBins, TileRect};

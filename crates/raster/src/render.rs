@@ -21,9 +21,10 @@ use rayon::prelude::*;
 use gaussian::{project, project_backward, sh_colors, sh_colors_backward};
 use gaussian::{Camera, FeatureGaussians, ProjectSettings, Projected, Real};
 
-use crate::backward::{rasterize_backward, Cotangents, SplatGrads};
+use crate::backward::{rasterize_backward, SplatGrads};
 use crate::error::{check_len, RasterError};
-use crate::forward::{rasterize, Rasterized, Splats};
+use crate::forward::{rasterize, Rasterized};
+use crate::splats::{Cotangents, Splats};
 use crate::stats::ndc_grad_norms;
 
 /// Below this many Gaussians per task, rayon's splitting overhead dominates.

@@ -20,7 +20,7 @@ use std::sync::Arc;
 
 use crate::blend::TILE_SIZE;
 use crate::error::{check_len, RasterError};
-use crate::kernels::{lanes, scalar};
+use crate::kernels::{lanes, scalar, Tile};
 
 /// The per-tile, depth-sorted lists of Gaussian indices for one image.
 ///
@@ -353,7 +353,7 @@ impl TileBins {
             .zip(binned.par_iter_mut())
             .enumerate()
             .for_each(|(b, (((out, means2d), radii), binned))| {
-                pulp::Arch::new().dispatch(RectBlock {
+                base::isa::dispatch(RectBlock {
                     first: (b * RECT_BLOCK) as u32,
                     means2d,
                     radii,
@@ -506,6 +506,15 @@ impl TileBins {
             (x0 + TILE_SIZE).min(self.width),
             (y0 + TILE_SIZE).min(self.height),
         )
+    }
+
+    /// Tile `t` as the tile loops read it: its Gaussians, its pixels and the image width.
+    pub(crate) fn tile_view(&self, t: usize) -> Tile<'_> {
+        Tile {
+            ids: self.tile(t),
+            pixel_rect: self.pixel_rect(t),
+            image_width: self.width,
+        }
     }
 
     /// Bytes held by the binning itself (not counting what a forward pass kept for the
@@ -814,7 +823,7 @@ mod tests {
             means2d.len()
         ];
         let mut binned = vec![7; 3];
-        pulp::Arch::new().dispatch(RectBlock {
+        base::isa::dispatch(RectBlock {
             first,
             means2d,
             radii,

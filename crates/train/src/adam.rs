@@ -650,7 +650,7 @@ mod fast {
         m: &mut [f32],
         v: &mut [f32],
     ) {
-        pulp::Arch::new().dispatch(Run { c, s, p, g, m, v });
+        base::isa::dispatch(Run { c, s, p, g, m, v });
     }
 
     struct Run<'a> {
@@ -716,7 +716,7 @@ mod fast {
             [*s_a, *s_b],
             [(&mut **m_a, &mut **v_a), (&mut **m_b, &mut **v_b)],
         );
-        let arch = pulp::Arch::new();
+        let arch = base::isa::arch();
         match widths {
             [3, 45] => arch.dispatch(Rows::<48, 3> { c, sizes, p, g, mv }),
             [3, 24] => arch.dispatch(Rows::<27, 3> { c, sizes, p, g, mv }),

@@ -139,7 +139,7 @@ pub(crate) fn ssim_with_grad_map<T: Real>(
         |blurred, (yy, out)| {
             for p in 0..c {
                 vertical_passes::<T, 3>(&horiz, w, h, p * h + yy, &taps, blurred);
-                pulp::Arch::new().dispatch(GradientRow {
+                base::isa::dispatch(GradientRow {
                     blurred,
                     x: &x[yy * w * c..(yy + 1) * w * c],
                     y: &y[yy * w * c..(yy + 1) * w * c],
@@ -207,7 +207,7 @@ fn forward<T: Real>(x: &[T], y: &[T], shape: ImageShape, grads: bool) -> Forward
             || vec![T::zero(); 5 * w],
             |blurred, (r, (s_row, g_row))| {
                 vertical_passes::<T, 5>(&horiz, w, h, r, &taps, blurred);
-                pulp::Arch::new().dispatch(MapRow {
+                base::isa::dispatch(MapRow {
                     blurred,
                     map: s_row,
                     partials: g_row,
@@ -371,7 +371,7 @@ fn horizontal_passes<T: Real, const M: usize>(
         |padded, (r, maps)| {
             for (m, out) in maps.chunks_mut(w).enumerate() {
                 fill(r, m, &mut padded[HALF..HALF + w]);
-                pulp::Arch::new().dispatch(HorizontalPass { out, padded, taps });
+                base::isa::dispatch(HorizontalPass { out, padded, taps });
             }
         },
     );
@@ -402,7 +402,7 @@ fn vertical_passes<T: Real, const M: usize>(
                 &[][..]
             }
         });
-        pulp::Arch::new().dispatch(VerticalPass {
+        base::isa::dispatch(VerticalPass {
             out,
             rows: &rows[first..end],
             taps: &taps[first..end],

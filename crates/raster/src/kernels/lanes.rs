@@ -43,12 +43,10 @@ use super::record::{
     COLUMN_CHANNELS_MAX, CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY,
 };
 use super::scalar::dot;
-use super::{prefetch, TileOut};
-use crate::backward::Cotangents;
+use super::{prefetch, Tile, TileOut};
 use crate::blend::{pixel_centre, Splat, ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN};
-use crate::forward::Splats;
 use crate::rows::reach_rows;
-use crate::tiles::TileBins;
+use crate::splats::{Cotangents, Splats};
 
 /// Pixels evaluated together: one tile row.
 pub(crate) const LANES: usize = TILE_SIZE as usize;
@@ -348,7 +346,7 @@ pub(crate) fn pack(splats: &Splats<f32>, height: u32) -> Vec<LaneSplat> {
         .collect();
     packed
         .par_chunks_mut(PACK_BLOCK)
-        .for_each(|block| pulp::Arch::new().dispatch(ReachRows { block, height }));
+        .for_each(|block| base::isa::dispatch(ReachRows { block, height }));
     packed
 }
 
@@ -766,7 +764,7 @@ impl Walk {
         }
     }
 
-    /// Walks tile `t`'s Gaussians front to back, calling `blend(k, g, row, lanes, alpha,
+    /// Walks the tile's Gaussians front to back, calling `blend(k, g, row, lanes, alpha,
     /// falloff, front)` for each Gaussian (position `k` in the tile list, id `g`) and tile row
     /// where some lane blends it, with the transmittances in front of it. Stops when every
     /// pixel has stopped. `channels` (`D` per Gaussian) is only prefetched.
@@ -791,14 +789,13 @@ impl Walk {
         packed: &[LaneSplat],
         channels: &[f32],
         d: usize,
-        bins: &TileBins,
-        t: usize,
+        tile: Tile<'_>,
         mut blend: impl FnMut(usize, usize, usize, Mask, &[f32; LANES], &[f32; LANES], &[f32; LANES]),
     ) {
-        let (x0, y0, _, y1) = bins.pixel_rect(t);
+        let (x0, y0, _, y1) = tile.pixel_rect;
         let cx: [f32; LANES] = std::array::from_fn(|l| pixel_centre::<f32>(x0 + l as u32));
         let cy: [f32; LANES] = std::array::from_fn(|r| pixel_centre::<f32>(y0 + r as u32));
-        let ids = bins.tile(t);
+        let ids = tile.ids;
         // Per row of the current Gaussian, its evaluation (`EVERY_ROW`; otherwise only the
         // first row is used, for the row being evaluated). Every entry read was written for the
         // same Gaussian first: a row's sigma, falloff and alpha are read only when its hit (after
@@ -955,9 +952,8 @@ pub(crate) struct ForwardTile<'a, 'b> {
     pub splats: &'a Splats<'a, f32>,
     /// Every Gaussian packed ([`pack`]).
     pub packed: &'a [LaneSplat],
-    pub bins: &'a TileBins,
+    pub tile: Tile<'a>,
     pub background: &'a [f32],
-    pub t: usize,
     pub scratch: &'b mut Scratch,
     pub out: TileOut<'b, f32>,
     /// Receives the rows the tile blends, for the backward pass (when given).
@@ -981,9 +977,8 @@ impl ForwardTile<'_, '_> {
         let ForwardTile {
             splats,
             packed,
-            bins,
+            tile,
             background,
-            t,
             scratch,
             out,
             mut keep,
@@ -991,7 +986,7 @@ impl ForwardTile<'_, '_> {
         let d = wd.d();
         let dp = line_padded(d);
         let channel_major = d <= CHANNEL_MAJOR_MAX;
-        let (x0, y0, x1, y1) = bins.pixel_rect(t);
+        let (x0, y0, x1, y1) = tile.pixel_rect;
         let (width, height) = ((x1 - x0) as usize, (y1 - y0) as usize);
         // Each pixel's accumulator starts on a cache line (`dp` is a whole number of lines), so
         // that no vector store of the channel loop spans two lines.
@@ -1004,8 +999,7 @@ impl ForwardTile<'_, '_> {
             packed,
             splats.channels,
             d,
-            bins,
-            t,
+            tile,
             |k, g, r, lanes, alpha, _, front| {
                 if let Some(keep) = keep.as_deref_mut() {
                     // k < 2^32 (bins hold u32 ids), r < 16 and lanes < 2^16.
@@ -1061,10 +1055,9 @@ pub(crate) struct BackwardTile<'a, 'b> {
     pub splats: &'a Splats<'a, f32>,
     /// Every Gaussian packed ([`pack`]).
     pub packed: &'a [LaneSplat],
-    pub bins: &'a TileBins,
+    pub tile: Tile<'a>,
     pub background: &'a [f32],
     pub cot: &'a Cotangents<'a, f32>,
-    pub t: usize,
     pub scratch: &'b mut Scratch,
     /// Not yet written: one record per tile list entry, or, with `compact`, per Gaussian that
     /// blends in the tile. The pass initialises all of it.
@@ -1094,10 +1087,9 @@ impl BackwardTile<'_, '_> {
         let BackwardTile {
             splats,
             packed,
-            bins,
+            tile,
             background,
             cot,
-            t,
             scratch,
             rec,
             bg_grad,
@@ -1106,7 +1098,7 @@ impl BackwardTile<'_, '_> {
         } = self;
         let d = wd.d();
         let stride = GEOMETRY + d;
-        let ids = bins.tile(t);
+        let ids = tile.ids;
         let Scratch {
             blended,
             decoded,
@@ -1117,9 +1109,9 @@ impl BackwardTile<'_, '_> {
         } = scratch;
         let by_column = d <= COLUMN_CHANNELS_MAX;
         let columns = zeroed_on_lines(columns, if by_column { d * LANES } else { 0 });
-        let (x0, y0, x1, y1) = bins.pixel_rect(t);
+        let (x0, y0, x1, y1) = tile.pixel_rect;
         let (width, height) = ((x1 - x0) as usize, (y1 - y0) as usize);
-        let image_width = bins.width() as usize;
+        let image_width = tile.image_width as usize;
         let pixel = |r: usize, l: usize| (y0 as usize + r) * image_width + x0 as usize + l;
 
         // Front to back: the forward pass's decisions and transmittances, replayed from the
@@ -1140,8 +1132,7 @@ impl BackwardTile<'_, '_> {
                     packed,
                     splats.channels,
                     d,
-                    bins,
-                    t,
+                    tile,
                     |k, _, r, lanes, _, falloff, front| {
                         blended.push(RowBlend {
                             k: k as u32,

@@ -228,6 +228,18 @@ pub(crate) mod record {
     pub const COLUMN_CHANNELS_MAX: usize = 8;
 }
 
+/// One tile of the bins as the tile loops read it ([`crate::tiles::TileBins::tile_view`]): its
+/// Gaussians front to back and where its pixels lie.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Tile<'a> {
+    /// The ids of the Gaussians touching the tile, front to back.
+    pub ids: &'a [u32],
+    /// The tile's pixels `[x0, x1) x [y0, y1)`, as `(x0, y0, x1, y1)`.
+    pub pixel_rect: (u32, u32, u32, u32),
+    /// The image width in pixels.
+    pub image_width: u32,
+}
+
 /// One tile's forward outputs, tile-major (pixel `(lx, ly)` at `ly * 16 + lx`, channel values
 /// of a pixel contiguous), zero on entry.
 pub(crate) struct TileOut<'a, T> {

@@ -16,12 +16,10 @@ use rayon::prelude::*;
 use super::record::{
     COLUMN_CHANNELS_MAX, CONIC_A, CONIC_B, CONIC_C, DEPTH, GEOMETRY, MEAN_X, MEAN_Y, OPACITY,
 };
-use super::TileOut;
-use crate::backward::Cotangents;
+use super::{Tile, TileOut};
 use crate::blend::{evaluate, pixel_centre, Hit, Splat, TILE_SIZE, TRANSMITTANCE_MIN};
-use crate::forward::Splats;
 use crate::rows::{at_column, RowEntry, RowLists, SPAN};
-use crate::tiles::TileBins;
+use crate::splats::{Cotangents, Splats};
 
 /// One blended Gaussian of the current pixel: its position in the tile list, its hit, and the
 /// transmittance in front of it.
@@ -86,24 +84,23 @@ impl Kept {
     }
 }
 
-/// Gathers tile `t`'s packed Gaussians (from `all`, one per Gaussian) and builds its row lists
+/// Gathers the tile's packed Gaussians (from `all`, one per Gaussian) and builds its row lists
 /// unless `kept` has them (row lists kept for the same Gaussians, see [`Kept::lists_for`]);
 /// returns its Gaussian ids and the row lists.
 fn prepare<'b, T: Real>(
     all: &[Splat<T>],
-    bins: &'b TileBins,
-    t: usize,
+    tile: Tile<'b>,
     kept: Option<&'b RowLists>,
     packed: &mut Vec<Splat<T>>,
     rows: &'b mut RowLists,
 ) -> (&'b [u32], &'b RowLists) {
-    let ids = bins.tile(t);
+    let ids = tile.ids;
     packed.clear();
     packed.extend(ids.iter().map(|&g| all[g as usize]));
     let rows = match kept {
         Some(kept) => kept,
         None => {
-            rows.build(packed, bins.pixel_rect(t));
+            rows.build(packed, tile.pixel_rect);
             rows
         }
     };
@@ -117,20 +114,19 @@ impl<T> Scratch<T> {
     }
 }
 
-/// Blends tile `t` into `out` (`all`: every Gaussian packed, as [`Splats::packed`] gives).
+/// Blends `tile` into `out` (`all`: every Gaussian packed, as [`Splats::packed`] gives).
 pub(crate) fn forward_tile<T: Real>(
     splats: &Splats<T>,
     all: &[Splat<T>],
-    bins: &TileBins,
+    tile: Tile<'_>,
     background: &[T],
-    t: usize,
     scratch: &mut Scratch<T>,
     out: TileOut<'_, T>,
 ) {
     let d = splats.channel_count;
     let Scratch { packed, rows, .. } = scratch;
-    let (ids, rows) = prepare(all, bins, t, None, packed, rows);
-    let (x0, y0, x1, y1) = bins.pixel_rect(t);
+    let (ids, rows) = prepare(all, tile, None, packed, rows);
+    let (x0, y0, x1, y1) = tile.pixel_rect;
     for py in y0..y1 {
         let cy = pixel_centre::<T>(py);
         for px in x0..x1 {
@@ -160,18 +156,17 @@ pub(crate) fn forward_tile<T: Real>(
     }
 }
 
-/// Accumulates tile `t`'s gradient records (`GEOMETRY + D` reals per tile intersection, in tile
+/// Accumulates the tile's gradient records (`GEOMETRY + D` reals per tile intersection, in tile
 /// order) into `rec` and its background gradient into `bg_grad`; `kept`: the tile's row lists
 /// kept by the forward pass of these Gaussians, if any.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn backward_tile<T: Real>(
     splats: &Splats<T>,
     all: &[Splat<T>],
-    bins: &TileBins,
+    tile: Tile<'_>,
     kept: Option<&RowLists>,
     background: &[T],
     cot: &Cotangents<T>,
-    t: usize,
     scratch: &mut Scratch<T>,
     rec: &mut [T],
     bg_grad: &mut [T],
@@ -185,9 +180,9 @@ pub(crate) fn backward_tile<T: Real>(
         columns,
         touched,
     } = scratch;
-    let (ids, rows) = prepare(all, bins, t, kept, packed, rows);
-    let (x0, y0, x1, y1) = bins.pixel_rect(t);
-    let width = bins.width() as usize;
+    let (ids, rows) = prepare(all, tile, kept, packed, rows);
+    let (x0, y0, x1, y1) = tile.pixel_rect;
+    let width = tile.image_width as usize;
     let half = T::lit(0.5);
     // The reals of a record summed by column, and their sums per entry and column.
     let by_column = if d <= COLUMN_CHANNELS_MAX {

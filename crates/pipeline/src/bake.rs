@@ -23,10 +23,12 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::cli::{at_least_one, mebibytes, non_negative, positive, whole_in, with_default};
 use crate::error::{bail, Context, Result};
 use base::write_atomic;
 use gaussian::ply::save_ply;
 use serde::Serialize;
+use train::bake::STORED_SH_DEGREE;
 use train::{BakeConfig, BakeReport, Variant};
 
 use crate::cameras::check_image_size;
@@ -36,35 +38,72 @@ use crate::{config, Control};
 use train::RunOutcome;
 
 /// Command-line values that override the configuration.
-#[derive(Clone, Debug, Default, PartialEq)]
+///
+/// As [`clap::Args`], the flags from `--iterations` to `--tile-budget`; the two run intervals
+/// are the program's to declare with its other run flags (`--checkpoint-every`,
+/// `--log-every`).
+#[derive(Clone, Debug, Default, PartialEq, clap::Args)]
 pub struct BakeOverrides {
     /// Optimisation iterations (`--iterations`; key `iterations`).
+    #[arg(long, value_parser = at_least_one::<u64>(), help = with_default(
+        "Optimisation iterations (at least 1)",
+        BakeConfig::default().iterations,
+    ))]
     pub iterations: Option<u64>,
     /// SH degree that is optimised, 0..=3; the `.ply` always stores degree 3 (`--sh-degree`; key
     /// `sh_degree`).
+    #[arg(long, value_parser = whole_in(0, STORED_SH_DEGREE), help = with_default(
+        "SH degree that is optimised (0 to 3; the .ply always stores degree 3)",
+        BakeConfig::default().sh_degree,
+    ))]
     pub sh_degree: Option<usize>,
     /// Also adapt opacities and scales, within small budgets (`--adapt-geometry`; key
     /// `adapt_geometry`). `false` leaves the configuration's value.
+    #[arg(long, help = "Also adapt opacities and scales, within small budgets")]
     pub adapt_geometry: bool,
     /// Adam rate of the SH DC coefficients (`--lr`; key `feature_lr`).
+    #[arg(long, value_parser = non_negative, help = with_default(
+        "Adam rate of the SH DC coefficients (0 or more)",
+        BakeConfig::default().feature_lr,
+    ))]
     pub lr: Option<f64>,
     /// Number of training target views, 0 for all candidates (`--target-views`; key
     /// `target_views`).
+    #[arg(long, help = with_default(
+        "Number of training target views (0: all candidates)",
+        BakeConfig::default().target_views,
+    ))]
     pub target_views: Option<usize>,
     /// Interpolated views held out for evaluation (`--held-out`; key `held_out`).
+    #[arg(long, help = with_default(
+        "Interpolated views held out for evaluation",
+        BakeConfig::default().held_out,
+    ))]
     pub held_out: Option<usize>,
     /// Image size of the targets relative to the bundle's cameras (`--resolution-scale`; key
     /// `resolution_scale`).
+    #[arg(long, value_parser = positive, help = with_default(
+        "Image size of the targets relative to the bundle's cameras (above 0)",
+        BakeConfig::default().resolution_scale,
+    ))]
     pub resolution_scale: Option<f64>,
     /// Seed of the view order (`--seed`; key `seed`).
+    #[arg(long, help = with_default("Seed of the view order", BakeConfig::default().seed))]
     pub seed: Option<u64>,
     /// Iterations between log lines (`--log-every`; key `log_interval`).
+    #[arg(skip)]
     pub log_every: Option<u64>,
     /// Iterations between periodic checkpoints, 0 for only when stopped (`--checkpoint-every`;
     /// key `checkpoint_interval`).
+    #[arg(skip)]
     pub checkpoint_every: Option<u64>,
     /// Working memory of the networks per decoded target view, in MiB (`--tile-budget`; key
     /// `tile_budget_mib`).
+    #[arg(long = "tile-budget", value_name = "TILE_BUDGET", value_parser = mebibytes(), help = with_default(
+        "Working memory of the networks per decoded target view, in MiB: views are decoded in \
+         tiles that fit it (any budget gives the same targets; 1 to 1048576)",
+        BakeConfig::default().tile_budget_mib,
+    ))]
     pub tile_budget_mib: Option<u64>,
 }
 

@@ -194,6 +194,10 @@ pub fn target_file(shard_dir: &Path, i: usize) -> PathBuf {
 /// What a shard of the target rendering wrote.
 #[derive(Clone, Debug)]
 pub struct TargetShard {
+    /// The shard.
+    pub shard: Shard,
+    /// The folder of the shards' target files and manifests ([`shard_dir`]).
+    pub dir: PathBuf,
     /// Its block of the target sequence.
     pub range: std::ops::Range<usize>,
     /// Targets in the whole sequence.
@@ -202,6 +206,21 @@ pub struct TargetShard {
     pub files: Vec<PathBuf>,
     /// Its manifest.
     pub manifest: PathBuf,
+}
+
+/// The line of a finished shard: its block of target views and where they were written.
+impl std::fmt::Display for TargetShard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "shard {}: target views {} to {} of {} written to {}",
+            self.shard,
+            self.range.start,
+            self.range.end.saturating_sub(1),
+            self.targets,
+            self.dir.display()
+        )
+    }
 }
 
 /// The JSON report written beside the baked scene.
@@ -251,6 +270,41 @@ pub struct BakeOutput {
     pub run: RunOutcome,
     /// The `.ply` and its report, written when the bake completed.
     pub written: Option<(PathBuf, PathBuf)>,
+}
+
+/// The summary of a bake: the targets and, when it completed, the PSNRs and the files written
+/// (how the optimisation ended is [`BakeOutput::run`]'s to tell).
+impl std::fmt::Display for BakeOutput {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let s = &self.summary;
+        writeln!(
+            f,
+            "{} training and {} held-out target views, targets in {:.1} s",
+            s.train_views, s.held_out_views, s.target_seconds
+        )?;
+        let Some((ply, report)) = &self.written else {
+            return Ok(());
+        };
+        let db = |p: Option<f64>| p.map_or_else(|| "-".to_string(), |v| format!("{v:.3} dB"));
+        writeln!(
+            f,
+            "training PSNR: baked {:.3} dB, unbaked {:.3} dB",
+            s.train_psnr, s.unbaked_train_psnr
+        )?;
+        writeln!(
+            f,
+            "held-out PSNR: baked {}, unbaked {}",
+            db(s.held_out_psnr),
+            db(s.unbaked_held_out_psnr)
+        )?;
+        writeln!(
+            f,
+            "{} Gaussians written to {}, report {}",
+            s.gaussians,
+            ply.display(),
+            report.display()
+        )
+    }
 }
 
 /// The report beside `ply`: the same path with the extension `json`.
@@ -406,6 +460,8 @@ pub fn render_target_shard(
         },
     )?;
     Ok(TargetShard {
+        shard,
+        dir,
         range,
         targets: sequence.len(),
         files,

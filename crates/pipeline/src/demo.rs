@@ -196,6 +196,29 @@ pub struct DemoReport {
     pub seconds: Vec<(&'static str, Option<f64>)>,
 }
 
+/// The summary of a demo: the evaluation table, the geometry's PSNR, the stage times and the
+/// outputs (of this run or, for a skipped stage, of the run that made them).
+impl std::fmt::Display for DemoReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&crate::eval::table(&self.eval))?;
+        if let Some(p) = self.geometry_psnr {
+            writeln!(f, "geometry: held-out PSNR {p:.2} dB")?;
+        }
+        writeln!(f, "{} Gaussians", self.gaussians)?;
+        for (stage, t) in &self.seconds {
+            match t {
+                Some(t) => writeln!(f, "{stage:>9}: {t:.1} s")?,
+                None => writeln!(f, "{stage:>9}: done before, skipped")?,
+            }
+        }
+        let s = &self.stylized;
+        for p in s.gifs.iter().chain(&s.contact_sheet) {
+            writeln!(f, "output {}", p.display())?;
+        }
+        writeln!(f, "output {}", self.eval_json.display())
+    }
+}
+
 /// The stylization styles of a run: `styles`, else the defaults under `shared`.
 pub fn styles_or_default(shared: &Path, styles: &[PathBuf]) -> Vec<PathBuf> {
     if styles.is_empty() {

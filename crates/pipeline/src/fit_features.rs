@@ -259,6 +259,43 @@ pub struct FitFeaturesReport {
     pub checkpoint: PathBuf,
 }
 
+/// The summary of a run, a line each: the inputs, the running losses and every evaluation
+/// (how the run ended is [`FitFeaturesReport::run`]'s to tell).
+impl std::fmt::Display for FitFeaturesReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "{} Gaussians, {} training views, {} style images, {}-d features, {} networks",
+            self.gaussians,
+            self.train_views,
+            self.style_images,
+            self.config.features.feature_dim,
+            self.config.features.variant.as_str()
+        )?;
+        if let Some([total, align, content, style]) = self.running_losses {
+            writeln!(
+                f,
+                "running loss {total:.5} (align {align:.5}, content {content:.5}, style \
+                 {style:.5})"
+            )?;
+        }
+        let samples = if self.held_out {
+            "held-out"
+        } else {
+            "training"
+        };
+        for e in &self.evaluations {
+            writeln!(
+                f,
+                "iteration {}: evaluation loss {:.5} (align {:.5}, content {:.5}, style {:.5}, {} \
+                 {samples} samples)",
+                e.step, e.loss, e.loss_align, e.loss_content, e.loss_style, e.pairs
+            )?;
+        }
+        Ok(())
+    }
+}
+
 /// The effective configuration of a run (base configuration plus overrides).
 pub fn effective_config(settings: &FitFeaturesSettings) -> Result<FitFeaturesConfig> {
     config::effective(

@@ -289,6 +289,31 @@ pub struct FitReport {
     pub ply: PathBuf,
 }
 
+/// The summary of a run, a line each: the views, every evaluation and the scene written
+/// (how the run ended is [`FitReport::run`]'s to tell).
+impl std::fmt::Display for FitReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "{} training and {} test views at {}x{}, {} initial Gaussians",
+            self.train_views, self.test_views, self.width, self.height, self.initial_gaussians
+        )?;
+        for e in &self.evaluations {
+            writeln!(
+                f,
+                "iteration {}: held-out PSNR {:.3} dB, SSIM {:.4}, L1 {:.5}, {} Gaussians",
+                e.step, e.psnr, e.ssim, e.l1, e.gaussians
+            )?;
+        }
+        writeln!(
+            f,
+            "{} Gaussians; scene written to {}",
+            self.gaussians,
+            self.ply.display()
+        )
+    }
+}
+
 /// The effective configuration of a run (base configuration plus overrides).
 pub fn effective_config(settings: &FitSettings) -> Result<FitGeometryConfig> {
     config::effective(

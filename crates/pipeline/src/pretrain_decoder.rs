@@ -237,6 +237,29 @@ pub struct PretrainReport {
     pub checkpoint: PathBuf,
 }
 
+/// The summary of a run, a line each: the images and networks, then every evaluation (how
+/// the run ended is [`PretrainReport::run`]'s to tell).
+impl std::fmt::Display for PretrainReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "{} content and {} style images, {} networks, crops of {} px",
+            self.content_images,
+            self.style_images,
+            self.config.variant.as_str(),
+            self.config.crop
+        )?;
+        for e in &self.evaluations {
+            writeln!(
+                f,
+                "iteration {}: evaluation loss {:.5} (content {:.5}, style {:.5}, {} pairs)",
+                e.step, e.loss, e.loss_content, e.loss_style, e.pairs
+            )?;
+        }
+        Ok(())
+    }
+}
+
 /// The effective configuration of a run (base configuration plus overrides).
 pub fn effective_config(settings: &PretrainSettings) -> Result<DecoderTrainConfig> {
     config::effective(

@@ -146,6 +146,32 @@ pub struct StylizeImageReport {
     pub mean_content_loss: f64,
 }
 
+impl StylizeImageReport {
+    /// A table of every output's measures and a line of their means, naming `out_dir`, the
+    /// folder holding the outputs, the contact sheet and the report.
+    pub fn summary(&self, out_dir: &Path) -> String {
+        let mut s = format!(
+            "{:<24} {:<24} {:>10} {:>10} {:>10}\n",
+            "photo", "style", "style", "texture", "content"
+        );
+        for p in &self.pairs {
+            s += &format!(
+                "{:<24} {:<24} {:>10.4} {:>10.4} {:>10.4}\n",
+                p.content, p.style, p.style_loss, p.texture_distance, p.content_loss
+            );
+        }
+        s += &format!(
+            "mean: style loss {:.4}, texture distance {:.4}, content loss {:.4}; outputs, \
+             contact_sheet.png and report.json in {}\n",
+            self.mean_style_loss,
+            self.mean_texture_distance,
+            self.mean_content_loss,
+            out_dir.display()
+        );
+        s
+    }
+}
+
 /// The image files of `sources`: files as given, folders' image files (`.png`, `.jpg`,
 /// `.jpeg`) in name order. A missing path or a folder without images is an error naming it.
 pub fn image_files(sources: &[PathBuf], role: &str) -> Result<Vec<PathBuf>> {

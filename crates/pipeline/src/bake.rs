@@ -23,10 +23,12 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::cli::{at_least_one, mebibytes, non_negative, positive, whole_in, with_default};
 use crate::error::{bail, Context, Result};
 use base::write_atomic;
 use gaussian::ply::save_ply;
 use serde::Serialize;
+use train::bake::STORED_SH_DEGREE;
 use train::{BakeConfig, BakeReport, Variant};
 
 use crate::cameras::check_image_size;
@@ -37,35 +39,72 @@ use crate::{config, Control};
 use train::RunOutcome;
 
 /// Command-line values that override the configuration.
-#[derive(Clone, Debug, Default, PartialEq)]
+///
+/// As [`clap::Args`], the flags from `--iterations` to `--tile-budget`; the two run intervals
+/// are the program's to declare with its other run flags (`--checkpoint-every`,
+/// `--log-every`).
+#[derive(Clone, Debug, Default, PartialEq, clap::Args)]
 pub struct BakeOverrides {
     /// Optimisation iterations (`--iterations`; key `iterations`).
+    #[arg(long, value_parser = at_least_one::<u64>(), help = with_default(
+        "Optimisation iterations (at least 1)",
+        BakeConfig::default().iterations,
+    ))]
     pub iterations: Option<u64>,
     /// SH degree that is optimised, 0..=3; the `.ply` always stores degree 3 (`--sh-degree`; key
     /// `sh_degree`).
+    #[arg(long, value_parser = whole_in(0, STORED_SH_DEGREE), help = with_default(
+        "SH degree that is optimised (0 to 3; the .ply always stores degree 3)",
+        BakeConfig::default().sh_degree,
+    ))]
     pub sh_degree: Option<usize>,
     /// Also adapt opacities and scales, within small budgets (`--adapt-geometry`; key
     /// `adapt_geometry`). `false` leaves the configuration's value.
+    #[arg(long, help = "Also adapt opacities and scales, within small budgets")]
     pub adapt_geometry: bool,
     /// Adam rate of the SH DC coefficients (`--lr`; key `feature_lr`).
+    #[arg(long, value_parser = non_negative, help = with_default(
+        "Adam rate of the SH DC coefficients (0 or more)",
+        BakeConfig::default().feature_lr,
+    ))]
     pub lr: Option<f64>,
     /// Number of training target views, 0 for all candidates (`--target-views`; key
     /// `target_views`).
+    #[arg(long, help = with_default(
+        "Number of training target views (0: all candidates)",
+        BakeConfig::default().target_views,
+    ))]
     pub target_views: Option<usize>,
     /// Interpolated views held out for evaluation (`--held-out`; key `held_out`).
+    #[arg(long, help = with_default(
+        "Interpolated views held out for evaluation",
+        BakeConfig::default().held_out,
+    ))]
     pub held_out: Option<usize>,
     /// Image size of the targets relative to the bundle's cameras (`--resolution-scale`; key
     /// `resolution_scale`).
+    #[arg(long, value_parser = positive, help = with_default(
+        "Image size of the targets relative to the bundle's cameras (above 0)",
+        BakeConfig::default().resolution_scale,
+    ))]
     pub resolution_scale: Option<f64>,
     /// Seed of the view order (`--seed`; key `seed`).
+    #[arg(long, help = with_default("Seed of the view order", BakeConfig::default().seed))]
     pub seed: Option<u64>,
     /// Iterations between log lines (`--log-every`; key `log_interval`).
+    #[arg(skip)]
     pub log_every: Option<u64>,
     /// Iterations between periodic checkpoints, 0 for only when stopped (`--checkpoint-every`;
     /// key `checkpoint_interval`).
+    #[arg(skip)]
     pub checkpoint_every: Option<u64>,
     /// Working memory of the networks per decoded target view, in MiB (`--tile-budget`; key
     /// `tile_budget_mib`).
+    #[arg(long = "tile-budget", value_name = "TILE_BUDGET", value_parser = mebibytes(), help = with_default(
+        "Working memory of the networks per decoded target view, in MiB: views are decoded in \
+         tiles that fit it (any budget gives the same targets; 1 to 1048576)",
+        BakeConfig::default().tile_budget_mib,
+    ))]
     pub tile_budget_mib: Option<u64>,
 }
 
@@ -156,6 +195,10 @@ pub fn target_file(shard_dir: &Path, i: usize) -> PathBuf {
 /// What a shard of the target rendering wrote.
 #[derive(Clone, Debug)]
 pub struct TargetShard {
+    /// The shard.
+    pub shard: Shard,
+    /// The folder of the shards' target files and manifests ([`shard_dir`]).
+    pub dir: PathBuf,
     /// Its block of the target sequence.
     pub range: std::ops::Range<usize>,
     /// Targets in the whole sequence.
@@ -164,6 +207,21 @@ pub struct TargetShard {
     pub files: Vec<PathBuf>,
     /// Its manifest.
     pub manifest: PathBuf,
+}
+
+/// The line of a finished shard: its block of target views and where they were written.
+impl std::fmt::Display for TargetShard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "shard {}: target views {} to {} of {} written to {}",
+            self.shard,
+            self.range.start,
+            self.range.end.saturating_sub(1),
+            self.targets,
+            self.dir.display()
+        )
+    }
 }
 
 /// The JSON report written beside the baked scene.
@@ -213,6 +271,41 @@ pub struct BakeOutput {
     pub run: RunOutcome,
     /// The `.ply` and its report, written when the bake completed.
     pub written: Option<(PathBuf, PathBuf)>,
+}
+
+/// The summary of a bake: the targets and, when it completed, the PSNRs and the files written
+/// (how the optimisation ended is [`BakeOutput::run`]'s to tell).
+impl std::fmt::Display for BakeOutput {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let s = &self.summary;
+        writeln!(
+            f,
+            "{} training and {} held-out target views, targets in {:.1} s",
+            s.train_views, s.held_out_views, s.target_seconds
+        )?;
+        let Some((ply, report)) = &self.written else {
+            return Ok(());
+        };
+        let db = |p: Option<f64>| p.map_or_else(|| "-".to_string(), |v| format!("{v:.3} dB"));
+        writeln!(
+            f,
+            "training PSNR: baked {:.3} dB, unbaked {:.3} dB",
+            s.train_psnr, s.unbaked_train_psnr
+        )?;
+        writeln!(
+            f,
+            "held-out PSNR: baked {}, unbaked {}",
+            db(s.held_out_psnr),
+            db(s.unbaked_held_out_psnr)
+        )?;
+        writeln!(
+            f,
+            "{} Gaussians written to {}, report {}",
+            s.gaussians,
+            ply.display(),
+            report.display()
+        )
+    }
 }
 
 /// The report beside `ply`: the same path with the extension `json`.
@@ -368,6 +461,8 @@ pub fn render_target_shard(
         },
     )?;
     Ok(TargetShard {
+        shard,
+        dir,
         range,
         targets: sequence.len(),
         files,

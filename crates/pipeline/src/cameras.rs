@@ -27,6 +27,7 @@
 //! an oversized request fails with a message naming the flag and the limit instead of
 //! allocating.
 
+use crate::cli::{at_least_one, direction, one_of, positive, whole_in};
 use crate::error::{bail, Context, Error, Result};
 use gaussian::camera::MAX_IMAGE_SIDE;
 use gaussian::camera_path::{arc_from, interpolate, look_at_point, mean_up, orbit, orbit_from};
@@ -219,6 +220,100 @@ impl KnownCameras {
             ));
         }
         KnownCameras::from_dataset(dir)
+    }
+}
+
+/// The camera flags of the commands that render a sequence (`--cameras`, `--frames`,
+/// `--width`, `--height`, `--scale`, `--dataset`, `--up`), as [`clap::Args`]: a
+/// [`CameraRequest`] whose source has a default per command, and where the known cameras come
+/// from.
+#[derive(Clone, Debug, Default, PartialEq, clap::Args)]
+pub struct CameraArgs {
+    /// The source; `None` takes the command's default ([`CameraArgs::request`]).
+    #[arg(
+        long,
+        value_parser = one_of::<CameraSource>(CameraSource::NAMES.iter().copied()),
+        help = "Camera source: the dataset's or bundle's cameras, the held-out ones, a path \
+                through them, an orbit, or a dense arc (frames 1 degree apart around what the \
+                cameras look at) [default: orbit; eval: dense]"
+    )]
+    pub cameras: Option<CameraSource>,
+    /// [`CameraRequest::frames`].
+    #[arg(long, value_parser = at_least_one::<usize>(), help = format!(
+        "Number of frames (path and orbit), or at most this many cameras (dataset and test); at \
+         least 1 [default: {DEFAULT_FRAMES} for path and orbit, every camera for dataset and \
+         test]",
+    ))]
+    pub frames: Option<usize>,
+    /// [`CameraRequest::width`].
+    #[arg(long, value_parser = whole_in(1, MAX_IMAGE_SIDE), help = format!(
+        "Image width, 1 to {MAX_IMAGE_SIDE} (alone: keeps the aspect ratio) [default: the \
+         cameras' width; {DEFAULT_SIDE} for an orbit without cameras]",
+    ))]
+    pub width: Option<u32>,
+    /// [`CameraRequest::height`].
+    #[arg(long, value_parser = whole_in(1, MAX_IMAGE_SIDE), help = format!(
+        "Image height, 1 to {MAX_IMAGE_SIDE} (alone: keeps the aspect ratio) [default: the \
+         cameras' height; {DEFAULT_SIDE} for an orbit without cameras]",
+    ))]
+    pub height: Option<u32>,
+    /// [`CameraRequest::scale`].
+    #[arg(
+        long,
+        value_parser = positive,
+        help = "Scale every camera's image by this factor (above 0) [default: 1]"
+    )]
+    pub scale: Option<f64>,
+    /// Take the known cameras from this dataset or bundle directory instead of the scene's
+    /// ([`KnownCameras::from_dir`]).
+    #[arg(
+        long,
+        help = "Take the cameras from this directory instead of the scene: a dataset, or a scene \
+                bundle (its cameras at its training size, e.g. to render a baked `.ply` from \
+                them) [default: the scene's own cameras]"
+    )]
+    pub dataset: Option<std::path::PathBuf>,
+    /// [`CameraRequest::up`].
+    #[arg(
+        long,
+        value_parser = direction,
+        allow_hyphen_values = true,
+        help = "World up axis of orbits, as x,y,z (finite, not zero) [default: the cameras' mean \
+                image-up, else 0,-1,0]"
+    )]
+    pub up: Option<DVec3>,
+}
+
+impl CameraArgs {
+    /// The request, with `default` as the source when none is given.
+    pub fn request(&self, default: CameraSource) -> CameraRequest {
+        CameraRequest {
+            source: self.cameras.unwrap_or(default),
+            frames: self.frames,
+            width: self.width,
+            height: self.height,
+            scale: self.scale,
+            up: self.up,
+        }
+    }
+
+    /// The known cameras: those of [`CameraArgs::dataset`] when given, else `scene`'s.
+    pub fn known(&self, scene: KnownCameras) -> Result<KnownCameras> {
+        match &self.dataset {
+            Some(d) => KnownCameras::from_dir(d),
+            None => Ok(scene),
+        }
+    }
+
+    /// The cameras the flags ask for ([`select`]), around a scene of `gaussians` whose own
+    /// cameras are `scene`, with `default` as the source when none is given.
+    pub fn select(
+        &self,
+        default: CameraSource,
+        scene: KnownCameras,
+        gaussians: &FeatureGaussians<f32>,
+    ) -> Result<Vec<Camera>> {
+        select(&self.request(default), &self.known(scene)?, gaussians)
     }
 }
 

@@ -53,7 +53,9 @@
 
 use std::collections::VecDeque;
 
+use crate::cli::{fraction, positive};
 use crate::error::{bail, Result};
+use clap::builder::TypedValueParser;
 use gaussian::Camera;
 use glam::DVec3;
 use ndarray::Array4;
@@ -64,12 +66,25 @@ use serde::{Deserialize, Serialize};
 
 use crate::image_io::{clamped, nchw_from_rgb, RgbImage};
 
-/// Masking thresholds of the warp.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+/// Masking thresholds of the warp; as [`clap::Args`], the flags `--alpha-threshold` and
+/// `--depth-tolerance`, defaulting to [`WarpOptions::default`].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, clap::Args)]
 pub struct WarpOptions {
     /// Pixels with alpha at or below this are not compared.
+    #[arg(
+        long,
+        default_value_t = WarpOptions::default().alpha_threshold,
+        value_parser = fraction.map(|v| v as f32),
+        help = "Pixels with alpha at or below this, in [0, 1], are not compared"
+    )]
     pub alpha_threshold: f32,
     /// Relative depth tolerance of the occlusion test.
+    #[arg(
+        long,
+        default_value_t = WarpOptions::default().depth_tolerance,
+        value_parser = positive,
+        help = "Relative depth tolerance of the occlusion test (above 0)"
+    )]
     pub depth_tolerance: f64,
 }
 

@@ -36,6 +36,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use crate::cli::{at_least_one, positive, variant};
 use crate::error::{bail, Context, Error, Result};
 use crate::Control;
 use gaussian::dataset::Dataset;
@@ -83,32 +84,97 @@ the demo needs, under the shared folder (--shared, DSGS_SHARED or ../shared):
                                      `dsgs weights import` from the public pytorch-AdaIN
                                      vgg_normalised.pth and decoder.pth)";
 
-/// Settings of a demo run.
-#[derive(Clone, Debug)]
+/// Settings of a demo run; as [`clap::Args`], the flags of `dsgs demo` (the styles as given:
+/// [`styles_or_default`] adds the default ones).
+#[derive(Clone, Debug, clap::Args)]
 pub struct DemoSettings {
     /// The shared data folder holding the scene, styles and weights (`--shared`, else the
     /// `DSGS_SHARED` environment variable, else `../shared`).
+    #[arg(
+        long,
+        env = "DSGS_SHARED",
+        default_value = "../shared",
+        help = "The shared data folder (scenes, styles, weights)"
+    )]
     pub shared: PathBuf,
     /// Output directory of the stages (`--output`); a rerun skips the stages whose results are
     /// there.
+    #[arg(
+        short,
+        long = "output",
+        value_name = "OUTPUT",
+        default_value = "dsgs-demo",
+        help = "Output directory; a rerun skips the stages whose results are there and resumes \
+                an interrupted one"
+    )]
     pub out_dir: PathBuf,
     /// Canonical weights to use instead of importing the shared checkpoints.
+    #[arg(
+        long,
+        help = "Canonical network weights (.safetensors, encoder and decoder) [default: imported \
+                from SHARED/weights/wct-relu1_1-3_1]"
+    )]
     pub weights: Option<PathBuf>,
     /// A decoder to use instead of the one in the weights (e.g. a fine-tuned fullres decoder).
+    #[arg(
+        long,
+        help = "A decoder (PyTorch checkpoint or .safetensors) replacing the one of the weights, \
+                e.g. one fine-tuned by `dsgs pretrain-decoder` for the fullres variant [default: \
+                the weights']"
+    )]
     pub decoder: Option<PathBuf>,
     /// Network variant (`--variant`).
+    #[arg(
+        long,
+        default_value = "standard",
+        value_parser = variant(),
+        help = "Network variant (fullres needs a decoder fine-tuned for it to stylize strongly)"
+    )]
     pub variant: Variant,
     /// Downscale factor of the 800 x 800 lego images.
+    #[arg(
+        long,
+        default_value_t = 8.0,
+        value_parser = positive,
+        help = "Downscale factor of the 800x800 lego images (above 0)"
+    )]
     pub downscale: f64,
     /// Iterations of the geometry stage (`--geometry-iterations`).
+    #[arg(
+        long,
+        default_value_t = 1000,
+        value_parser = at_least_one::<u64>(),
+        help = "Geometry iterations (at least 1)"
+    )]
     pub geometry_iterations: u64,
     /// Alignment-only feature iterations before the full loss.
+    #[arg(
+        long,
+        default_value_t = 1500,
+        help = "Alignment-only feature iterations (cheap) before the full loss"
+    )]
     pub align_warmup: u64,
     /// Feature iterations with the full loss, after the warm-up.
+    #[arg(
+        long,
+        default_value_t = 300,
+        help = "Feature iterations with the full loss (alignment, content, style)"
+    )]
     pub feature_iterations: u64,
     /// Stylization styles (default: [`STYLES`] under `SHARED/data/styles`).
+    #[arg(
+        long = "style",
+        help = "Style image; repeat for several [default: four paintings of SHARED/data/styles \
+                never used in training]"
+    )]
     pub styles: Vec<PathBuf>,
     /// Frames of the orbit.
+    #[arg(
+        long,
+        default_value_t = 24,
+        value_parser = at_least_one::<usize>(),
+        help = "Frames of the orbit (at least 1)"
+    )]
     pub frames: usize,
 }
 
@@ -128,6 +194,29 @@ pub struct DemoReport {
     pub eval_json: PathBuf,
     /// Seconds of each stage run now (`None`: skipped, its output was already there).
     pub seconds: Vec<(&'static str, Option<f64>)>,
+}
+
+/// The summary of a demo: the evaluation table, the geometry's PSNR, the stage times and the
+/// outputs (of this run or, for a skipped stage, of the run that made them).
+impl std::fmt::Display for DemoReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&crate::eval::table(&self.eval))?;
+        if let Some(p) = self.geometry_psnr {
+            writeln!(f, "geometry: held-out PSNR {p:.2} dB")?;
+        }
+        writeln!(f, "{} Gaussians", self.gaussians)?;
+        for (stage, t) in &self.seconds {
+            match t {
+                Some(t) => writeln!(f, "{stage:>9}: {t:.1} s")?,
+                None => writeln!(f, "{stage:>9}: done before, skipped")?,
+            }
+        }
+        let s = &self.stylized;
+        for p in s.gifs.iter().chain(&s.contact_sheet) {
+            writeln!(f, "output {}", p.display())?;
+        }
+        writeln!(f, "output {}", self.eval_json.display())
+    }
 }
 
 /// The stylization styles of a run: `styles`, else the defaults under `shared`.

@@ -50,7 +50,7 @@ use crate::consistency::{
 };
 use crate::image_io::{self, nchw_from_rgb, RgbImage};
 use crate::render::{render_colour, SceneInput};
-use crate::shard::Part;
+use crate::shard::{Part, Shard};
 use crate::stylize::{self, COLOUR_VIEWS};
 use crate::{Sink, Stage, Tally};
 use runtime::StageSeconds;
@@ -141,6 +141,18 @@ pub const SHARD_COMMAND: &str = "eval";
 /// path with the extension `shards` (`report.json` -> `report.shards`).
 pub fn shard_dir(report: &Path) -> PathBuf {
     report.with_extension("shards")
+}
+
+/// The line of a finished shard of an evaluation of `views` views whose report goes to
+/// `report`: its block of views and where its partial results are.
+pub fn shard_line(shard: Shard, views: usize, report: &Path) -> String {
+    let r = shard.range(views);
+    format!(
+        "shard {shard}: views {} to {} of {views} evaluated; partial results in {}\n",
+        r.start,
+        r.end.saturating_sub(1),
+        shard_dir(report).display()
+    )
 }
 
 /// A shard's partial results ([`crate::shard::Manifest::data`]): what the report adds up.

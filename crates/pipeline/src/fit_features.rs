@@ -26,6 +26,7 @@
 
 use std::path::PathBuf;
 
+use crate::cli::{at_least_one, feature_crop_help, positive, with_default};
 use crate::error::{Context, Error, Result};
 use gaussian::dataset::{Dataset, LoadOptions};
 use gaussian::ply::load_ply;
@@ -70,43 +71,83 @@ impl FitFeaturesConfig {
 }
 
 /// Command-line values that override the configuration.
-#[derive(Clone, Debug, Default, PartialEq)]
+///
+/// As [`clap::Args`], the flags from `--iterations` to `--no-eval`; the design flags shown
+/// before the configuration file (`--eval-every`, `--variant`, `--decoder-mode`,
+/// `--lr-decoder`, `--normalize`) and the two run intervals (`--checkpoint-every`,
+/// `--log-every`) are the program's to declare.
+#[derive(Clone, Debug, Default, PartialEq, clap::Args)]
 pub struct FeatureOverrides {
     /// Total iterations (`--iterations`; key `iterations`).
+    #[arg(long, value_parser = at_least_one::<u64>(), help = with_default(
+        "Total iterations, the warm-up included (at least 1)",
+        FitFeaturesConfig::default().features.iterations,
+    ))]
     pub iterations: Option<u64>,
     /// Channels of each Gaussian's feature (`--feature-dim`; key `feature_dim`).
+    #[arg(long, value_parser = at_least_one::<usize>(), help = with_default(
+        "Channels of each Gaussian's feature (at least 1)",
+        FitFeaturesConfig::default().features.feature_dim,
+    ))]
     pub feature_dim: Option<usize>,
     /// Resize the images by `1 / F` on load (`--downscale`; key `dataset.downscale`); clears
     /// `dataset.images_folder`.
+    #[arg(long, value_parser = positive, help = with_default(
+        "Resize the images by 1/F on load (above 0)",
+        FitFeaturesConfig::default().dataset.downscale,
+    ))]
     pub downscale: Option<f64>,
     /// Alignment loss only (`--align-only`: keys `lambda_content` and `lambda_style` set to 0).
+    #[arg(
+        long,
+        help = "Train with the alignment loss only (no content and style terms)"
+    )]
     pub align_only: bool,
     /// Iterations of alignment-only warm-up (`--align-warmup`; key `align_warmup`).
+    #[arg(long, help = with_default(
+        "Iterations at the start with the alignment loss only (cheap; gives the features the \
+         scene's content before the content and style terms join)",
+        FitFeaturesConfig::default().features.align_warmup,
+    ))]
     pub align_warmup: Option<u64>,
     /// Seed of every random choice (`--seed`; key `seed`).
+    #[arg(long, help = with_default(
+        "Seed of every random choice",
+        FitFeaturesConfig::default().features.seed,
+    ))]
     pub seed: Option<u64>,
     /// Side of the feature-map window run through the networks, in feature pixels (`--crop`;
     /// key `crop`).
+    #[arg(long, value_parser = at_least_one::<u32>(), help = feature_crop_help())]
     pub crop: Option<u32>,
-    /// Network variant (`--variant`; key `variant`).
-    pub variant: Option<Variant>,
-    /// The decoder ablation (`--decoder-mode`; key `decoder_mode`).
-    pub decoder_mode: Option<DecoderMode>,
-    /// Adam learning rate of a decoder trained in stage 3 (`--lr-decoder`; key `lr_decoder`).
-    pub lr_decoder: Option<f64>,
-    /// The normalisation design (`--normalize`; key `normalize`).
-    pub normalize: Option<FeatureNorm>,
     /// White background, for NeRF-synthetic scenes (`--white`; key `background`). `false`
     /// leaves the configuration's background.
+    #[arg(long, help = "White background (NeRF-synthetic scenes)")]
     pub white: bool,
     /// Train on every image, no held-out split (`--no-eval`; key `dataset.eval = false`).
+    #[arg(long, help = "Train on every image (no held-out split)")]
     pub no_eval: bool,
+    /// Network variant (`--variant`; key `variant`).
+    #[arg(skip)]
+    pub variant: Option<Variant>,
+    /// The decoder ablation (`--decoder-mode`; key `decoder_mode`).
+    #[arg(skip)]
+    pub decoder_mode: Option<DecoderMode>,
+    /// Adam learning rate of a decoder trained in stage 3 (`--lr-decoder`; key `lr_decoder`).
+    #[arg(skip)]
+    pub lr_decoder: Option<f64>,
+    /// The normalisation design (`--normalize`; key `normalize`).
+    #[arg(skip)]
+    pub normalize: Option<FeatureNorm>,
     /// Iterations between log lines (`--log-every`; key `log_interval`).
+    #[arg(skip)]
     pub log_every: Option<u64>,
     /// Iterations between checkpoints, 0 for only when stopped (`--checkpoint-every`; key
     /// `checkpoint_interval`).
+    #[arg(skip)]
     pub checkpoint_every: Option<u64>,
     /// Iterations between evaluations (`--eval-every`; key `eval_interval`).
+    #[arg(skip)]
     pub eval_every: Option<u64>,
 }
 
@@ -216,6 +257,43 @@ pub struct FitFeaturesReport {
     pub held_out: bool,
     /// `OUT/checkpoint.safetensors`.
     pub checkpoint: PathBuf,
+}
+
+/// The summary of a run, a line each: the inputs, the running losses and every evaluation
+/// (how the run ended is [`FitFeaturesReport::run`]'s to tell).
+impl std::fmt::Display for FitFeaturesReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "{} Gaussians, {} training views, {} style images, {}-d features, {} networks",
+            self.gaussians,
+            self.train_views,
+            self.style_images,
+            self.config.features.feature_dim,
+            self.config.features.variant.as_str()
+        )?;
+        if let Some([total, align, content, style]) = self.running_losses {
+            writeln!(
+                f,
+                "running loss {total:.5} (align {align:.5}, content {content:.5}, style \
+                 {style:.5})"
+            )?;
+        }
+        let samples = if self.held_out {
+            "held-out"
+        } else {
+            "training"
+        };
+        for e in &self.evaluations {
+            writeln!(
+                f,
+                "iteration {}: evaluation loss {:.5} (align {:.5}, content {:.5}, style {:.5}, {} \
+                 {samples} samples)",
+                e.step, e.loss, e.loss_align, e.loss_content, e.loss_style, e.pairs
+            )?;
+        }
+        Ok(())
+    }
 }
 
 /// The effective configuration of a run (base configuration plus overrides).

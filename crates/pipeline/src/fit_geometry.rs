@@ -19,9 +19,11 @@
 
 use std::path::PathBuf;
 
+use crate::cli::{at_least_one, list, positive, whole_in, with_default, CONFIG_HELP};
 use crate::error::{bail, Context, Result};
 use gaussian::dataset::{Dataset, LoadOptions, Resolution};
 use serde::{Deserialize, Serialize};
+use train::bake::STORED_SH_DEGREE;
 use train::checkpoint::GeometryCheckpoint;
 use train::geometry::{load_views, ply_path};
 use train::{Evaluation, GeometryConfig, GeometryTrainer};
@@ -87,39 +89,91 @@ impl FitGeometryConfig {
 }
 
 /// Command-line values that override the configuration.
-#[derive(Clone, Debug, Default, PartialEq)]
+///
+/// As [`clap::Args`], the flags from `--iterations` to `--sh-degree`; the two run intervals are
+/// the program's to declare with its other run flags (`--checkpoint-every`, `--log-every`).
+#[derive(Clone, Debug, Default, PartialEq, clap::Args)]
 pub struct GeometryOverrides {
     /// Total iterations (`--iterations`; key `iterations`): the configuration's schedule
     /// stretched or compressed to this length (see [`apply`](Self::apply)).
+    #[arg(long, value_parser = at_least_one::<u64>(), help = with_default(
+        "Total iterations (at least 1); the configuration's schedule (learning-rate decay, \
+         densification window and interval, opacity resets, SH degree steps, test, save and \
+         checkpoint iterations) is stretched or compressed to it, keeping density control at \
+         least 50 and opacity resets at least 300 steps apart",
+        FitGeometryConfig::default().geometry.iterations,
+    ))]
     pub iterations: Option<u64>,
     /// Resize the images by `1 / F` on load (`--downscale`; key `dataset.downscale`); clears
     /// `dataset.images_folder`.
+    #[arg(long, conflicts_with = "resolution", value_parser = positive, help = with_default(
+        "Resize the images by 1/F on load (above 0)",
+        FitGeometryConfig::default().dataset.downscale,
+    ))]
     pub downscale: Option<f64>,
     /// Read the images from the `images_N` folder (`--resolution`; key
     /// `dataset.images_folder`); resets `dataset.downscale` to 1.
+    #[arg(
+        id = "resolution",
+        long = "resolution",
+        value_name = "RESOLUTION",
+        value_parser = at_least_one::<u32>(),
+        help = "Read the images from the images_N folder (at least 1) [default: none: the images \
+                folder]"
+    )]
     pub images_folder: Option<u32>,
     /// White background, for NeRF-synthetic scenes (`--white`; key `background`). `false`
     /// leaves the configuration's background.
+    #[arg(long, help = "White background (NeRF-synthetic scenes)")]
     pub white: bool,
-    /// Train on every image, no held-out split (`--no-eval`; key `dataset.eval = false`).
-    pub no_eval: bool,
     /// Iterations at which to evaluate the held-out views and save the scene
     /// (`--test-iterations`; key `test_iterations`, and `save_iterations` unless given).
+    #[arg(long, value_delimiter = ',', help = with_default(
+        "Iterations at which to evaluate the held-out views and save the scene (comma-separated; \
+         used as given)",
+        format!(
+            "{}, scaled with --iterations",
+            list(&FitGeometryConfig::default().geometry.test_iterations)
+        ),
+    ))]
     pub test_iterations: Option<Vec<u64>>,
     /// Iterations at which to save the scene, when they differ from the test iterations
     /// (`--save-iterations`; key `save_iterations`).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        help = "Iterations at which to save the scene, when they differ from the test \
+                iterations (comma-separated) [default: the test iterations]"
+    )]
     pub save_iterations: Option<Vec<u64>>,
     /// Iterations at which to write a resumable `chkpnt_N.safetensors`
     /// (`--checkpoint-iterations`; key `checkpoint_iterations`).
+    #[arg(long, value_delimiter = ',', help = with_default(
+        "Iterations at which to write a resumable checkpoint (comma-separated)",
+        list(&FitGeometryConfig::default().geometry.checkpoint_iterations),
+    ))]
     pub checkpoint_iterations: Option<Vec<u64>>,
+    /// Train on every image, no held-out split (`--no-eval`; key `dataset.eval = false`).
+    #[arg(long, help = "Train on every image (no held-out split)")]
+    pub no_eval: bool,
     /// Seed of every random choice (`--seed`; key `seed`).
+    #[arg(long, help = with_default(
+        "Seed of every random choice",
+        FitGeometryConfig::default().geometry.seed,
+    ))]
     pub seed: Option<u64>,
     /// Maximum SH degree, 0..=3 (`--sh-degree`; key `sh_degree`).
+    #[arg(long, value_parser = whole_in(0, STORED_SH_DEGREE), help = with_default(
+        "Maximum SH degree (0 to 3)",
+        FitGeometryConfig::default().geometry.sh_degree,
+    ))]
     pub sh_degree: Option<usize>,
     /// Iterations between log lines (`--log-every`; key `log_interval`).
+    #[arg(skip)]
     pub log_every: Option<u64>,
     /// Iterations between writes of `OUT/checkpoint.safetensors`, 0 for only when stopped
     /// (`--checkpoint-every`; key `checkpoint_interval`).
+    #[arg(skip)]
     pub checkpoint_every: Option<u64>,
 }
 
@@ -184,18 +238,29 @@ impl GeometryOverrides {
     }
 }
 
-/// What to run.
-#[derive(Clone, Debug)]
+/// What to run; as [`clap::Args`], the arguments of `dsgs fit-geometry` up to `--sh-degree`
+/// (`--resume` is the program's to declare with its other run flags).
+#[derive(Clone, Debug, clap::Args)]
 pub struct FitSettings {
     /// Dataset directory in COLMAP, NeRF-synthetic or LLFF layout (the `DATASET` argument).
+    #[arg(help = "Dataset directory (COLMAP, NeRF-synthetic or LLFF layout)")]
     pub dataset: PathBuf,
     /// Output directory (`--output`).
+    #[arg(
+        short,
+        long = "output",
+        value_name = "OUTPUT",
+        help = "Output directory"
+    )]
     pub out_dir: PathBuf,
     /// Base configuration file (`--config`): [`FitGeometryConfig`] keys.
+    #[arg(long, help = CONFIG_HELP)]
     pub config: Option<PathBuf>,
     /// Continue from this checkpoint of a stopped run (`--resume`).
+    #[arg(skip)]
     pub resume: Option<PathBuf>,
     /// Command-line values applied on top of the configuration.
+    #[command(flatten)]
     pub overrides: GeometryOverrides,
 }
 
@@ -222,6 +287,31 @@ pub struct FitReport {
     pub evaluations: Vec<Evaluation>,
     /// `OUT/point_cloud.ply`.
     pub ply: PathBuf,
+}
+
+/// The summary of a run, a line each: the views, every evaluation and the scene written
+/// (how the run ended is [`FitReport::run`]'s to tell).
+impl std::fmt::Display for FitReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "{} training and {} test views at {}x{}, {} initial Gaussians",
+            self.train_views, self.test_views, self.width, self.height, self.initial_gaussians
+        )?;
+        for e in &self.evaluations {
+            writeln!(
+                f,
+                "iteration {}: held-out PSNR {:.3} dB, SSIM {:.4}, L1 {:.5}, {} Gaussians",
+                e.step, e.psnr, e.ssim, e.l1, e.gaussians
+            )?;
+        }
+        writeln!(
+            f,
+            "{} Gaussians; scene written to {}",
+            self.gaussians,
+            self.ply.display()
+        )
+    }
 }
 
 /// The effective configuration of a run (base configuration plus overrides).

@@ -25,6 +25,9 @@
 //!   and the checks before `dsgs assemble` merges them into the one-process outputs.
 //! * [`demo`]: the whole pipeline on the lego scene at low resolution (`dsgs demo`).
 //! * [`image_io`]: PNG, GIF, contact sheets, MP4 through `ffmpeg`.
+//! * [`cli`]: the command-line face of the settings: the settings that map onto flags derive
+//!   `clap::Args` for a program to flatten; value parsers that refuse out-of-range numbers;
+//!   help texts that state the configurations' defaults.
 //! * [`error`]: the crate's [`Error`] (a message, a message explaining an underlying error, or
 //!   an error of a crate below) and the [`Context`](error::Context) extension that adds the
 //!   explaining text.
@@ -82,6 +85,7 @@
 
 pub mod bake;
 pub mod cameras;
+pub mod cli;
 pub mod config;
 pub mod consistency;
 pub mod demo;

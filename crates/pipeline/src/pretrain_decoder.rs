@@ -28,6 +28,7 @@
 
 use std::path::PathBuf;
 
+use crate::cli::{at_least_one, non_negative, with_default};
 use crate::error::{bail, Context, Result};
 use nets::{Decoder, Encoder};
 use train::decoder_training::{init_decoder, DecoderEvaluation, DECODER_CHECKPOINT_FILE};
@@ -38,15 +39,31 @@ use train::RunOutcome;
 
 /// Where the networks come from: a canonical file holding both, and/or separate files (either
 /// canonical or PyTorch checkpoints) that take precedence over it.
-#[derive(Clone, Debug, Default, PartialEq)]
+///
+/// As [`clap::Args`], the flags `--weights`, `--encoder` and `--decoder` of a command that
+/// stylizes with these networks as they are (`dsgs stylize-image`).
+#[derive(Clone, Debug, Default, PartialEq, clap::Args)]
 pub struct NetworkFiles {
     /// Canonical weights (`.safetensors`) holding the encoder and decoder (`--weights`).
+    #[arg(
+        long,
+        help = "Canonical network weights (.safetensors) holding the encoder and decoder \
+                [default: none: give --encoder and --decoder]"
+    )]
     pub weights: Option<PathBuf>,
     /// Encoder file, a PyTorch checkpoint or `.safetensors`, instead of the one in `weights`
     /// (`--encoder`).
+    #[arg(
+        long,
+        help = "Encoder file (PyTorch checkpoint or .safetensors) [default: the one in --weights]"
+    )]
     pub encoder: Option<PathBuf>,
     /// Decoder file, a PyTorch checkpoint or `.safetensors`, instead of the one in `weights`
     /// (`--decoder`).
+    #[arg(
+        long,
+        help = "Decoder file (PyTorch checkpoint or .safetensors) [default: the one in --weights]"
+    )]
     pub decoder: Option<PathBuf>,
 }
 
@@ -79,28 +96,63 @@ impl NetworkFiles {
 }
 
 /// Command-line values that override the configuration.
-#[derive(Clone, Debug, Default, PartialEq)]
+///
+/// As [`clap::Args`], the flags from `--iterations` to `--seed`; `--variant`, shown before the
+/// configuration file, and the two run intervals (`--checkpoint-every`, `--log-every`) are the
+/// program's to declare.
+#[derive(Clone, Debug, Default, PartialEq, clap::Args)]
 pub struct DecoderOverrides {
     /// Total iterations (`--iterations`; key `iterations`).
+    #[arg(long, value_parser = at_least_one::<u64>(), help = with_default(
+        "Total iterations (at least 1)",
+        DecoderTrainConfig::default().iterations,
+    ))]
     pub iterations: Option<u64>,
     /// Content (and style) images per iteration (`--batch-size`; key `batch_size`).
+    #[arg(long, value_parser = at_least_one::<usize>(), help = with_default(
+        "Content (and style) images per iteration (at least 1)",
+        DecoderTrainConfig::default().batch_size,
+    ))]
     pub batch_size: Option<usize>,
     /// Side of the square random crop (`--crop`; key `crop`).
+    #[arg(long, value_parser = at_least_one::<u32>(), help = with_default(
+        "Side of the square random crop, in pixels (at least 1, at most --resize)",
+        DecoderTrainConfig::default().crop,
+    ))]
     pub crop: Option<u32>,
     /// Short side the images are resized to before cropping (`--resize`; key `resize`).
+    #[arg(long, value_parser = at_least_one::<u32>(), help = with_default(
+        "Short side the images are resized to before cropping, in pixels (at least 1)",
+        DecoderTrainConfig::default().resize,
+    ))]
     pub resize: Option<u32>,
     /// Weight of the style loss (`--style-weight`; key `style_weight`).
+    #[arg(long, value_parser = non_negative, help = with_default(
+        "Weight of the style loss (0 or more)",
+        DecoderTrainConfig::default().style_weight,
+    ))]
     pub style_weight: Option<f64>,
     /// Initial learning rate (`--lr`; key `lr`).
+    #[arg(long, value_parser = non_negative, help = with_default(
+        "Initial learning rate (0 or more)",
+        DecoderTrainConfig::default().lr,
+    ))]
     pub lr: Option<f64>,
     /// Seed of every random choice (`--seed`; key `seed`).
+    #[arg(long, help = with_default(
+        "Seed of every random choice",
+        DecoderTrainConfig::default().seed,
+    ))]
     pub seed: Option<u64>,
     /// Network variant (`--variant`; key `variant`).
+    #[arg(skip)]
     pub variant: Option<Variant>,
     /// Iterations between log lines (`--log-every`; key `log_interval`).
+    #[arg(skip)]
     pub log_every: Option<u64>,
     /// Iterations between checkpoints, 0 for only when stopped (`--checkpoint-every`; key
     /// `checkpoint_interval`).
+    #[arg(skip)]
     pub checkpoint_every: Option<u64>,
 }
 
@@ -183,6 +235,29 @@ pub struct PretrainReport {
     pub evaluations: Vec<DecoderEvaluation>,
     /// `OUT/checkpoint.safetensors`.
     pub checkpoint: PathBuf,
+}
+
+/// The summary of a run, a line each: the images and networks, then every evaluation (how
+/// the run ended is [`PretrainReport::run`]'s to tell).
+impl std::fmt::Display for PretrainReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        writeln!(
+            f,
+            "{} content and {} style images, {} networks, crops of {} px",
+            self.content_images,
+            self.style_images,
+            self.config.variant.as_str(),
+            self.config.crop
+        )?;
+        for e in &self.evaluations {
+            writeln!(
+                f,
+                "iteration {}: evaluation loss {:.5} (content {:.5}, style {:.5}, {} pairs)",
+                e.step, e.loss, e.loss_content, e.loss_style, e.pairs
+            )?;
+        }
+        Ok(())
+    }
 }
 
 /// The effective configuration of a run (base configuration plus overrides).

@@ -128,6 +128,27 @@ pub struct Invocation {
     pub cwd: PathBuf,
 }
 
+/// The arguments of a command line (after the program name) for an [`Invocation`]: all but the
+/// shard option (`--shard K/N` or `--shard=K/N`). They must be UTF-8, to be recorded in a
+/// manifest.
+pub fn args_without_shard(
+    args: impl IntoIterator<Item = std::ffi::OsString>,
+) -> Result<Vec<String>> {
+    let mut kept = Vec::new();
+    let mut args = args.into_iter();
+    while let Some(a) = args.next() {
+        let Some(a) = a.to_str().map(str::to_string) else {
+            bail!("an argument is not valid UTF-8, so the shard's command line cannot be recorded for `dsgs assemble`: {a:?}");
+        };
+        if a == "--shard" {
+            args.next();
+        } else if !a.starts_with("--shard=") {
+            kept.push(a);
+        }
+    }
+    Ok(kept)
+}
+
 /// A file a shard wrote, as it was when the shard finished.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FileRecord {
@@ -275,6 +296,76 @@ pub fn check_one_run(dir: &Path, manifests: &[(PathBuf, Manifest)]) -> Result<()
     }
     msg += "\nrerun the odd shards with the arguments of the others, or remove their manifests";
     bail!("{msg}")
+}
+
+/// A sharded run found by [`find_run`] from its output.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RecordedRun {
+    /// The run's output, made absolute (the recorded command line may name it relative to
+    /// another working directory).
+    pub output: PathBuf,
+    /// The first manifest found, in name order.
+    pub manifest: PathBuf,
+    /// The sharded command: `stylize`, `eval` or `bake`.
+    pub command: String,
+    /// The command line the shards were made with, to run again as their assembly.
+    pub invocation: Invocation,
+}
+
+/// Finds the shards of the run whose output is `output` (the folder of `dsgs stylize -o`, the
+/// report of `dsgs eval -o` or the `.ply` of `dsgs bake -o`): looks for manifests in the shard
+/// folder of each sharded command ([`crate::stylize::shard_dir`], [`crate::eval::shard_dir`],
+/// [`crate::bake::shard_dir`]), checks that those of the first folder holding any belong to one
+/// run ([`check_one_run`]) and returns the command line they recorded. Whether every shard has
+/// finished is checked later, by the assembly ([`collect`]). The error names the output and the
+/// folders looked in when there are no manifests.
+pub fn find_run(output: &Path) -> Result<RecordedRun> {
+    let absolute =
+        std::path::absolute(output).with_context(|| format!("resolving {}", output.display()))?;
+    let places = [
+        (
+            crate::stylize::shard_dir(&absolute),
+            crate::stylize::SHARD_COMMAND,
+        ),
+        (
+            crate::eval::shard_dir(&absolute),
+            crate::eval::SHARD_COMMAND,
+        ),
+        (
+            crate::bake::shard_dir(&absolute),
+            crate::bake::SHARD_COMMAND,
+        ),
+    ];
+    for (dir, command) in &places {
+        if !dir.is_dir() {
+            continue;
+        }
+        let manifests = read_manifests(dir, command)?;
+        check_one_run(dir, &manifests)?;
+        let Some((path, manifest)) = manifests.into_iter().next() else {
+            continue;
+        };
+        let Some(invocation) = manifest.invocation else {
+            bail!(
+                "{}: the manifest records no command line to assemble with",
+                path.display()
+            );
+        };
+        return Ok(RecordedRun {
+            output: absolute,
+            manifest: path,
+            command: manifest.command,
+            invocation,
+        });
+    }
+    // The eval and bake folders are one path: `OUTPUT` with the extension `shards`.
+    bail!(
+        "{}: no shard manifests in {} (stylize) or {} (eval, bake): run the shards with \
+         --shard K/N first",
+        output.display(),
+        places[0].0.display(),
+        places[1].0.display()
+    )
 }
 
 /// Checks one record against the file on disk under `root`.
@@ -523,5 +614,52 @@ mod tests {
         let e = collect(&dir, &expected).unwrap_err().to_string();
         assert!(e.contains("different splits"), "{e}");
         std::fs::remove_dir_all(&root).ok();
+    }
+
+    #[test]
+    fn find_run_names_the_folders_it_looked_in_and_returns_the_recorded_command_line() {
+        let root = dsgs_testkit::scratch_dir("pipeline-shard", "find-run");
+        let report = root.join("report.json");
+        let e = find_run(&report).unwrap_err().to_string();
+        assert!(
+            e.contains("report.json: no shard manifests")
+                && e.contains(&crate::eval::shard_dir(&report).display().to_string()),
+            "{e}"
+        );
+
+        let dir = crate::eval::shard_dir(&report);
+        let mut m = manifest(Shard::new(1, 2).unwrap(), 5, vec![]);
+        m.command = crate::eval::SHARD_COMMAND.into();
+        write_manifest(&dir, &m).unwrap();
+        let e = find_run(&report).unwrap_err().to_string();
+        assert!(e.contains("records no command line"), "{e}");
+
+        let invocation = Invocation {
+            args: vec!["eval".into(), "bundle".into()],
+            cwd: root.clone(),
+        };
+        m.invocation = Some(invocation.clone());
+        write_manifest(&dir, &m).unwrap();
+        let run = find_run(&report).unwrap();
+        assert_eq!(run.command, "eval");
+        assert_eq!(run.invocation, invocation);
+        assert_eq!(run.output, report);
+        std::fs::remove_dir_all(&root).ok();
+    }
+
+    #[test]
+    fn the_recorded_arguments_leave_out_the_shard_option() {
+        let args = [
+            "eval",
+            "b",
+            "--shard",
+            "2/3",
+            "-o",
+            "r.json",
+            "--shard=1/3",
+            "--no-progress",
+        ];
+        let kept = args_without_shard(args.map(Into::into)).unwrap();
+        assert_eq!(kept, ["eval", "b", "-o", "r.json", "--no-progress"]);
     }
 }

@@ -307,6 +307,53 @@ pub struct StylizeOutput {
     pub seconds: StageSeconds,
 }
 
+impl StylizeOutput {
+    /// What a call of [`run`] with `settings` over `frames` cameras wrote, a line each: a
+    /// shard's block, manifest and how to merge the shards, or every output's frames; then the
+    /// animations, the contact sheet and the mean stage times.
+    pub fn summary(&self, frames: usize, settings: &StylizeSettings) -> String {
+        let out = &settings.out_dir;
+        let mut s = String::new();
+        if let Part::Shard { shard, .. } = &settings.part {
+            let r = shard.range(frames);
+            s += &format!(
+                "shard {shard}: frames {} to {} of {frames} written for {} output(s) in {}\n",
+                r.start,
+                r.end.saturating_sub(1),
+                self.outputs.len(),
+                out.display()
+            );
+            if let Some(m) = &self.manifest {
+                s += &format!("manifest {}\n", m.display());
+            }
+            s += &format!(
+                "when every shard has finished: dsgs assemble {}\n",
+                out.display()
+            );
+        } else {
+            for (name, _) in &self.outputs {
+                s += &format!("{name}: {frames} frames in {}\n", out.join(name).display());
+            }
+        }
+        for p in self
+            .gifs
+            .iter()
+            .chain(&self.mp4s)
+            .chain(&self.contact_sheet)
+        {
+            s += &format!("wrote {}\n", p.display());
+        }
+        if self.decoded > 0 {
+            let t = self.seconds;
+            s += &format!(
+                "seconds per view: raster {:.4}, lift+transform {:.4}, decode {:.4}\n",
+                t.raster, t.lift_transform, t.decode
+            );
+        }
+        s
+    }
+}
+
 /// The name of the shard manifests of `dsgs stylize` ([`crate::shard`]).
 pub const SHARD_COMMAND: &str = "stylize";
 

@@ -27,6 +27,7 @@ use serde::{Deserialize, Serialize};
 use style::{ChannelStats, StyleFeatureStats};
 use train::Variant;
 
+use crate::cli::{fraction, non_negative, variant};
 use crate::error::{bail, Context, Result};
 use crate::image_io::{self, nchw_from_rgb, rgb_from_nchw, RgbImage};
 use crate::pretrain_decoder::NetworkFiles;
@@ -36,28 +37,76 @@ use crate::{Control, Stage, Tally};
 /// The default longest side of content photos and style images, in pixels.
 pub const DEFAULT_IMAGE_SIDE: u32 = 512;
 
-/// What to run.
-#[derive(Clone, Debug)]
+/// What to run; as [`clap::Args`], the flags of `dsgs stylize-image` up to `--style-size` (the
+/// output folder is the program's to declare, after its own flags).
+#[derive(Clone, Debug, clap::Args)]
 pub struct StylizeImageSettings {
     /// Content photos: files, or folders whose image files are taken in name order.
+    #[arg(
+        required = true,
+        value_name = "PHOTOS",
+        help = "Content photo (file or folder); several may be given"
+    )]
     pub contents: Vec<PathBuf>,
     /// Style images: files or folders, as `contents`.
+    #[arg(
+        long = "style",
+        required = true,
+        help = "Style image (file or folder); repeat for several (at least one)"
+    )]
     pub styles: Vec<PathBuf>,
     /// The encoder and decoder.
+    #[command(flatten)]
     pub networks: NetworkFiles,
     /// Standard (pooling) or fullres networks.
+    #[arg(
+        long,
+        value_parser = variant(),
+        default_value = "standard",
+        help = "Network variant: `standard` (pooling and upsampling) or `fullres` (neither)"
+    )]
     pub variant: Variant,
     /// Style strength in `[0, 1]`.
+    #[arg(
+        long,
+        default_value_t = 1.0,
+        value_parser = fraction,
+        help = "Style strength, in [0, 1]: 0 reconstructs the photo, 1 is the full style"
+    )]
     pub alpha: f64,
     /// Also stylize with the mixture of all styles, with these weights (one per style image).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        value_parser = non_negative,
+        help = "Also stylize with the mixture of the styles, with these weights (comma-separated, \
+                one per style image, each 0 or more, not all 0) [default: no mixture]"
+    )]
     pub mix: Option<Vec<f64>>,
     /// Match each style's colours to the photo first.
+    #[arg(
+        long,
+        help = "Keep each photo's colours (the style images are colour-matched to it first)"
+    )]
     pub preserve_colour: bool,
     /// Longest side of the photos after loading (0: as they are).
+    #[arg(
+        long = "content-size",
+        value_name = "CONTENT_SIZE",
+        default_value_t = DEFAULT_IMAGE_SIDE,
+        help = "Longest side of the photos after loading, in pixels (0: as they are)"
+    )]
     pub content_side: u32,
     /// Longest side of the style images after loading (0: as they are).
+    #[arg(
+        long = "style-size",
+        value_name = "STYLE_SIZE",
+        default_value_t = DEFAULT_IMAGE_SIDE,
+        help = "Longest side of the style images after loading, in pixels (0: as they are)"
+    )]
     pub style_side: u32,
     /// Output folder.
+    #[arg(skip)]
     pub out_dir: PathBuf,
 }
 
@@ -95,6 +144,32 @@ pub struct StylizeImageReport {
     pub mean_texture_distance: f64,
     /// Mean content loss.
     pub mean_content_loss: f64,
+}
+
+impl StylizeImageReport {
+    /// A table of every output's measures and a line of their means, naming `out_dir`, the
+    /// folder holding the outputs, the contact sheet and the report.
+    pub fn summary(&self, out_dir: &Path) -> String {
+        let mut s = format!(
+            "{:<24} {:<24} {:>10} {:>10} {:>10}\n",
+            "photo", "style", "style", "texture", "content"
+        );
+        for p in &self.pairs {
+            s += &format!(
+                "{:<24} {:<24} {:>10.4} {:>10.4} {:>10.4}\n",
+                p.content, p.style, p.style_loss, p.texture_distance, p.content_loss
+            );
+        }
+        s += &format!(
+            "mean: style loss {:.4}, texture distance {:.4}, content loss {:.4}; outputs, \
+             contact_sheet.png and report.json in {}\n",
+            self.mean_style_loss,
+            self.mean_texture_distance,
+            self.mean_content_loss,
+            out_dir.display()
+        );
+        s
+    }
 }
 
 /// The image files of `sources`: files as given, folders' image files (`.png`, `.jpg`,

@@ -6,7 +6,8 @@
 //! ([`memory`]; the libraries never do), beside the one way the libraries fill their large
 //! buffers ([`memory::filled`], on the threads of the current rayon pool), and the scheduling
 //! policy a program may run its long commands under ([`pool::with_workers_awake`]; the
-//! libraries never do).
+//! libraries never do), and the one way an error is reported with its causes
+//! ([`error::chain`]).
 //!
 //! It sits below every other crate of the workspace and depends on none of them.
 //!
@@ -40,6 +41,7 @@
 
 #![warn(missing_docs)]
 
+pub mod error;
 pub mod fs;
 pub mod hash;
 pub mod memory;

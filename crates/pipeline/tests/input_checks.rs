@@ -10,6 +10,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
+use base::error::chain;
 use dsgs_testkit::{scratch_dir, shared_path};
 use gaussian::camera::MAX_IMAGE_SIDE;
 use gaussian::{Camera, FeatureGaussians};
@@ -23,8 +24,6 @@ use pipeline::render::{render_views, DepthStyle, RenderKind, SceneInput};
 use pipeline::stylize::{StylizeSettings, DEFAULT_STYLE_SIDE};
 use pipeline::{Control, Quiet};
 use train::{BundleInfo, CameraRecord, SceneBundle, Variant};
-
-use dsgs_testkit::error_chain as chain;
 
 const FEATURES: usize = 4;
 

@@ -944,7 +944,7 @@ pub fn bundle_file(dir: &Path, name: &str) -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dsgs_testkit::error_chain as chain;
+    use base::error::chain;
 
     fn scratch(name: &str) -> PathBuf {
         dsgs_testkit::scratch_dir("bundle-unit", name)
@@ -958,6 +958,8 @@ mod tests {
             BundleInfo::load(&gone).unwrap_err(),
             SceneBundle::load(&gone).unwrap_err(),
         ] {
+            // Nothing below the message, so the report is the message itself.
+            assert!(std::error::Error::source(&e).is_none(), "{e:?}");
             let text = chain(&e);
             assert!(text.contains("bundle folder not found"), "{text}");
             assert_eq!(text.matches("gone").count(), 1, "{text}");

@@ -734,7 +734,7 @@ impl SceneBundle {
             mix(&style.mean, &self.info.scene_mean),
             mix(&style.std, &self.info.scene_std),
         )
-        .map_err(|e| TrainError::Shape(e.to_string()))
+        .map_err(TrainError::Style)
     }
 
     /// The per-channel mean and std of the lifted feature map over the whole view, which a
@@ -749,18 +749,14 @@ impl SceneBundle {
         if self.info.normalize == FeatureNorm::BeforeRaster {
             return Ok(None);
         }
-        let shape = |e: String| TrainError::Shape(e);
         let (n, _, fh, _) = features.dim();
         let mut moments = ChannelMoments::new(n, self.lifter.out_channels());
         for y0 in (0..fh).step_by(VIEW_STATS_ROWS) {
             let band = features.slice(s![.., .., y0..(y0 + VIEW_STATS_ROWS).min(fh), ..]);
-            let lifted = self
-                .lifter
-                .forward(band)
-                .map_err(|e| shape(e.to_string()))?;
-            moments.add(&lifted).map_err(|e| shape(e.to_string()))?;
+            let lifted = self.lifter.forward(band)?;
+            moments.add(&lifted)?;
         }
-        Ok(Some(moments.stats().map_err(|e| shape(e.to_string()))?))
+        Ok(Some(moments.stats()?))
     }
 
     /// Lifts, transforms and decodes a feature map from [`SceneBundle::render_features`] into
@@ -837,7 +833,6 @@ impl SceneBundle {
         height: u32,
         budget_bytes: u64,
     ) -> Result<(Array4<f32>, [f64; 2]), TrainError> {
-        let net = |e: nets::NetError| TrainError::Shape(e.to_string());
         let (_, _, fh, fw) = features.dim();
         let (oh, ow) = self.decoder.output_size((fh, fw));
         let (th, tw) = (height as usize, width as usize);
@@ -854,21 +849,17 @@ impl SceneBundle {
         let mut seconds = [stats_seconds, 0.0];
         for r in nets::tiled::grid(th, tw, side) {
             let t0 = Instant::now();
-            let need = self.decoder.input_region((fh, fw), r).map_err(net)?;
+            let need = self.decoder.input_region((fh, fw), r)?;
             let part = nets::tiled::crop(features.view(), &need);
-            let mut lifted = self.lifter.forward(part.view()).map_err(net)?;
+            let mut lifted = self.lifter.forward(part.view())?;
             drop(part);
-            let shape = |e: style::StyleError| TrainError::Shape(e.to_string());
             if let Some(v) = &view_stats {
-                lifted = style::normalize(&lifted, v).map_err(shape)?;
+                lifted = style::normalize(&lifted, v)?;
             }
-            let t = style::style_transform(&lifted, stats).map_err(shape)?;
+            let t = style::style_transform(&lifted, stats)?;
             drop(lifted);
             let t1 = Instant::now();
-            let y = self
-                .decoder
-                .forward_region(t.view(), (fh, fw), r)
-                .map_err(net)?;
+            let y = self.decoder.forward_region(t.view(), (fh, fw), r)?;
             image
                 .slice_mut(s![.., .., r.y0..r.y1, r.x0..r.x1])
                 .assign(&y);

@@ -46,7 +46,7 @@ fn main() -> ExitCode {
             ExitCode::from(INTERRUPTED_EXIT)
         }
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", base::error::chain(&*e));
             ExitCode::FAILURE
         }
     }

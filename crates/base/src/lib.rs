@@ -7,8 +7,9 @@
 //! ([`memory`]; the libraries never do), beside the one way the libraries fill their large
 //! buffers ([`memory::filled`], on the threads of the current rayon pool), and the scheduling
 //! policy a program may run its long commands under ([`pool::with_workers_awake`]; the
-//! libraries never do), and the one point where vector kernels enter code compiled for the
-//! machine's instruction set ([`isa::dispatch`], detected once per process).
+//! libraries never do), the one point where vector kernels enter code compiled for the
+//! machine's instruction set ([`isa::dispatch`], detected once per process), and the one way an
+//! error is reported with its causes ([`error::chain`]).
 //!
 //! It sits below every other crate of the workspace and depends on none of them.
 //!
@@ -42,6 +43,7 @@
 
 #![warn(missing_docs)]
 
+pub mod error;
 pub mod event;
 pub mod fs;
 pub mod hash;

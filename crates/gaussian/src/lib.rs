@@ -69,21 +69,3 @@ pub use ply::{load_ply, save_ply, PlyError};
 pub use project::{project, project_backward, ProjectSettings, Projected, ProjectionGrads};
 pub use scene::{scene_extent_from_cameras, FeatureGaussians, SceneError};
 pub use sh::{sh_colors, sh_colors_backward, sh_colors_backward_rows};
-
-/// The text of an error followed by the text of each of its causes ([`std::error::Error::source`]),
-/// each cause appended after `": "` only when its text is not already part of what is written:
-/// many errors (the `image` crate's among them) repeat their cause's text in their own message,
-/// and this shows it once.
-pub(crate) fn error_text(error: &(dyn std::error::Error + 'static)) -> String {
-    let mut text = error.to_string();
-    let mut cause = error.source();
-    while let Some(c) = cause {
-        let t = c.to_string();
-        if !t.is_empty() && !text.contains(&t) {
-            text.push_str(": ");
-            text.push_str(&t);
-        }
-        cause = c.source();
-    }
-    text
-}

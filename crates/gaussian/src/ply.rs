@@ -50,7 +50,7 @@ use crate::scene::{
     SceneError, MAX_ABS_OPACITY_LOGIT, MAX_ABS_POSITION, MAX_LOG_SCALE, MAX_QUAT_NORM,
     MIN_LOG_SCALE, MIN_QUAT_NORM,
 };
-use crate::{error_text, FeatureGaussians, Real};
+use crate::{FeatureGaussians, Real};
 
 /// A PLY file that could not be read or written.
 #[derive(Debug, thiserror::Error)]
@@ -67,7 +67,7 @@ pub struct PlyError {
 pub enum PlyErrorKind {
     /// Reading, writing or renaming the file failed. The message includes the I/O error's
     /// text, which is not also returned as [`std::error::Error::source`] (so it shows once).
-    #[error("I/O error: {}", error_text(.0))]
+    #[error("I/O error: {}", base::error::chain(.0))]
     Io(io::Error),
     /// A header line is malformed or unsupported.
     #[error("header line {line}: {problem}")]

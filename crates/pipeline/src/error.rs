@@ -2,18 +2,12 @@
 //! of a crate below.
 //!
 //! Errors read as a chain, outermost first, like `anyhow`'s: [`Error::Context`] displays only its
-//! own text and returns the error it wraps from [`std::error::Error::source`], so a program that
-//! prints the chain (`anyhow`'s `{:#}`, or walking `source()`) shows
-//! `writing out/a.png: No such file or directory (os error 2)`. The errors of the crates below
-//! are kept as they are ([`Error::Train`], [`Error::Net`], ...) and display as themselves.
-//!
-//! Every text of a chain is shown once. Some errors of the crates below both embed their
-//! cause's text in their own (`out/a.png: No such file or directory (os error 2)`) and return
-//! that cause from `source()`, which would make a printed chain repeat it. So the source of an
-//! [`Error`] is the first error down the chain whose text its own text does not already
-//! contain, and [`Context`] wraps such an error so that the same holds below it: the chain
-//! above prints `reading out/a.png: out/a.png: No such file or directory (os error 2)`, with
-//! the operating system's text once.
+//! own text and returns the error it wraps from [`std::error::Error::source`]. The errors of the
+//! crates below are kept as they are ([`Error::Train`], [`Error::Net`], ...): they display as
+//! themselves and return their own sources. A program reports the whole chain with
+//! [`base::error::chain`], which shows `writing out/a.png: No such file or directory (os error
+//! 2)`, and every text once: some errors of the crates below both embed their cause's text in
+//! their own and return that cause from `source()`, and the report leaves the repeat out.
 //!
 //! [`Context`] adds that explaining text to any `Result` whose error is a standard error
 //! (this crate's own [`Error`] included) and turns a `None` into an [`Error::Message`].
@@ -97,12 +91,8 @@ impl StdError for Error {
     fn source(&self) -> Option<&(dyn StdError + 'static)> {
         match self {
             Error::Message(_) | Error::Interrupted(_) => None,
-            Error::Context { context, source } => {
-                first_not_in(context, Some(&**source as &(dyn StdError + 'static)))
-            }
-            other => other
-                .below()
-                .and_then(|e| first_not_in(&e.to_string(), e.source())),
+            Error::Context { source, .. } => Some(&**source),
+            other => other.below().and_then(|e| e.source()),
         }
     }
 }
@@ -130,37 +120,6 @@ from_below!(
     Image(image::ImageError),
     Fmt(fmt::Error),
 );
-
-/// The first error of the chain starting at `next` whose text `shown` does not contain.
-fn first_not_in<'a>(
-    shown: &str,
-    mut next: Option<&'a (dyn StdError + 'static)>,
-) -> Option<&'a (dyn StdError + 'static)> {
-    while let Some(e) = next {
-        if !shown.contains(&e.to_string()) {
-            return Some(e);
-        }
-        next = e.source();
-    }
-    None
-}
-
-/// An error of another crate that embeds its source's text in its own: displayed as itself,
-/// with the first error down its chain that its text does not contain as its source.
-#[derive(Debug)]
-struct ShownOnce(Box<dyn StdError + Send + Sync + 'static>);
-
-impl Display for ShownOnce {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        Display::fmt(&self.0, f)
-    }
-}
-
-impl StdError for ShownOnce {
-    fn source(&self) -> Option<&(dyn StdError + 'static)> {
-        first_not_in(&self.0.to_string(), self.0.source())
-    }
-}
 
 /// Result alias of this crate.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
@@ -204,19 +163,9 @@ impl<T> Context<T> for Option<T> {
 }
 
 fn wrap<C: Display, E: StdError + Send + Sync + 'static>(context: C, e: E) -> Error {
-    // An error whose text holds its source's is wrapped so that the chain shows it once; any
-    // other is kept as it is (so that callers can still downcast it, e.g. to an interruption).
-    let repeats = e
-        .source()
-        .is_some_and(|s| e.to_string().contains(&s.to_string()));
-    let source: Box<dyn StdError + Send + Sync + 'static> = if repeats {
-        Box::new(ShownOnce(Box::new(e)))
-    } else {
-        Box::new(e)
-    };
     Error::Context {
         context: context.to_string(),
-        source,
+        source: Box::new(e),
     }
 }
 
@@ -231,7 +180,7 @@ pub(crate) use bail;
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dsgs_testkit::error_chain as chain;
+    use base::error::chain;
 
     fn missing() -> std::io::Result<String> {
         std::fs::read_to_string("/nonexistent/dsgs-pipeline-error-test")

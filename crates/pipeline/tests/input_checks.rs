@@ -10,6 +10,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
+use base::error::chain;
 use dsgs_testkit::{scratch_dir, shared_path};
 use gaussian::camera::MAX_IMAGE_SIDE;
 use gaussian::{Camera, FeatureGaussians};
@@ -24,8 +25,6 @@ use pipeline::stylize::{StylizeSettings, DEFAULT_STYLE_SIDE};
 use pipeline::{Control, Quiet};
 use runtime::{BundleInfo, CameraRecord, SceneBundle};
 use train::Variant;
-
-use dsgs_testkit::error_chain as chain;
 
 const FEATURES: usize = 4;
 

@@ -740,7 +740,7 @@ pub fn bundle_file(dir: &Path, name: &str) -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dsgs_testkit::error_chain as chain;
+    use base::error::chain;
 
     fn scratch(name: &str) -> PathBuf {
         dsgs_testkit::scratch_dir("bundle-unit", name)

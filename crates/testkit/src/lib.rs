@@ -13,8 +13,6 @@
 //!   reference magnitude (an infinity-norm relative error). Element-wise relative error is
 //!   meaningless for entries that are zero in the reference, which gradients routinely have.
 //! * [`SplitMix64`] generates deterministic test values.
-//! * [`error_chain`] is an error with its causes as the `dsgs` program prints them, for tests of
-//!   message wording.
 //!
 //! Dependencies: a crate whose own tests use the testkit must not be a dependency of it (that
 //! would be a dependency cycle), so the helpers are generic over [`base::Real`], `ndarray` arrays
@@ -40,19 +38,6 @@ pub use rng::SplitMix64;
 
 /// The environment variable that points at the shared reference material.
 pub const SHARED_ENV: &str = "DSGS_SHARED";
-
-/// An error and its causes joined by `": "`, as `anyhow` prints an error chain with `{:#}` (and
-/// so as the `dsgs` program reports it).
-pub fn error_chain(e: &dyn std::error::Error) -> String {
-    let mut s = e.to_string();
-    let mut cause = e.source();
-    while let Some(c) = cause {
-        s.push_str(": ");
-        s.push_str(&c.to_string());
-        cause = c.source();
-    }
-    s
-}
 
 /// The shared reference directory. Panics with a clear message when it cannot be found, because a
 /// test that needs it cannot say anything without it.

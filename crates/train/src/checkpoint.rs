@@ -237,11 +237,16 @@ impl CheckpointParts<'_> {
             .map(|t| {
                 safetensors::tensor::TensorView::new(t.dtype, t.shape.clone(), &t.bytes)
                     .map(|v| (t.name.clone(), v))
-                    .map_err(|e| TrainError::Shape(format!("checkpoint tensor {}: {e}", t.name)))
+                    .map_err(|error| TrainError::Tensor {
+                        what: format!("checkpoint tensor {}", t.name),
+                        error,
+                    })
             })
             .collect::<Result<_, _>>()?;
-        nets::weights_file::canonical(views, meta)
-            .map_err(|e| TrainError::Shape(format!("cannot serialise the checkpoint: {e}")))
+        nets::weights_file::canonical(views, meta).map_err(|problem| TrainError::Serialize {
+            what: "the checkpoint",
+            problem,
+        })
     }
 
     /// Writes the checkpoint atomically, header and tensor data in turn.
@@ -511,11 +516,18 @@ impl StateWriter {
             .map(|(name, dtype, shape, bytes)| {
                 safetensors::tensor::TensorView::new(*dtype, shape.clone(), bytes)
                     .map(|v| (name.clone(), v))
-                    .map_err(|e| TrainError::Shape(format!("state tensor {name}: {e}")))
+                    .map_err(|error| TrainError::Tensor {
+                        what: format!("state tensor {name}"),
+                        error,
+                    })
             })
             .collect::<Result<Vec<_>, _>>()?;
-        nets::weights_file::serialize_canonical(views, self.meta)
-            .map_err(|e| TrainError::Shape(format!("cannot serialise the state: {e}")))
+        nets::weights_file::serialize_canonical(views, self.meta).map_err(|problem| {
+            TrainError::Serialize {
+                what: "the state",
+                problem,
+            }
+        })
     }
 }
 

@@ -238,14 +238,6 @@ pub struct DecoderTrainer {
     ema: Option<[f64; 3]>,
 }
 
-fn net_err(e: nets::NetError) -> TrainError {
-    TrainError::Shape(e.to_string())
-}
-
-fn style_err(e: style::StyleError) -> TrainError {
-    TrainError::Shape(e.to_string())
-}
-
 /// Parameter names of the decoder in the optimiser: `{layer}.weight` and `{layer}.bias`.
 pub(crate) fn register_decoder(adam: &mut Adam<f32>, decoder: &Decoder<f32>, lr: f64) {
     for l in decoder.layers() {
@@ -377,9 +369,9 @@ impl DecoderTrainer {
         content: &Array4<f32>,
         style: &StyleFeatureStats<f32>,
     ) -> Result<style::DecoderLoss<f32>, TrainError> {
-        let feats = self.encoder.forward(content.view()).map_err(net_err)?;
+        let feats = self.encoder.forward(content.view())?;
         let deepest = feats.last().expect("encoder depth >= 1");
-        let t = adain_with_stats(deepest, style.deepest()).map_err(style_err)?;
+        let t = adain_with_stats(deepest, style.deepest())?;
         decoder_training_loss(
             &self.encoder,
             &self.decoder,
@@ -388,7 +380,7 @@ impl DecoderTrainer {
             style,
             self.config.style_weight,
         )
-        .map_err(style_err)
+        .map_err(TrainError::Style)
     }
 
     /// Runs one iteration.
@@ -410,7 +402,7 @@ impl DecoderTrainer {
             styles.push(self.styles.random_crop(i, cfg.resize, cfg.crop, &mut rng)?);
         }
         let content = stack(&contents)?;
-        let style = encode_style(&self.encoder, &stack(&styles)?).map_err(style_err)?;
+        let style = encode_style(&self.encoder, &stack(&styles)?)?;
         let out = self.batch_loss(&content, &style)?;
         let lr = self.config.lr_at(it);
         for i in 0..self.adam.params().len() {
@@ -477,7 +469,7 @@ impl DecoderTrainer {
             decoder: Some(self.decoder.clone()),
             ..Default::default()
         };
-        w.bytes("decoder", nets.to_bytes().map_err(net_err)?);
+        w.bytes("decoder", nets.to_bytes()?);
         w.adam(&self.adam);
         w.finish()
     }
@@ -655,7 +647,7 @@ fn eval_pairs(
         let s = styles.center_crop(si, cfg.resize, cfg.crop)?;
         out.push(EvalPair {
             content: c,
-            style: encode_style(encoder, &s).map_err(style_err)?,
+            style: encode_style(encoder, &s)?,
         });
     }
     Ok(out)
@@ -808,7 +800,7 @@ pub fn init_decoder_with<R: Rng>(
             index += 3;
         }
     }
-    Decoder::from_state_dict(&sd).map_err(net_err)
+    Decoder::from_state_dict(&sd).map_err(TrainError::Net)
 }
 
 /// The hidden widths of the MLP decoder of the paper's decoder ablation
@@ -840,5 +832,5 @@ pub fn init_mlp_decoder<R: Rng>(
             }
         })
         .collect();
-    Decoder::pointwise(layers, false).map_err(net_err)
+    Decoder::pointwise(layers, false).map_err(TrainError::Net)
 }

@@ -1,11 +1,19 @@
 //! Errors of the training crate.
+//!
+//! An error of a crate below is kept as a value, never turned into text: a variant either is
+//! that error ([`TrainError::Net`], [`TrainError::Style`], [`TrainError::Raster`], ...,
+//! displayed as itself) or says what was being done and returns the error from
+//! [`std::error::Error::source`] ([`TrainError::Scene`], [`TrainError::Array`], ...). A few
+//! variants write a cause's text into their own message instead ([`TrainError::Io`]); none does
+//! both, so [`base::error::chain`] reports every text once. [`TrainError::Shape`] is for sizes
+//! this crate finds to disagree, with a message written here.
 
 use std::path::{Path, PathBuf};
 
 /// Everything that can go wrong while training, checkpointing or resuming.
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
-    /// Arrays whose sizes disagree.
+    /// Arrays whose sizes disagree, found by this crate (the message says which and how).
     #[error("shape mismatch: {0}")]
     Shape(String),
     /// A configuration value that cannot work.
@@ -49,6 +57,16 @@ pub enum TrainError {
     /// names a missing, unreadable or non-image file; the message names the file.
     #[error("{0}")]
     Images(String),
+    /// A problem with one image of a set ([`crate::image_folder::ImageSet`]), e.g. too small
+    /// for the crop asked for; displays only the image's name, the problem is the source.
+    #[error("{name}")]
+    InImage {
+        /// The image's file (or the name given to it).
+        name: String,
+        /// What is wrong with it.
+        #[source]
+        error: Box<TrainError>,
+    },
     /// A dataset that could not be loaded.
     #[error(transparent)]
     DatasetLoad(#[from] gaussian::dataset::DatasetError),
@@ -61,6 +79,55 @@ pub enum TrainError {
     /// A scene bundle could not be made, saved or run.
     #[error(transparent)]
     Runtime(#[from] runtime::RuntimeError),
+    /// A network refused its input, its weights or a weights file.
+    #[error(transparent)]
+    Net(#[from] nets::NetError),
+    /// A feature-space operation, loss or style statistic refused its input.
+    #[error(transparent)]
+    Style(#[from] style::StyleError),
+    /// A scene that is not valid ([`gaussian::FeatureGaussians::validate`]); displays only
+    /// `what`, the scene error is the source.
+    #[error("{what} is not a valid scene")]
+    Scene {
+        /// Which scene, e.g. `the geometry`.
+        what: String,
+        /// What is wrong with it.
+        #[source]
+        error: gaussian::SceneError,
+    },
+    /// An array that could not be built or joined in the shape asked for; displays only `what`,
+    /// the array error is the source.
+    #[error("{what}")]
+    Array {
+        /// What was being built, e.g. `cannot stack the images`.
+        what: String,
+        /// The array library's error.
+        #[source]
+        error: ndarray::ShapeError,
+    },
+    /// A tensor that could not be laid out for a safetensors file; displays only `what`, the
+    /// format's error is the source.
+    #[error("{what}")]
+    Tensor {
+        /// Which tensor of which file, e.g. `checkpoint tensor means`.
+        what: String,
+        /// The format's error.
+        #[source]
+        error: safetensors::SafeTensorError,
+    },
+    /// Tensors and metadata that the canonical weights-file writer refused
+    /// ([`nets::weights_file::canonical`], which reports its problems as text).
+    #[error("cannot serialise {what}: {problem}")]
+    Serialize {
+        /// What was being written, e.g. `the checkpoint`.
+        what: &'static str,
+        /// The writer's message.
+        problem: String,
+    },
+    /// The initial point cloud could not be put in a k-d tree; displays only the step, the
+    /// tree's error is the source.
+    #[error("cannot index the initial point cloud")]
+    PointIndex(#[source] kiddo::kd_tree::ConstructionError),
     /// A stop request ended a step that leaves nothing usable behind.
     #[error("interrupted while {0}")]
     Interrupted(String),

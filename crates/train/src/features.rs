@@ -373,14 +373,6 @@ pub struct Stage3Gradients<T: Real> {
     pub decoder: Vec<ConvGrad<T>>,
 }
 
-fn net_err(e: nets::NetError) -> TrainError {
-    TrainError::Shape(e.to_string())
-}
-
-fn style_err(e: style::StyleError) -> TrainError {
-    TrainError::Shape(e.to_string())
-}
-
 /// Rasterizes the scene's features for `sample`, evaluates the 3D stylization loss on the
 /// sample's window and returns the loss terms with the gradients with respect to the
 /// per-Gaussian features and the lifter (steps 2-4 of the module documentation).
@@ -448,11 +440,10 @@ pub fn stage3_gradients<T: Real>(
     let w = setup.weights;
     let (terms, grad_r, grad_lifter, grad_decoder) =
         if w.lambda_content == 0.0 && w.lambda_style == 0.0 {
-            let (lifted, tape) = setup.lifter.forward_with_tape(r.view()).map_err(net_err)?;
-            let la = align_loss(&lifted, &target, w.align).map_err(style_err)?;
-            let g = align_loss_backward(&lifted, &target, w.align, <T as Real>::lit(1.0))
-                .map_err(style_err)?;
-            let grads = setup.lifter.backward(&tape, g.view()).map_err(net_err)?;
+            let (lifted, tape) = setup.lifter.forward_with_tape(r.view())?;
+            let la = align_loss(&lifted, &target, w.align)?;
+            let g = align_loss_backward(&lifted, &target, w.align, <T as Real>::lit(1.0))?;
+            let grads = setup.lifter.backward(&tape, g.view())?;
             let la = Real::to_f64_exact(la);
             ([la, 0.0, 0.0, la], grads.input, grads.params, Vec::new())
         } else {
@@ -465,8 +456,7 @@ pub fn stage3_gradients<T: Real>(
                 sample.style,
                 w,
                 setup.normalize,
-            )
-            .map_err(style_err)?;
+            )?;
             (
                 [
                     Real::to_f64_exact(out.loss_align),
@@ -843,10 +833,14 @@ fn stats_from_values(
     let mut at = 0;
     for &c in widths {
         let row = |from: usize| {
-            ndarray::Array2::from_shape_vec((1, c), values[from..from + c].to_vec())
-                .map_err(|e| TrainError::Shape(e.to_string()))
+            ndarray::Array2::from_shape_vec((1, c), values[from..from + c].to_vec()).map_err(
+                |error| TrainError::Array {
+                    what: "cannot rebuild cached style statistics".into(),
+                    error,
+                },
+            )
         };
-        levels.push(ChannelStats::new(row(at)?, row(at + c)?).map_err(style_err)?);
+        levels.push(ChannelStats::new(row(at)?, row(at + c)?)?);
         at += 2 * c;
     }
     Ok(StyleFeatureStats { levels })
@@ -871,7 +865,7 @@ fn encode_view(
     let k = v.camera.intrinsics;
     let (w, h) = (k.width as usize, k.height as usize);
     let x = Array4::from_shape_fn((1, 3, h, w), |(_, c, y, x)| v.image[(y * w + x) * 3 + c]);
-    let mut feats = encoder.forward(x.view()).map_err(net_err)?;
+    let mut feats = encoder.forward(x.view())?;
     let deep = feats.pop().expect("encoder depth >= 1");
     let (fw, fh) = feature_size(encoder, variant, k.width, k.height);
     if deep.dim() != (1, deepest, fh as usize, fw as usize) {
@@ -881,10 +875,8 @@ fn encode_view(
             deep.shape()
         )));
     }
-    let stats = channel_stats(&deep).map_err(style_err)?;
-    let target = normalize
-        .align_target_with_stats(deep, &stats)
-        .map_err(style_err)?;
+    let stats = channel_stats(&deep)?;
+    let target = normalize.align_target_with_stats(deep, &stats)?;
     Ok(ViewEncoding {
         target: if target.is_standard_layout() {
             target
@@ -1137,11 +1129,12 @@ impl FeatureTrainer {
         for v in scene.features.iter_mut() {
             *v = normal.sample(&mut rng) as f32;
         }
-        scene
-            .validate()
-            .map_err(|e| TrainError::Dataset(format!("geometry: {e}")))?;
+        scene.validate().map_err(|error| TrainError::Scene {
+            what: "the geometry".into(),
+            error,
+        })?;
         let (w, b) = conv_default_init(deepest, f, 1, &mut rng);
-        let lifter = Lifter::new(w, b).map_err(net_err)?;
+        let lifter = Lifter::new(w, b)?;
         // The ablations' decoders draw after the features and the lifter, so the paper's design
         // starts from the same values with or without them.
         let decoder = match config.decoder_mode {
@@ -1191,8 +1184,15 @@ impl FeatureTrainer {
                 Some(mut values) => {
                     let std = values.split_off(len - deepest);
                     let mean = values.split_off(len - 2 * deepest);
-                    let target = Array4::from_shape_vec(shape, values)
-                        .map_err(|e| TrainError::Shape(e.to_string()))?;
+                    let target = Array4::from_shape_vec(shape, values).map_err(|error| {
+                        TrainError::Array {
+                            what: format!(
+                                "cannot rebuild the cached encoding of view `{}`",
+                                v.name
+                            ),
+                            error,
+                        }
+                    })?;
                     (Arc::new(target), mean, std)
                 }
                 None => {
@@ -1241,7 +1241,7 @@ impl FeatureTrainer {
             let stats = match stored {
                 Some(values) => stats_from_values(&values, &widths)?,
                 None => {
-                    let stats = encode_style(&encoder, &to_tensor(img)).map_err(style_err)?;
+                    let stats = encode_style(&encoder, &to_tensor(img))?;
                     if let (Some(c), Some((name, key))) = (&mut cache, &entry) {
                         c.write(name, key, vec![CacheValues::Own(stats_values(&stats))]);
                     }
@@ -1403,7 +1403,7 @@ impl FeatureTrainer {
             match styles {
                 Some(styles) => {
                     let img = styles.load_resized(st, self.config.style_size)?;
-                    stats.push(encode_style(&self.encoder, &to_tensor(&img)).map_err(style_err)?);
+                    stats.push(encode_style(&self.encoder, &to_tensor(&img))?);
                     tally.advance(1, "encode held-out styles");
                 }
                 None => stats.push(self.styles[st].clone()),
@@ -1544,8 +1544,7 @@ impl FeatureTrainer {
         let lifter = Lifter::new(
             Array4::from_shape_vec((c, f, 1, 1), w).expect("checked shape"),
             ndarray::Array1::from_vec(b),
-        )
-        .map_err(net_err)?;
+        )?;
         // Checkpoints from before the ablations carry neither entry: the paper's design.
         let design = |key: &str, default: &str| -> Result<String, TrainError> {
             Ok(if r.has_meta(key) {
@@ -1861,7 +1860,7 @@ impl FeatureTrainer {
                 decoder: Some(self.decoder.clone()),
                 ..Default::default()
             };
-            w.bytes("decoder", nets.to_bytes().map_err(net_err)?);
+            w.bytes("decoder", nets.to_bytes()?);
         }
         w.adam(&self.adam);
         w.finish()

@@ -204,7 +204,10 @@ pub fn stack(images: &[Array4<f32>]) -> Result<Array4<f32>, TrainError> {
         )));
     }
     let views: Vec<_> = images.iter().map(|a| a.view()).collect();
-    ndarray::concatenate(Axis(0), &views).map_err(|e| TrainError::Shape(e.to_string()))
+    ndarray::concatenate(Axis(0), &views).map_err(|error| TrainError::Array {
+        what: "cannot stack the images".into(),
+        error,
+    })
 }
 
 #[derive(Clone, Debug)]
@@ -389,6 +392,9 @@ impl ImageSet {
     }
 
     fn named(&self, index: usize, e: TrainError) -> TrainError {
-        TrainError::Images(format!("{}: {e}", self.name(index)))
+        TrainError::InImage {
+            name: self.name(index),
+            error: Box::new(e),
+        }
     }
 }

@@ -80,8 +80,8 @@ pub fn mean_neighbour_dist2(points: &[[f32; 3]]) -> Result<Vec<f64>, TrainError>
     if pts.len() < 2 {
         return Ok(vec![MIN_NEIGHBOUR_DIST2; pts.len()]);
     }
-    let tree: ImmutableKdTree<f64, 3> = ImmutableKdTree::new_from_slice(&pts)
-        .map_err(|e| TrainError::Shape(format!("cannot index the initial point cloud: {e}")))?;
+    let tree: ImmutableKdTree<f64, 3> =
+        ImmutableKdTree::new_from_slice(&pts).map_err(TrainError::PointIndex)?;
     let k = (SCALE_NEIGHBOURS + 1).min(pts.len());
     let k = NonZeroUsize::new(k).expect("at least two points");
     Ok(pts

@@ -96,7 +96,7 @@ impl ViewerConfig {
 #[derive(Debug, thiserror::Error)]
 pub enum ViewerError {
     /// The scene or a style image could not be read.
-    #[error("{0}")]
+    #[error(transparent)]
     Input(#[from] pipeline::Error),
     /// The address could not be bound, or the server could not start.
     #[error("{what}: {error}")]

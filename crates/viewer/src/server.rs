@@ -39,7 +39,7 @@ async fn blocking<T: Send + 'static>(
 ) -> Result<T, ApiError> {
     tokio::task::spawn_blocking(f)
         .await
-        .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?
+        .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, base::error::chain(&e)))?
 }
 
 fn bytes(content_type: &'static str, data: Arc<Vec<u8>>) -> Response {

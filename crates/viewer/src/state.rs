@@ -7,6 +7,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 
 use axum::http::StatusCode;
+use base::error::chain;
 use gaussian::Camera;
 use pipeline::cameras::{CameraRequest, CameraSource};
 use pipeline::image_io::{self, RgbImage};
@@ -47,8 +48,8 @@ impl ApiError {
         ApiError(StatusCode::CONFLICT, message.into())
     }
 
-    fn internal(e: impl std::fmt::Display) -> Self {
-        ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string())
+    fn internal(e: impl std::error::Error) -> Self {
+        ApiError(StatusCode::INTERNAL_SERVER_ERROR, chain(&e))
     }
 }
 
@@ -250,7 +251,7 @@ impl State {
         }
         let shown = PathBuf::from(format!("upload `{}`", clean_name(name)));
         let (w, h) = gaussian::dataset::images::encoded_size(bytes, &shown)
-            .map_err(|e| ApiError::bad(e.to_string()))?;
+            .map_err(|e| ApiError::bad(chain(&e)))?;
         let pixels = w as u64 * h as u64;
         let max = self.config.max_upload_pixels;
         if pixels > max {
@@ -284,7 +285,7 @@ impl State {
                 }
                 _ => StatusCode::BAD_REQUEST,
             };
-            ApiError(status, e.to_string())
+            ApiError(status, chain(&e))
         })?;
         let side = self.config.style_side;
         let img = if img.width.max(img.height) > side {
@@ -364,10 +365,7 @@ impl State {
         let chosen = self.styles_of(chosen)?;
         let weights = if chosen.len() > 1 {
             let w: Vec<f64> = chosen.iter().map(|(c, _)| c.weight).collect();
-            Some(
-                stylize::normalised_weights(&w, w.len())
-                    .map_err(|e| ApiError::bad(e.to_string()))?,
-            )
+            Some(stylize::normalised_weights(&w, w.len()).map_err(|e| ApiError::bad(chain(&e)))?)
         } else {
             None
         };
@@ -399,7 +397,7 @@ impl State {
             out
         };
         let mut targets = stylize::mix_targets(encoded, weights.as_deref())
-            .map_err(|e| ApiError::bad(e.to_string()))?;
+            .map_err(|e| ApiError::bad(chain(&e)))?;
         Ok(targets.remove(0))
     }
 
@@ -408,7 +406,7 @@ impl State {
     /// Also the request's estimated working memory.
     pub(crate) fn stylize_camera(&self, req: &StylizeRequest) -> Result<(Camera, u64), ApiError> {
         let bundle = self.bundle()?;
-        stylize::check_alpha(req.alpha).map_err(|e| ApiError::bad(e.to_string()))?;
+        stylize::check_alpha(req.alpha).map_err(|e| ApiError::bad(chain(&e)))?;
         let mut camera = req
             .camera
             .camera(self.config.max_view_side)
@@ -479,7 +477,7 @@ impl State {
     /// `POST /api/bake`: checks the request and starts the bake on a thread of its own.
     pub(crate) fn start_bake(self: &Arc<Self>, req: &BakeRequest) -> Result<String, ApiError> {
         self.bundle()?;
-        stylize::check_alpha(req.alpha).map_err(|e| ApiError::bad(e.to_string()))?;
+        stylize::check_alpha(req.alpha).map_err(|e| ApiError::bad(chain(&e)))?;
         if !(1..=MAX_BAKE_ITERATIONS).contains(&req.iterations) {
             return Err(ApiError::bad(format!(
                 "iterations {}: a bake runs 1 to {MAX_BAKE_ITERATIONS} iterations",
@@ -532,7 +530,7 @@ impl State {
         let bundle = self.bundle().map_err(|e| e.1)?;
         let stats = bundle
             .target_stats(target.stats.deepest(), alpha)
-            .map_err(|e| e.to_string())?;
+            .map_err(|e| chain(&e))?;
         let config = BakeConfig {
             iterations,
             tile_budget_mib: (self.config.tile_budget >> 20).max(1),
@@ -555,7 +553,7 @@ impl State {
             stop: Some(&self.stop),
             sink: &sink,
         };
-        let report = train::bake(bundle, &stats, &config, None, &run).map_err(|e| e.to_string())?;
+        let report = train::bake(bundle, &stats, &config, None, &run).map_err(|e| chain(&e))?;
         if report.run.interrupted {
             return Err("the server stopped during the bake".into());
         }

@@ -60,7 +60,6 @@ pub use distortion::Distortion;
 pub use images::RgbImage;
 
 use crate::camera::plain_numbers;
-use crate::error_text;
 use crate::npy::NpyError;
 use crate::{Camera, Intrinsics};
 use colmap::CameraModel;
@@ -75,7 +74,7 @@ pub enum DatasetError {
     ///
     /// The message includes the I/O error's text; the error is not also returned as
     /// [`std::error::Error::source`], so a report of the whole chain shows it once.
-    #[error("{}: {}", path.display(), error_text(error))]
+    #[error("{}: {}", path.display(), base::error::chain(error))]
     Io {
         /// The path being read.
         path: PathBuf,
@@ -97,7 +96,7 @@ pub enum DatasetError {
     /// is not also returned as [`std::error::Error::source`] (the `image` crate's errors repeat
     /// their cause's text in their own message, so a report of the whole chain would show it
     /// up to three times).
-    #[error("{}: cannot decode image: {}", path.display(), error_text(error))]
+    #[error("{}: cannot decode image: {}", path.display(), base::error::chain(error))]
     Image {
         /// The image file.
         path: PathBuf,

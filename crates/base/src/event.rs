@@ -150,7 +150,7 @@ impl<F: Fn(Event) + Sync> Sink for F {
 }
 
 /// The progress of a stage counted in units of work (views, frames) rather than iterations of a
-/// [driver](crate::driver)-run loop: [`Event::StageStarted`] when made,
+/// driver-run loop (`train::driver`): [`Event::StageStarted`] when made,
 /// [`Event::Progress`] as units complete and [`Event::StageFinished`] at the end.
 pub struct Tally<'a> {
     stage: Stage,

@@ -16,7 +16,7 @@
 //!    [`BundleInfo::scene_std`](crate::BundleInfo::scene_std), measured on the training
 //!    views) and the style's, so `alpha = 0` reconstructs the scene
 //!    ([`SceneBundle::target_stats`]). A bundle of the design ablation
-//!    ([`FeatureNorm::AfterRaster`](style::FeatureNorm::AfterRaster)) first normalises the
+//!    ([`FeatureNorm::AfterRaster`]) first normalises the
 //!    lifted map with its own per-channel mean and std over the whole view
 //!    ([`SceneBundle::view_stats`]): `t = std_s * (l - mean_l) / std_l + mean_s`.
 //! 4. Decode and crop to the requested image size (the standard decoder's upsampling can
@@ -231,16 +231,18 @@ impl SceneBundle {
         )
     }
 
-    /// [`SceneBundle::decode_timed`] one output tile at a time, the tile side chosen so that
-    /// the networks' working memory stays within about `budget_bytes`
-    /// ([`SceneBundle::decode_tile_side`]).
+    /// Lifts, transforms and decodes a feature map into an RGB image `[1, 3, height, width]`
+    /// (cropped; values as the decoder makes them) one output tile at a time, the tile side
+    /// chosen so that the networks' working memory stays within about `budget_bytes`
+    /// ([`SceneBundle::decode_tile_side`]); also returns the wall time of lift + transform and
+    /// of the decoder, in seconds.
     ///
     /// A stylized frame, top down: [`SceneBundle::render_features`] (rasterize the per-Gaussian
     /// features at the feature resolution), then here, per tile of the image: crop the
-    /// features to the region the decoder needs for the tile ([`Decoder::input_region`]), lift
+    /// features to the region the decoder needs for the tile ([`nets::Decoder::input_region`]), lift
     /// to the encoder width, transform with the target statistics
     /// (`T(x) = std(s) x + mean(s)`, from [`SceneBundle::target_stats`]), decode the tile
-    /// ([`Decoder::forward_region`]). Lifting and the transform act on each pixel alone and the
+    /// ([`nets::Decoder::forward_region`]). Lifting and the transform act on each pixel alone and the
     /// decoder's tiles equal the whole image's ([`nets::tiled`]), so the image is the same,
     /// bit for bit, for any budget; no map wider than the features covers the whole frame.
     /// A bundle of the design ablation normalises each lifted tile with the statistics of the

@@ -84,11 +84,11 @@
 //!
 //! [`conv_default_init`]: crate::decoder_training::conv_default_init
 //! [`feature_size`]: runtime::bundle::feature_size
-//! [`Stage::Prepare`]: crate::event::Stage::Prepare
+//! [`Stage::Prepare`]: base::event::Stage::Prepare
 //! [`DecoderMode::Scratch`]: runtime::bundle::DecoderMode::Scratch
 //! [`DecoderMode::Mlp`]: runtime::bundle::DecoderMode::Mlp
 //! [`FeatureNorm::AfterRaster`]: style::FeatureNorm::AfterRaster
-//! [`Event::Evaluation`]: crate::event::Event::Evaluation
+//! [`Event::Evaluation`]: base::event::Event::Evaluation
 
 mod cache;
 mod config;

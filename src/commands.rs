@@ -408,11 +408,11 @@ pub fn view(a: ViewArgs) -> Result<()> {
     Ok(())
 }
 
-/// `dsgs assemble OUTPUT`: finds the shards of OUTPUT ([`pipeline::shard::find_run`]) and runs
+/// `dsgs assemble OUTPUT`: finds the shards of OUTPUT ([`pipeline::assemble::find_run`]) and runs
 /// their recorded command line again, in its working directory, as the assembly of the shards,
 /// writing to OUTPUT.
 pub fn assemble(a: AssembleArgs) -> Result<()> {
-    let run = pipeline::shard::find_run(&a.output)?;
+    let run = pipeline::assemble::find_run(&a.output)?;
     let (manifest, inv) = (&run.manifest, run.invocation);
     std::env::set_current_dir(&inv.cwd).with_context(|| {
         format!(

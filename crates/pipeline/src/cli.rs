@@ -34,9 +34,7 @@ use std::str::FromStr;
 
 use clap::builder::{PossibleValuesParser, TypedValueParser};
 use glam::DVec3;
-use train::{DecoderMode, FeatureNorm, FeatureTrainConfig, Variant};
-
-use crate::fit_features::FitFeaturesConfig;
+use train::{DecoderMode, FeatureNorm, Variant};
 
 /// The help of `--config` of the commands that save their configuration as `OUT/config.toml`.
 pub const CONFIG_HELP: &str = "TOML configuration (keys: docs/configuration.md); flags override \
@@ -206,23 +204,6 @@ pub fn renamed_to_mix(_: &str) -> Result<String, String> {
         "the weights of a style mixture are given with --mix (comma-separated, one per \
          --style); --weights names a network weights file, which this command does not take"
             .into(),
-    )
-}
-
-/// The help of `fit-features --crop`, with the default of each variant.
-pub fn feature_crop_help() -> String {
-    let side = |variant| {
-        FeatureTrainConfig {
-            variant,
-            ..FitFeaturesConfig::default().features
-        }
-        .crop_side()
-    };
-    format!(
-        "Side of the feature-map window run through the networks, in feature pixels (at least 1) \
-         [default: {} for standard, {} for fullres networks]",
-        side(Variant::Standard),
-        side(Variant::Fullres)
     )
 }
 

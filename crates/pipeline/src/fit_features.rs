@@ -26,7 +26,7 @@
 
 use std::path::PathBuf;
 
-use crate::cli::{at_least_one, feature_crop_help, positive, with_default};
+use crate::cli::{at_least_one, positive, with_default};
 use crate::error::{Context, Error, Result};
 use gaussian::dataset::{Dataset, LoadOptions};
 use gaussian::ply::load_ply;
@@ -434,6 +434,23 @@ pub fn run(settings: &FitFeaturesSettings, control: &Control) -> Result<FitFeatu
         held_out: !held_out.is_empty(),
         checkpoint,
     })
+}
+
+/// The help of `fit-features --crop`, with the default of each variant.
+fn feature_crop_help() -> String {
+    let side = |variant| {
+        FeatureTrainConfig {
+            variant,
+            ..FitFeaturesConfig::default().features
+        }
+        .crop_side()
+    };
+    format!(
+        "Side of the feature-map window run through the networks, in feature pixels (at least 1) \
+         [default: {} for standard, {} for fullres networks]",
+        side(Variant::Standard),
+        side(Variant::Fullres)
+    )
 }
 
 #[cfg(test)]

@@ -21,6 +21,7 @@
 //! * [`stylize`]: zero-shot stylization of a scene bundle (`dsgs stylize`).
 //! * [`consistency`]: multi-view consistency by depth warping; [`eval`]: the evaluation
 //!   report (`dsgs eval`).
+//! * [`assemble`]: a sharded run found from its output, for `dsgs assemble`.
 //! * [`shard`]: a run's frames split over processes (`--shard K/N`), each shard's manifest,
 //!   and the checks before `dsgs assemble` merges them into the one-process outputs.
 //! * [`demo`]: the whole pipeline on the lego scene at low resolution (`dsgs demo`).
@@ -83,6 +84,7 @@
 
 #![warn(missing_docs)]
 
+pub mod assemble;
 pub mod bake;
 pub mod cameras;
 pub mod cli;

@@ -20,13 +20,6 @@ use proptest::prelude::*;
 use style::*;
 
 const H: f64 = 1e-6;
-/// The step along a direction of the decoder's parameters. Such a direction moves every weight
-/// of the network at once, so the loss's own rounding (about `1e-14 |L|`, accumulated over all
-/// pixels and channels) divided by the step dominates a difference at `H`: about `1e-8 |L|`,
-/// which exceeded the tolerance on some random cases. At `1e-5` it is about `1e-9 |L|`, and
-/// the truncation error of the central difference (about `h^2 = 1e-10` relative, inside one
-/// linear piece of the ReLUs, which the pattern check still guarantees) stays far below `TOL`.
-const H_PARAMS: f64 = 1e-5;
 const TOL: f64 = 1e-6;
 
 fn map(
@@ -259,7 +252,7 @@ proptest! {
             }
             d
         };
-        let (dp, dm) = (shifted(H_PARAMS), shifted(-H_PARAMS));
+        let (dp, dm) = (shifted(H), shifted(-H));
         prop_assume!(same(&dp, &raster) && same(&dm, &raster));
         prop_assert_eq!(out.grad_decoder.len(), n.dec.layers().count());
         let analytic: f64 = out
@@ -268,7 +261,7 @@ proptest! {
             .zip(&dirs)
             .map(|(g, (dw, db))| dot(&g.weight, dw) + g.bias.iter().zip(db).map(|(a, b)| a * b).sum::<f64>())
             .sum();
-        let numeric = (loss_at(&dp, &raster) - loss_at(&dm, &raster)) / (2.0 * H_PARAMS);
+        let numeric = (loss_at(&dp, &raster) - loss_at(&dm, &raster)) / (2.0 * H);
         close("decoder parameters", analytic, numeric, out.loss)?;
     }
 }

@@ -235,6 +235,11 @@ pub struct PretrainDecoderArgs {
     /// Start from a seeded initialisation of the encoder's mirror image.
     #[arg(long)]
     pub from_scratch: bool,
+    /// Encoder that measures the style loss at each of its relu_k_1 levels instead of the
+    /// encoder (PyTorch checkpoint or .safetensors; e.g. the real VGG-19 to relu3_1 for the
+    /// compressed relu4_1 encoder); give it again when resuming [default: the encoder]
+    #[arg(long = "style-network", value_name = "ENCODER")]
+    pub style_network: Option<PathBuf>,
     #[arg(long, value_parser = variant(), help = with_default(
         "Network variant",
         DecoderTrainConfig::default().variant.as_str(),

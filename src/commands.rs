@@ -152,6 +152,7 @@ pub fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
             decoder: a.decoder,
         },
         from_scratch: a.from_scratch,
+        style_network: a.style_network,
         out_dir: a.output,
         config: a.config,
         resume: a.run.resume,

@@ -83,6 +83,51 @@ fn photos_are_stylized_measured_and_laid_out() {
     let (cw, ch) = size_of(&out.join("sailboat__mondrian.png"));
     assert_eq!((sw, sh), (4 * cw, 3 * ch));
 
+    // Measured with the stylizing encoder's own file: the same outputs and measures; measured
+    // with a deeper encoder (relu3_1): the same outputs, other measures, and the report says so.
+    let measured = |name: &str, encoder: std::path::PathBuf| {
+        let dir = dir.join(name);
+        ok(dsgs()
+            .arg("stylize-image")
+            .args(&photos)
+            .arg("--style")
+            .arg(&styles[0])
+            .arg("--style")
+            .arg(&styles[1])
+            .args(networks())
+            .args(["--content-size", "64", "--style-size", "64", "--mix", "1,0"])
+            .arg("--measure-with")
+            .arg(&encoder)
+            .args(["--no-progress", "-o"])
+            .arg(&dir));
+        let r: Value =
+            serde_json::from_slice(&std::fs::read(dir.join("report.json")).unwrap()).unwrap();
+        assert_eq!(
+            r["measured_with"].as_str().unwrap(),
+            encoder.display().to_string()
+        );
+        assert_eq!(
+            std::fs::read(dir.join("chicago__sketch.png")).unwrap(),
+            read("chicago__sketch.png")
+        );
+        r
+    };
+    let wct = |f: &str| shared_path(&format!("weights/wct-relu1_1-3_1/{f}"));
+    let same = measured("same", wct("vgg_normalised_conv2_1.pth"));
+    let deeper = measured("deeper", wct("vgg_normalised_conv3_1.pth"));
+    assert_eq!(
+        report["measured_with"].as_str().unwrap(),
+        "stylizing encoder"
+    );
+    for (i, p) in pairs.iter().enumerate() {
+        for key in ["style_loss", "texture_distance", "content_loss"] {
+            assert_eq!(same["pairs"][i][key], p[key], "{key} of {p}");
+            let d = deeper["pairs"][i][key].as_f64().unwrap();
+            assert!(d.is_finite() && d > 0.0, "{key} {d}");
+            assert_ne!(deeper["pairs"][i][key], p[key], "{key} of {p}");
+        }
+    }
+
     // Strength 0 is the decoder's reconstruction of the photo, which this reconstruction
     // decoder makes close to the photo; the full style is further away.
     let zero = dir.join("zero");

@@ -210,6 +210,9 @@ pub struct PretrainSettings {
     pub networks: NetworkFiles,
     /// Start from a seeded initialisation instead of a decoder file.
     pub from_scratch: bool,
+    /// The encoder that measures the style term instead of the frozen encoder
+    /// (`--style-network`; see [`train::DecoderTrainer::with_style_network`]).
+    pub style_network: Option<PathBuf>,
     /// Output directory (`--output`).
     pub out_dir: PathBuf,
     /// Base configuration file (`--config`): `train::DecoderTrainConfig` keys.
@@ -327,6 +330,15 @@ pub fn run(settings: &PretrainSettings, control: &Control) -> Result<PretrainRep
     }
     decode_inputs(&sets, control)?;
     let encoder = settings.networks.load_encoder()?;
+    let style_network = match &settings.style_network {
+        Some(path) => Some(
+            crate::weights::load_any(path)
+                .with_context(|| format!("reading the style network {}", path.display()))?
+                .encoder
+                .with_context(|| format!("{} holds no encoder", path.display()))?,
+        ),
+        None => None,
+    };
     // Every input is read before anything is written.
     let decoder = match (&settings.resume, settings.from_scratch) {
         (Some(_), _) => None,
@@ -346,12 +358,27 @@ pub fn run(settings: &PretrainSettings, control: &Control) -> Result<PretrainRep
     };
     config::save(&cfg, &settings.out_dir)?;
     let mut trainer = match (decoder, &settings.resume) {
-        (Some(decoder), _) => DecoderTrainer::new(encoder, decoder, content, styles, cfg.clone())
-            .context("setting up decoder training")?,
+        (Some(decoder), _) => {
+            let t = DecoderTrainer::new(encoder, decoder, content, styles, cfg.clone())
+                .context("setting up decoder training")?;
+            match style_network {
+                Some(n) => t
+                    .with_style_network(n)
+                    .context("setting up the style network")?,
+                None => t,
+            }
+        }
         (None, resume) => {
             let ck = resume.as_ref().context("no starting decoder")?;
-            DecoderTrainer::resume(ck, encoder, content, styles, cfg.clone())
-                .with_context(|| format!("resuming from {}", ck.display()))?
+            DecoderTrainer::resume_with_style_network(
+                ck,
+                encoder,
+                style_network,
+                content,
+                styles,
+                cfg.clone(),
+            )
+            .with_context(|| format!("resuming from {}", ck.display()))?
         }
     };
     if let Some((c, s)) = &held_out {

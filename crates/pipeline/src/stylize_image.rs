@@ -13,7 +13,10 @@
 //! the style loss ([`style::style_loss`], channel means and deviations, as the training losses
 //! and `dsgs eval` measure it), the texture distance ([`style::gram_distance`], the correlations
 //! between channels), and the content loss against the photo's own deepest features
-//! ([`style::content_loss`]).
+//! ([`style::content_loss`]). The measuring encoder is the stylizing one unless `measure_with`
+//! names another (used at standard resolution): the measures of two networks compare only
+//! when one encoder measured both, since each encoder's levels have their own widths and
+//! scales.
 //!
 //! Outputs in `OUT/`: one PNG per pair, `CONTENT__STYLE.png`; `contact_sheet.png` (first row:
 //! the style images; then one row per photo: the photo, then its outputs in the order of the
@@ -105,6 +108,15 @@ pub struct StylizeImageSettings {
         help = "Longest side of the style images after loading, in pixels (0: as they are)"
     )]
     pub style_side: u32,
+    /// The encoder that measures the outputs, instead of the stylizing one.
+    #[arg(
+        long = "measure-with",
+        value_name = "ENCODER",
+        help = "Measure the outputs with this encoder (weights .safetensors or PyTorch checkpoint; \
+                at standard resolution), so that the measures of different networks compare \
+                [default: the stylizing encoder]"
+    )]
+    pub measure_with: Option<PathBuf>,
     /// Output folder.
     #[arg(skip)]
     pub out_dir: PathBuf,
@@ -136,6 +148,8 @@ pub struct StylizeImageReport {
     pub alpha: f64,
     /// Whether the style colours were matched to each photo.
     pub preserve_colour: bool,
+    /// The file of the encoder that measured the outputs, or `stylizing encoder`.
+    pub measured_with: String,
     /// Every output, photo by photo, styles in order.
     pub pairs: Vec<PairReport>,
     /// Means over all outputs of the three measures: style, texture, content.
@@ -161,11 +175,16 @@ impl StylizeImageReport {
             );
         }
         s += &format!(
-            "mean: style loss {:.4}, texture distance {:.4}, content loss {:.4}; outputs, \
-             contact_sheet.png and report.json in {}\n",
+            "mean: style loss {:.4}, texture distance {:.4}, content loss {:.4} (measured with \
+             the {}); outputs, contact_sheet.png and report.json in {}\n",
             self.mean_style_loss,
             self.mean_texture_distance,
             self.mean_content_loss,
+            if self.measured_with == "stylizing encoder" {
+                "stylizing encoder".to_string()
+            } else {
+                format!("encoder of {}", self.measured_with)
+            },
             out_dir.display()
         );
         s
@@ -254,6 +273,17 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
     let res = settings.variant.resolution();
     let encoder = settings.networks.load_encoder()?.with_resolution(res);
     let decoder = settings.networks.load_decoder()?.with_resolution(res);
+    let measurer = match &settings.measure_with {
+        Some(path) => Some(
+            crate::weights::load_any(path)
+                .with_context(|| format!("reading the measuring encoder {}", path.display()))?
+                .encoder
+                .with_context(|| format!("{} holds no encoder", path.display()))?
+                .with_resolution(nets::Resolution::Standard),
+        ),
+        None => None,
+    };
+    let measurer = measurer.as_ref().unwrap_or(&encoder);
     // An encoder that pools with floor rounding drops the last row or column of odd sizes, so
     // its decoder gives back less than the photo: such photos are centre-cropped to a multiple
     // of the total pooling first.
@@ -284,15 +314,23 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
     }
     let total = contents.len() * names.len();
     let mut tally = Tally::start(Stage::Stylize, total, control.sink);
-    // The statistics of the plain style images, for the measures (and the transform without
-    // colour preservation).
-    let style_stats: Vec<StyleFeatureStats<f32>> = styles
+    // The statistics of the plain style images: the stylizing encoder's for the transform
+    // without colour preservation, the measuring encoder's (the same unless `measure_with`)
+    // for the measures.
+    let stats_of = |enc: &nets::Encoder<f32>| -> Result<Vec<StyleFeatureStats<f32>>> {
+        Ok(styles
+            .iter()
+            .map(|s| style::encode_style(enc, &nchw_from_rgb(s)))
+            .collect::<std::result::Result<_, _>>()?)
+    };
+    let style_stats = stats_of(&encoder)?;
+    let measure_stats = match &settings.measure_with {
+        Some(_) => stats_of(measurer)?,
+        None => style_stats.clone(),
+    };
+    let measure_feats: Vec<Vec<Array4<f32>>> = styles
         .iter()
-        .map(|s| style::encode_style(&encoder, &nchw_from_rgb(s)))
-        .collect::<std::result::Result<_, _>>()?;
-    let style_feats: Vec<Vec<Array4<f32>>> = styles
-        .iter()
-        .map(|s| encoder.forward(nchw_from_rgb(s).view()))
+        .map(|s| measurer.forward(nchw_from_rgb(s).view()))
         .collect::<std::result::Result<_, _>>()?;
 
     let mut pairs = Vec::new();
@@ -301,6 +339,13 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
         let x = nchw_from_rgb(content);
         let feats = encoder.forward(x.view())?;
         let deepest = feats.last().expect("encoder depth >= 1");
+        let measured_content = match &settings.measure_with {
+            Some(_) => measurer
+                .forward(x.view())?
+                .pop()
+                .expect("encoder depth >= 1"),
+            None => deepest.clone(),
+        };
         // The target statistics of each style for this photo.
         let targets: Vec<ChannelStats<f32>> = if settings.preserve_colour {
             styles
@@ -325,7 +370,7 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
             let y = decoder.forward(t.view())?;
             let y = runtime::frame::crop(y, content.width, content.height)?;
             let img = image_io::clamped(&rgb_from_nchw(&y)?);
-            let out_feats = encoder.forward(nchw_from_rgb(&img).view())?;
+            let out_feats = measurer.forward(nchw_from_rgb(&img).view())?;
             // The measures: against the style image (for the mixture, the weighted sum over
             // the style images).
             let (mut sl, mut td) = (0.0, 0.0);
@@ -335,10 +380,11 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
                 (None, false) => unreachable!("a mixture column only with weights"),
             };
             for (k, wk) in parts {
-                sl += wk * style::style_loss(&out_feats, &style_stats[k].levels)? as f64;
-                td += wk * style::gram_distance(&out_feats, &style_feats[k])?;
+                sl += wk * style::style_loss(&out_feats, &measure_stats[k].levels)? as f64;
+                td += wk * style::gram_distance(&out_feats, &measure_feats[k])?;
             }
-            let cl = style::content_loss(out_feats.last().expect("depth >= 1"), deepest)? as f64;
+            let cl = style::content_loss(out_feats.last().expect("depth >= 1"), &measured_content)?
+                as f64;
             let file = format!("{}__{}.png", stem(cfile), names[si]);
             image_io::write_png(&settings.out_dir.join(&file), &img)?;
             pairs.push(PairReport {
@@ -362,6 +408,10 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
         variant: settings.variant.as_str().into(),
         alpha: settings.alpha,
         preserve_colour: settings.preserve_colour,
+        measured_with: match &settings.measure_with {
+            Some(p) => p.display().to_string(),
+            None => "stylizing encoder".into(),
+        },
         mean_style_loss: mean(|p| p.style_loss),
         mean_texture_distance: mean(|p| p.texture_distance),
         mean_content_loss: mean(|p| p.content_loss),

@@ -102,8 +102,8 @@ pub use loss::{
     mse_backward, style_loss, style_loss_backward, style_loss_of_stats, AlignLoss,
 };
 pub use objective::{
-    align_target, decoder_training_loss, stage3_loss, DecoderLoss, FeatureNorm, Stage3Loss,
-    Stage3Weights,
+    align_target, decoder_training_loss, decoder_training_loss_with_style_network, stage3_loss,
+    DecoderLoss, FeatureNorm, Stage3Loss, Stage3Weights,
 };
 pub use spatial::{adain_spatial, adain_spatial_backward, Region};
 pub use stats::{

@@ -9,7 +9,8 @@
 //!   ```
 //!
 //!   where `target` is a constant (usually `t` itself, as in the AdaIN paper). Gradients: the
-//!   decoder input and every decoder parameter.
+//!   decoder input and every decoder parameter. A variant measures the style term with a
+//!   separate style network `psi` instead of `phi` ([`decoder_training_loss_with_style_network`]).
 //!
 //! * The 3D stylization loss on a rasterized feature map `r` with the lifter `l = relu(W r + b)`,
 //!   the style transform `T(x) = std_s x + mean_s` and a frozen decoder and encoder:
@@ -119,6 +120,52 @@ pub fn decoder_training_loss<T: Real>(
     let (image, dtape) = decoder.forward_with_param_tape(input.view())?;
     let (loss_c, loss_s, g_image, _) =
         perceptual(encoder, &image, content_target, style, 1.0, style_weight)?;
+    let grads = decoder.backward_with_params(&dtape, g_image.view())?;
+    let loss = T::lit(loss_c.to_f64_exact() + style_weight * loss_s.to_f64_exact());
+    Ok(DecoderLoss {
+        image,
+        loss_content: loss_c,
+        loss_style: loss_s,
+        loss,
+        grad_input: grads.input,
+        grad_params: grads.params,
+    })
+}
+
+/// [`decoder_training_loss`] with a separate *style network* `psi`:
+/// `content(phi_k(g(t)), target) + w_s * style(psi(g(t)), S_psi)`. The content term stays on the
+/// decoder's own encoder `phi` (whose deepest level the decoder inverts); the style term is
+/// measured at every level of `psi`, and `style` must hold `psi`'s statistics of the style
+/// images. This is the loss for an encoder too narrow to judge texture well on its own (the
+/// 16x-compressed relu4_1 encoder, 16 to 128 channels), with the real VGG-19 layers as `psi`.
+/// The image gradient is the sum of the two encoders' backward passes.
+pub fn decoder_training_loss_with_style_network<T: Real>(
+    encoder: &Encoder<T>,
+    style_network: &Encoder<T>,
+    decoder: &Decoder<T>,
+    input: &Array4<T>,
+    content_target: &Array4<T>,
+    style: &StyleFeatureStats<T>,
+    style_weight: f64,
+) -> Result<DecoderLoss<T>> {
+    crate::adain::check_finite("style weight", style_weight)?;
+    check_levels(style_network, style)?;
+    let (image, dtape) = decoder.forward_with_param_tape(input.view())?;
+    // Content: the decoder's encoder, seeded at its deepest level only.
+    let (feats, tape) = encoder.forward_with_tape(image.view())?;
+    let deepest = feats.last().expect("encoder depth >= 1");
+    let loss_c = content_loss(deepest, content_target)?;
+    let g_c = mse_backward(deepest, content_target, T::one())?;
+    let mut views: Vec<Option<ArrayView4<T>>> = vec![None; feats.len()];
+    *views.last_mut().expect("encoder depth >= 1") = Some(g_c.view());
+    let mut g_image = encoder.backward(&tape, &views)?;
+    // Style: every level of the style network.
+    let (sfeats, stape) = style_network.forward_with_tape(image.view())?;
+    let loss_s = style_loss(&sfeats, &style.levels)?;
+    let cot = style_loss_backward(&sfeats, &style.levels, T::lit(style_weight))?;
+    let views: Vec<Option<ArrayView4<T>>> = cot.iter().map(|c| Some(c.view())).collect();
+    let g_s = style_network.backward(&stape, &views)?;
+    g_image.zip_mut_with(&g_s, |a, &b| *a += b);
     let grads = decoder.backward_with_params(&dtape, g_image.view())?;
     let loss = T::lit(loss_c.to_f64_exact() + style_weight * loss_s.to_f64_exact());
     Ok(DecoderLoss {

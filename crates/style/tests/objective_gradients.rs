@@ -287,3 +287,100 @@ proptest! {
         close("decoder parameters", analytic, numeric, out.loss)?;
     }
 }
+
+/// A second encoder to measure style with: the fixture encoder to relu2_1 with every weight
+/// rescaled by a fixed pseudo-random factor in `[0.5, 1.5)`, so that its levels differ from the
+/// decoder's encoder in depth and in values.
+fn style_network(enc: &Encoder<f64>) -> Encoder<f64> {
+    let mut psi = enc.clone().with_depth(2).unwrap();
+    let mut rng = dsgs_testkit::SplitMix64(7);
+    for l in psi.layers_mut() {
+        l.weight.mapv_inplace(|w| w * rng.uniform(0.5, 1.5));
+    }
+    psi
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(8))]
+
+    /// Decoder training with a separate style network: with the decoder's own encoder as the
+    /// style network it is the one-network loss (the same loss bits; the gradients differ only
+    /// in summation order), and with another network its gradients match central differences.
+    #[test]
+    fn decoder_training_with_a_style_network_matches_differences(
+        t in map(1, 64, 5, 6, 0.0, 2.0),
+        target in map(1, 64, 5, 6, 0.0, 2.0),
+        style_img in map(1, 3, 7, 5, 0.0, 1.0),
+        v in map(1, 64, 5, 6, -1.0, 1.0),
+        seed in any::<u64>(),
+    ) {
+        let n = nets();
+        let psi = style_network(&n.enc);
+        // The same network for both terms: the one-network loss.
+        let s = encode_style(&n.enc, &style_img).unwrap();
+        let one = decoder_training_loss(&n.enc, &n.dec, &t, &target, &s, 10.0).unwrap();
+        let same = decoder_training_loss_with_style_network(&n.enc, &n.enc, &n.dec, &t, &target, &s, 10.0).unwrap();
+        prop_assert_eq!(one.loss.to_bits(), same.loss.to_bits());
+        prop_assert_eq!(one.loss_style.to_bits(), same.loss_style.to_bits());
+        prop_assert_eq!(&one.image, &same.image);
+        let rel = |a: &Array4<f64>, b: &Array4<f64>| {
+            let num: f64 = a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum();
+            let den: f64 = b.iter().map(|y| y * y).sum();
+            (num / den.max(1e-300)).sqrt()
+        };
+        // Summation order only: a few units in the last place of f64.
+        prop_assert!(rel(&same.grad_input, &one.grad_input) < 1e-12);
+        for (a, b) in same.grad_params.iter().zip(&one.grad_params) {
+            prop_assert!(rel(&a.weight, &b.weight) < 1e-12, "{}", a.name);
+        }
+        // Another network: the style statistics are its own, and the losses its levels'.
+        let sp = encode_style(&psi, &style_img).unwrap();
+        prop_assert!(decoder_training_loss_with_style_network(&n.enc, &n.enc, &n.dec, &t, &target, &sp, 10.0).is_err());
+        let out = decoder_training_loss_with_style_network(&n.enc, &psi, &n.dec, &t, &target, &sp, 10.0).unwrap();
+        let loss_at = |dec: &Decoder<f64>, x: &Array4<f64>| {
+            decoder_training_loss_with_style_network(&n.enc, &psi, dec, x, &target, &sp, 10.0).unwrap().loss
+        };
+        let pat = |dec: &Decoder<f64>, x: &Array4<f64>| {
+            let d = pattern::forward(&pattern::decoder_steps(dec), x);
+            let e = pattern::forward(&pattern::encoder_steps(&n.enc), &d.outputs[0]);
+            let p = pattern::forward(&pattern::encoder_steps(&psi), &d.outputs[0]);
+            (d.pattern, e.pattern, p.pattern)
+        };
+        let base = pat(&n.dec, &t);
+        // Decoder input direction.
+        let (tp, tm) = (&t + &(&v * H), &t - &(&v * H));
+        prop_assume!(pat(&n.dec, &tp) == base && pat(&n.dec, &tm) == base);
+        let numeric = (loss_at(&n.dec, &tp) - loss_at(&n.dec, &tm)) / (2.0 * H);
+        close("decoder input", dot(&out.grad_input, &v), numeric, out.loss)?;
+        // Every decoder layer along one direction scaled to the layer (see the module docs).
+        let mut rng = dsgs_testkit::SplitMix64(seed);
+        let dirs: Vec<(Array4<f64>, Array1<f64>)> = n
+            .dec
+            .layers()
+            .map(|l| {
+                let (sw, sb) = param_scales(l.weight.as_slice().unwrap(), l.bias.as_slice().unwrap());
+                let w = Array4::from_shape_simple_fn(l.weight.dim(), || sw * rng.uniform(-1.0, 1.0));
+                let b = Array1::from_shape_simple_fn(l.bias.len(), || sb * rng.uniform(-1.0, 1.0));
+                (w, b)
+            })
+            .collect();
+        let shifted = |h: f64| {
+            let mut d = n.dec.clone();
+            for (l, (dw, db)) in d.layers_mut().zip(&dirs) {
+                l.weight = &l.weight + &(dw * h);
+                l.bias = &l.bias + &(db * h);
+            }
+            d
+        };
+        let (dp, dm) = (shifted(H), shifted(-H));
+        prop_assume!(pat(&dp, &t) == base && pat(&dm, &t) == base);
+        let analytic: f64 = out
+            .grad_params
+            .iter()
+            .zip(&dirs)
+            .map(|(g, (dw, db))| dot(&g.weight, dw) + g.bias.iter().zip(db).map(|(a, b)| a * b).sum::<f64>())
+            .sum();
+        let numeric = (loss_at(&dp, &t) - loss_at(&dm, &t)) / (2.0 * H);
+        close("decoder parameters", analytic, numeric, out.loss)?;
+    }
+}

@@ -13,6 +13,14 @@
 //!    ([`style::decoder_training_loss`], `t` a constant as in the AdaIN code);
 //! 4. Adam (PyTorch semantics) steps every decoder weight and bias.
 //!
+//! With a *style network* `psi` ([`DecoderTrainer::with_style_network`]) the style term is
+//! `style(psi(g(t)), psi(s))` at every level of `psi` instead
+//! ([`style::decoder_training_loss_with_style_network`]); the target and the content term stay
+//! on `phi`. This is for encoders too narrow to judge texture on their own: the 16x-compressed
+//! relu4_1 encoder (16 to 128 channels a level) trained with the real VGG-19 layers to relu3_1
+//! as `psi`, which keeps the compressed encoder's receptive field for the content while the
+//! style is measured by the full-width features AdaIN's loss was designed on.
+//!
 //! Batches: the whole batch runs through the networks at once and every loss term is a mean
 //! over all its elements, batch included, exactly as PyTorch's batched `mse_loss`; since all
 //! samples have the same size this is the mean of the per-sample losses, and the gradients are
@@ -43,7 +51,10 @@ use nets::{ConvGrad, Decoder, Encoder, NetWeights, StateDict, TensorF32};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
-use style::{adain_with_stats, decoder_training_loss, encode_style, StyleFeatureStats};
+use style::{
+    adain_with_stats, decoder_training_loss, decoder_training_loss_with_style_network,
+    encode_style, StyleFeatureStats,
+};
 
 use crate::adam::{Adam, AdamConfig};
 use crate::checkpoint::{StateReader, StateWriter};
@@ -52,6 +63,13 @@ use crate::error::TrainError;
 use crate::image_folder::{stack, ImageSet};
 use base::event::{Event, Metric, Sink, Stage};
 use runtime::bundle::{weights_fingerprint, Variant};
+
+/// The checkpoint metadata naming the style network (its weights' fingerprint), or
+/// [`NO_STYLE_NETWORK`]; checkpoints written before style networks existed lack it and mean the
+/// latter.
+const STYLE_NETWORK_KEY: &str = "style_network_fingerprint";
+/// The value of [`STYLE_NETWORK_KEY`] for a run whose style term is measured by its encoder.
+const NO_STYLE_NETWORK: &str = "none";
 
 /// The `format` metadata of a decoder-training checkpoint.
 pub const DECODER_CHECKPOINT_FORMAT: &str = "dsgs-decoder-checkpoint-v1";
@@ -217,11 +235,19 @@ impl DecoderEvaluation {
     }
 }
 
+/// The statistics of a batch of style crops: the encoder's (whose deepest level is the AdaIN
+/// target's) and, with a style network, that network's (which the style term measures).
+#[derive(Clone, Debug)]
+struct StyleBatch {
+    encoder: StyleFeatureStats<f32>,
+    style_network: Option<StyleFeatureStats<f32>>,
+}
+
 /// A fixed evaluation pair: the centred content crop and the style's statistics.
 #[derive(Clone, Debug)]
 struct EvalPair {
     content: Array4<f32>,
-    style: StyleFeatureStats<f32>,
+    style: StyleBatch,
 }
 
 /// An AdaIN decoder training run.
@@ -229,11 +255,15 @@ pub struct DecoderTrainer {
     /// The run's settings.
     pub config: DecoderTrainConfig,
     encoder: Encoder<f32>,
+    /// The network the style term is measured with, when not the encoder.
+    style_network: Option<Encoder<f32>>,
     decoder: Decoder<f32>,
     adam: Adam<f32>,
     step: u64,
     content: ImageSet,
     styles: ImageSet,
+    /// The images the evaluation pairs are drawn from, when not the training images.
+    eval_images: Option<(ImageSet, ImageSet)>,
     eval: Vec<EvalPair>,
     ema: Option<[f64; 3]>,
 }
@@ -280,18 +310,68 @@ impl DecoderTrainer {
         let decoder = decoder.with_resolution(res);
         let mut adam = Adam::new(config.adam);
         register_decoder(&mut adam, &decoder, config.lr);
-        let eval = eval_pairs(&encoder, &config, &content_images, &style_images)?;
+        let eval = eval_pairs(&encoder, None, &config, &content_images, &style_images)?;
         Ok(DecoderTrainer {
             config,
             encoder,
+            style_network: None,
             decoder,
             adam,
             step: 0,
             content: content_images,
             styles: style_images,
+            eval_images: None,
             eval,
             ema: None,
         })
+    }
+
+    /// Measures the style term with `network` (see the module documentation) from the first
+    /// iteration: for a run at step 0 only (a resumed run takes its style network in
+    /// [`DecoderTrainer::resume_with_style_network`]). It is set to the configured variant's
+    /// resolution and must take 3 channels.
+    pub fn with_style_network(self, network: Encoder<f32>) -> Result<Self, TrainError> {
+        if self.step != 0 {
+            return Err(TrainError::Config(
+                "a style network is chosen when the run starts; a resumed run takes the one                  its checkpoint was trained with"
+                    .into(),
+            ));
+        }
+        self.set_style_network(Some(network))
+    }
+
+    fn set_style_network(mut self, network: Option<Encoder<f32>>) -> Result<Self, TrainError> {
+        if let Some(n) = &network {
+            if n.in_channels() != 3 {
+                return Err(TrainError::Config(format!(
+                    "the style network takes {} channels, expected 3",
+                    n.in_channels()
+                )));
+            }
+        }
+        self.style_network = network.map(|n| n.with_resolution(self.config.variant.resolution()));
+        self.redraw_eval_pairs()?;
+        Ok(self)
+    }
+
+    /// The network the style term is measured with, when not the encoder.
+    pub fn style_network(&self) -> Option<&Encoder<f32>> {
+        self.style_network.as_ref()
+    }
+
+    fn redraw_eval_pairs(&mut self) -> Result<(), TrainError> {
+        let (c, s) = match &self.eval_images {
+            Some((c, s)) => (c, s),
+            None => (&self.content, &self.styles),
+        };
+        self.eval = eval_pairs(
+            &self.encoder,
+            self.style_network.as_ref(),
+            &self.config,
+            c,
+            s,
+        )?;
+        Ok(())
     }
 
     /// Draws the evaluation pairs from separate (held-out) content and style images instead of
@@ -301,7 +381,8 @@ impl DecoderTrainer {
         content_images: &ImageSet,
         style_images: &ImageSet,
     ) -> Result<Self, TrainError> {
-        self.eval = eval_pairs(&self.encoder, &self.config, content_images, style_images)?;
+        self.eval_images = Some((content_images.clone(), style_images.clone()));
+        self.redraw_eval_pairs()?;
         Ok(self)
     }
 
@@ -311,6 +392,26 @@ impl DecoderTrainer {
     pub fn resume(
         checkpoint: &Path,
         encoder: Encoder<f32>,
+        content_images: ImageSet,
+        style_images: ImageSet,
+        config: DecoderTrainConfig,
+    ) -> Result<Self, TrainError> {
+        Self::resume_with_style_network(
+            checkpoint,
+            encoder,
+            None,
+            content_images,
+            style_images,
+            config,
+        )
+    }
+
+    /// [`DecoderTrainer::resume`] for a run whose style term is measured with `style_network`
+    /// (`None`: the encoder). It must be the network the checkpoint was trained with.
+    pub fn resume_with_style_network(
+        checkpoint: &Path,
+        encoder: Encoder<f32>,
+        style_network: Option<Encoder<f32>>,
         content_images: ImageSet,
         style_images: ImageSet,
         config: DecoderTrainConfig,
@@ -329,7 +430,30 @@ impl DecoderTrainer {
         let decoder = nets
             .decoder
             .ok_or_else(|| r.err("the decoder is missing".into()))?;
-        let mut t = DecoderTrainer::new(encoder, decoder, content_images, style_images, config)?;
+        let recorded = if r.has_meta(STYLE_NETWORK_KEY) {
+            r.meta_str(STYLE_NETWORK_KEY)?
+        } else {
+            NO_STYLE_NETWORK
+        };
+        let given = style_network
+            .as_ref()
+            .map_or(NO_STYLE_NETWORK.to_string(), weights_fingerprint);
+        if recorded != given {
+            let name = |f: &str| {
+                if f == NO_STYLE_NETWORK {
+                    "its own encoder".to_string()
+                } else {
+                    format!("the style network of fingerprint {f}")
+                }
+            };
+            return Err(r.err(format!(
+                "its style term was measured with {}, and this run gives {}",
+                name(recorded),
+                name(&given)
+            )));
+        }
+        let t = DecoderTrainer::new(encoder, decoder, content_images, style_images, config)?;
+        let mut t = t.set_style_network(style_network)?;
         let adam = r.adam(t.config.adam)?;
         check_same_params(&adam, &t.adam).map_err(|m| r.err(m))?;
         t.adam = adam;
@@ -367,19 +491,24 @@ impl DecoderTrainer {
     fn batch_loss(
         &self,
         content: &Array4<f32>,
-        style: &StyleFeatureStats<f32>,
+        style: &StyleBatch,
     ) -> Result<style::DecoderLoss<f32>, TrainError> {
         let feats = self.encoder.forward(content.view())?;
         let deepest = feats.last().expect("encoder depth >= 1");
-        let t = adain_with_stats(deepest, style.deepest())?;
-        decoder_training_loss(
-            &self.encoder,
-            &self.decoder,
-            &t,
-            &t,
-            style,
-            self.config.style_weight,
-        )
+        let t = adain_with_stats(deepest, style.encoder.deepest())?;
+        let w = self.config.style_weight;
+        match (&self.style_network, &style.style_network) {
+            (Some(psi), Some(s)) => decoder_training_loss_with_style_network(
+                &self.encoder,
+                psi,
+                &self.decoder,
+                &t,
+                &t,
+                s,
+                w,
+            ),
+            _ => decoder_training_loss(&self.encoder, &self.decoder, &t, &t, &style.encoder, w),
+        }
         .map_err(TrainError::Style)
     }
 
@@ -402,7 +531,7 @@ impl DecoderTrainer {
             styles.push(self.styles.random_crop(i, cfg.resize, cfg.crop, &mut rng)?);
         }
         let content = stack(&contents)?;
-        let style = encode_style(&self.encoder, &stack(&styles)?)?;
+        let style = style_batch(&self.encoder, self.style_network.as_ref(), &stack(&styles)?)?;
         let out = self.batch_loss(&content, &style)?;
         let lr = self.config.lr_at(it);
         for i in 0..self.adam.params().len() {
@@ -460,6 +589,12 @@ impl DecoderTrainer {
         w.meta("step", self.step);
         w.meta("seed", self.config.seed);
         w.meta("encoder_fingerprint", weights_fingerprint(&self.encoder));
+        w.meta(
+            STYLE_NETWORK_KEY,
+            self.style_network
+                .as_ref()
+                .map_or(NO_STYLE_NETWORK.to_string(), weights_fingerprint),
+        );
         w.meta(
             "config",
             serde_json::to_string(&self.config).map_err(|e| TrainError::Config(e.to_string()))?,
@@ -634,6 +769,7 @@ impl TrainingLoop for DecoderLoop<'_> {
 /// centre-cropped, the styles encoded once.
 fn eval_pairs(
     encoder: &Encoder<f32>,
+    style_network: Option<&Encoder<f32>>,
     cfg: &DecoderTrainConfig,
     content: &ImageSet,
     styles: &ImageSet,
@@ -647,10 +783,22 @@ fn eval_pairs(
         let s = styles.center_crop(si, cfg.resize, cfg.crop)?;
         out.push(EvalPair {
             content: c,
-            style: encode_style(encoder, &s)?,
+            style: style_batch(encoder, style_network, &s)?,
         });
     }
     Ok(out)
+}
+
+/// The statistics of the style crops `s` (N images) for the encoder and the style network.
+fn style_batch(
+    encoder: &Encoder<f32>,
+    style_network: Option<&Encoder<f32>>,
+    s: &Array4<f32>,
+) -> Result<StyleBatch, TrainError> {
+    Ok(StyleBatch {
+        encoder: encode_style(encoder, s)?,
+        style_network: style_network.map(|n| encode_style(n, s)).transpose()?,
+    })
 }
 
 /// One Adam step of every decoder conv, whose weight and bias are the optimiser's parameters

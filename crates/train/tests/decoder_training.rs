@@ -243,6 +243,101 @@ fn resuming_from_a_checkpoint_is_bit_identical() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A style network measures the style term (its own levels and statistics) while the content
+/// term stays on the encoder; the run resumes bit-identically only with the same network.
+#[test]
+fn a_style_network_measures_the_style_and_resumes_only_with_itself() {
+    let (enc, dec) = fixture_networks();
+    // Another encoder: the fixture's to relu2_1 with its weights halved past the first conv.
+    let mut psi = enc.clone().with_depth(2).unwrap();
+    for l in psi.layers_mut().skip(1) {
+        l.weight.mapv_inplace(|w| 0.5 * w);
+    }
+    let mut cfg = config(Variant::Standard);
+    cfg.iterations = 4;
+    let mut own =
+        DecoderTrainer::new(enc.clone(), dec.clone(), contents(), styles(), cfg.clone()).unwrap();
+    let mut straight =
+        DecoderTrainer::new(enc.clone(), dec.clone(), contents(), styles(), cfg.clone())
+            .unwrap()
+            .with_style_network(psi.clone())
+            .unwrap();
+    let (a, b) = (own.train_step().unwrap(), straight.train_step().unwrap());
+    // The same decoder and batch at step 1: the same content term, another style term.
+    assert_eq!(a.loss_content.to_bits(), b.loss_content.to_bits());
+    assert_ne!(a.loss_style, b.loss_style);
+    let reports: Vec<_> = (0..3).map(|_| straight.train_step().unwrap()).collect();
+    // The held-out evaluation measures the style with the network too.
+    let (e_own, e_psi) = (
+        own.evaluate().unwrap().unwrap(),
+        straight.evaluate().unwrap().unwrap(),
+    );
+    assert_ne!(e_own.loss_style, e_psi.loss_style);
+
+    let dir = scratch_dir("dectrain", "style-network");
+    let mut first =
+        DecoderTrainer::new(enc.clone(), dec.clone(), contents(), styles(), cfg.clone())
+            .unwrap()
+            .with_style_network(psi.clone())
+            .unwrap();
+    first.train_step().unwrap();
+    let ck = dir.join("ck.safetensors");
+    first.save_checkpoint(&ck).unwrap();
+    // A started run cannot change its style network.
+    assert!(matches!(
+        first.with_style_network(psi.clone()),
+        Err(TrainError::Config(_))
+    ));
+    // Resuming without the network, or with another one, is refused with the reason.
+    let refused = |n: Option<nets::Encoder<f32>>| {
+        let e = DecoderTrainer::resume_with_style_network(
+            &ck,
+            enc.clone(),
+            n,
+            contents(),
+            styles(),
+            cfg.clone(),
+        )
+        .err()
+        .expect("refused")
+        .to_string();
+        assert!(e.contains("ck.safetensors") && e.contains("style"), "{e}");
+    };
+    refused(None);
+    refused(Some(enc.clone().with_depth(2).unwrap()));
+    let mut resumed = DecoderTrainer::resume_with_style_network(
+        &ck,
+        enc.clone(),
+        Some(psi),
+        contents(),
+        styles(),
+        cfg.clone(),
+    )
+    .unwrap();
+    let again: Vec<_> = (0..3).map(|_| resumed.train_step().unwrap()).collect();
+    assert_eq!(again, reports);
+    assert_eq!(
+        weights_of(resumed.decoder()),
+        weights_of(straight.decoder())
+    );
+    assert_eq!(resumed.adam(), straight.adam());
+    // A run without a style network does not resume with one.
+    own.save_checkpoint(&ck).unwrap();
+    let e = DecoderTrainer::resume_with_style_network(
+        &ck,
+        enc.clone(),
+        Some(enc.clone()),
+        contents(),
+        styles(),
+        cfg,
+    )
+    .err()
+    .expect("refused")
+    .to_string();
+    assert!(e.contains("its own encoder"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn train_writes_checkpoints_and_the_final_weights_and_stops_on_request() {
     let (enc, dec) = fixture_networks();

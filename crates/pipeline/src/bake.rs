@@ -23,7 +23,7 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::cli::{at_least_one, mebibytes, non_negative, positive, whole_in, with_default};
+use crate::cli::{mebibytes, non_negative, positive, whole_in, with_default};
 use crate::error::{bail, Context, Result};
 use base::write_atomic;
 use gaussian::ply::save_ply;
@@ -45,12 +45,20 @@ use train::RunOutcome;
 /// `--log-every`).
 #[derive(Clone, Debug, Default, PartialEq, clap::Args)]
 pub struct BakeOverrides {
-    /// Optimisation iterations (`--iterations`; key `iterations`).
-    #[arg(long, value_parser = at_least_one::<u64>(), help = with_default(
-        "Optimisation iterations (at least 1)",
+    /// Optimisation iterations after the colour solve (`--iterations`; key `iterations`).
+    #[arg(long, help = with_default(
+        "Optimisation iterations after the closed-form colour solve (0: the solve alone)",
         BakeConfig::default().iterations,
     ))]
     pub iterations: Option<u64>,
+    /// Conjugate-gradient iterations of the colour solve (`--solve-iterations`; key
+    /// `solve_iterations`).
+    #[arg(long, help = with_default(
+        "Most iterations of the closed-form colour solve that starts the bake (0: no solve, \
+         the optimisation starts from the bundle's colours)",
+        BakeConfig::default().solve_iterations,
+    ))]
+    pub solve_iterations: Option<usize>,
     /// SH degree that is optimised, 0..=3; the `.ply` always stores degree 3 (`--sh-degree`; key
     /// `sh_degree`).
     #[arg(long, value_parser = whole_in(0, STORED_SH_DEGREE), help = with_default(
@@ -113,6 +121,9 @@ impl BakeOverrides {
     pub fn apply(&self, c: &mut BakeConfig) {
         if let Some(v) = self.iterations {
             c.iterations = v;
+        }
+        if let Some(v) = self.solve_iterations {
+            c.solve_iterations = v;
         }
         if let Some(v) = self.sh_degree {
             c.sh_degree = v;
@@ -258,6 +269,8 @@ pub struct BakeSummary {
     pub target_seconds: f64,
     /// Wall time of the optimisation, in seconds.
     pub optimise_seconds: f64,
+    /// The closed-form colour solve that started the bake (`None` when resumed or disabled).
+    pub solve: Option<train::bake::BakeSolveReport>,
     /// The effective configuration (file and flags).
     pub config: BakeConfig,
 }
@@ -287,6 +300,18 @@ impl std::fmt::Display for BakeOutput {
             return Ok(());
         };
         let db = |p: Option<f64>| p.map_or_else(|| "-".to_string(), |v| format!("{v:.3} dB"));
+        if let Some(v) = &s.solve {
+            writeln!(
+                f,
+                "colour solve: {} iterations in {:.1} s (residual {:.1e}, {} Gaussians unseen), \
+                 held-out PSNR {}",
+                v.iterations,
+                v.seconds,
+                v.residual,
+                v.unseen,
+                db(v.held_out_psnr)
+            )?;
+        }
         writeln!(
             f,
             "training PSNR: baked {:.3} dB, unbaked {:.3} dB",
@@ -538,6 +563,7 @@ pub fn run(settings: &BakeSettings, control: &Control) -> Result<BakeOutput> {
         unbaked_held_out_psnr: r.unbaked_held_out_psnr,
         target_seconds: r.target_seconds,
         optimise_seconds: r.run.seconds,
+        solve: r.solve.clone(),
         config: cfg,
     };
     if r.run.interrupted {

@@ -20,7 +20,12 @@
 //!    painted background would only bleed it into the Gaussians at the silhouette. Views are
 //!    decoded `render_batch` at a time in parallel (each view on its own, so the images do not
 //!    depend on the thread count).
-//! 3. Optimisation ([`bake`]): the geometry stage's loss `0.8 L1 + 0.2 (1 - SSIM)`
+//! 3. Colour solve (fresh bakes, [`BakeConfig::solve_iterations`] > 0): the DC colours are
+//!    replaced by the least-squares colours for the training targets through the frozen
+//!    geometry ([`crate::colour_solve`], conjugate gradients on the normal equations, exact in
+//!    the renderer's linear model), starting from the bundle's own DC colours.
+//! 4. Optimisation ([`bake`], [`BakeConfig::iterations`], 0 for the solve alone): the geometry
+//!    stage's loss `0.8 L1 + 0.2 (1 - SSIM)`
 //!    ([`crate::loss`]) of the colour render ([`crate::render`]) against one target per
 //!    iteration, drawn without replacement within a pass over the targets (a seeded shuffle), and
 //!    one Adam step of the SH coefficients (3DGS groups `f_dc` and `f_rest`, the latter at the DC
@@ -31,7 +36,8 @@
 //! dropped (`feature_dim = 0`). SH coefficients are always stored at degree 3, so the `.ply` has
 //! the official 62-property layout whatever degree is optimised: the coefficients above
 //! [`BakeConfig::sh_degree`] stay zero, which makes a degree-3 render identical to a render at
-//! the optimised degree. The DC term starts from the bundle scene's own DC (its diffuse colour);
+//! the optimised degree. The DC term starts from the colour solve's colours (without a solve,
+//! the bundle scene's own DC, its diffuse colour);
 //! the higher bands start at zero, because the stylized targets are decoded from a view-consistent
 //! feature field and share no view-dependent effects with the photographs the geometry was fitted
 //! to; whatever view dependence the decoded views have is learnt from them.
@@ -60,9 +66,11 @@ use style::ChannelStats;
 
 use crate::adam::{Adam, AdamConfig};
 use crate::checkpoint::{StateReader, StateWriter};
+use crate::colour_solve::{solve_colours, SolveSettings, SolveTarget};
 use crate::driver::{drive, Cadence, Run, RunOutcome, TrainingLoop};
 use crate::error::TrainError;
 use crate::geometry::View;
+use crate::init::{rgb_to_sh_dc, sh_dc_to_rgb};
 use crate::loss::{photometric_loss_with_grad, psnr};
 use crate::model::{F_DC, F_REST, OPACITY, SCALING};
 use crate::render::{render_color, render_color_backward};
@@ -80,8 +88,12 @@ pub struct BakeConfig {
     /// SH degree that is optimised and rendered (0..=3). The scene always stores degree 3; the
     /// coefficients above this degree stay zero.
     pub sh_degree: usize,
-    /// Optimisation iterations, one target view each.
+    /// Optimisation iterations after the solve, one target view each (0: the solve alone).
     pub iterations: u64,
+    /// Most conjugate-gradient iterations of the closed-form colour solve that starts a fresh
+    /// bake ([`crate::colour_solve`]; 0: no solve, the optimisation starts from the bundle's
+    /// colours).
+    pub solve_iterations: usize,
     /// Adam rate of the SH DC coefficients (3DGS: 0.0025).
     pub feature_lr: f64,
     /// The higher SH coefficients use `feature_lr / feature_rest_divisor` (3DGS: 20).
@@ -132,6 +144,7 @@ impl Default for BakeConfig {
         BakeConfig {
             sh_degree: 3,
             iterations: 3000,
+            solve_iterations: 30,
             feature_lr: 0.0025,
             feature_rest_divisor: 20.0,
             lambda_dssim: 0.2,
@@ -528,6 +541,61 @@ pub struct BakeReport {
     pub unbaked_held_out_psnr: Option<f64>,
     /// Wall time of the target rendering, in seconds.
     pub target_seconds: f64,
+    /// The closed-form colour solve that started the bake (`None` when resumed or disabled).
+    pub solve: Option<BakeSolveReport>,
+}
+
+/// What the closed-form colour solve of a bake did.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct BakeSolveReport {
+    /// Conjugate-gradient iterations run.
+    pub iterations: usize,
+    /// The relative preconditioned residual after the last iteration.
+    pub residual: f64,
+    /// Gaussians no training target sees, which kept the bundle's colour.
+    pub unseen: usize,
+    /// Wall time, in seconds.
+    pub seconds: f64,
+    /// Mean PSNR of the solved scene (before any optimisation) against the held-out targets.
+    pub held_out_psnr: Option<f64>,
+}
+
+/// Replaces the DC colours of `scene` (SH stored at degree 3, higher bands zero) by the
+/// least-squares colours for `targets` ([`crate::colour_solve`]), starting from its own.
+fn solve_dc(
+    scene: &mut FeatureGaussians<f32>,
+    targets: &[View],
+    background: [f32; 3],
+    iterations: usize,
+) -> Result<BakeSolveReport, TrainError> {
+    let start = std::time::Instant::now();
+    let k = scene.sh_coeffs_per_gaussian();
+    let n = scene.len();
+    let initial: Vec<[f32; 3]> = (0..n)
+        .map(|i| scene.sh[i * k].map(|dc| sh_dc_to_rgb(dc as f64) as f32))
+        .collect();
+    let solve_targets: Vec<SolveTarget<'_, f32>> = targets
+        .iter()
+        .map(|v| SolveTarget {
+            camera: &v.camera,
+            image: &v.image,
+        })
+        .collect();
+    let settings = SolveSettings {
+        iterations,
+        ..SolveSettings::default()
+    };
+    let out = solve_colours(scene, &solve_targets, background, &initial, settings)?;
+    for (i, c) in out.colours.iter().enumerate() {
+        scene.sh[i * k] = c.map(|v| rgb_to_sh_dc(v as f64) as f32);
+    }
+    Ok(BakeSolveReport {
+        iterations: out.iterations,
+        residual: out.residuals.last().copied().unwrap_or(1.0),
+        unseen: out.unseen,
+        seconds: start.elapsed().as_secs_f64(),
+        held_out_psnr: None,
+    })
 }
 
 /// Projects every value of `values` into `[initial - budget, initial + budget]`.
@@ -645,7 +713,19 @@ pub fn bake_targets(
     let unbaked_held_out_psnr =
         mean_psnr(&bundle.scene, bundle.scene.sh_degree, background, &held_out)?;
 
-    let initial = initial_baked_scene(&bundle.scene)?;
+    let mut initial = initial_baked_scene(&bundle.scene)?;
+    // A fresh bake starts from the least-squares DC colours; a resumed one from its checkpoint.
+    let solve = match (resume, config.solve_iterations) {
+        (None, iterations @ 1..) => {
+            let report = solve_dc(&mut initial, &train, background, iterations)?;
+            let held_out_psnr = mean_psnr(&initial, config.sh_degree, background, &held_out)?;
+            Some(BakeSolveReport {
+                held_out_psnr,
+                ..report
+            })
+        }
+        _ => None,
+    };
     let mut baker = match resume {
         None => Baker::new(initial, &train, background, config)?,
         Some(p) => Baker::resume(p, initial, &train, background, config)?,
@@ -655,6 +735,7 @@ pub fn bake_targets(
 
     let d = config.sh_degree;
     Ok(BakeReport {
+        solve,
         train_psnr: mean_psnr(&scene, d, background, &train)?.unwrap_or(0.0),
         held_out_psnr: mean_psnr(&scene, d, background, &held_out)?,
         scene,

@@ -97,6 +97,7 @@
 pub mod adam;
 pub mod bake;
 pub mod checkpoint;
+pub mod colour_solve;
 pub mod decoder_training;
 pub mod density;
 pub mod driver;

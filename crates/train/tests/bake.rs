@@ -335,6 +335,61 @@ fn baked_colours_reproduce_held_out_stylized_views() {
     assert_eq!(&back, s);
 }
 
+/// The closed-form colour solve alone (`iterations = 0`) already reproduces held-out stylized
+/// views far better than the bundle's colours, and changes only the DC colours; without it
+/// (`solve_iterations = 0` too) the colours are the bundle's DC.
+#[test]
+#[cfg_attr(
+    debug_assertions,
+    ignore = "slow without optimisation: run with --release"
+)]
+fn the_colour_solve_alone_bakes_the_style() {
+    let Fixture { bundle, stats, .. } = fixture();
+    let cfg = BakeConfig {
+        iterations: 0,
+        ..config()
+    };
+    let report = bake(bundle, stats, &cfg, None, &Run::in_memory()).unwrap();
+    assert_eq!(report.run.step, 0);
+    let solve = report.solve.as_ref().expect("a fresh bake solves");
+    assert!(solve.iterations >= 1 && solve.iterations <= cfg.solve_iterations);
+    assert!(solve.residual < 1.0);
+    // With no optimisation after it, the solve's scene is the baked one.
+    assert_eq!(solve.held_out_psnr, report.held_out_psnr);
+    let (solved, unbaked) = (
+        report.held_out_psnr.unwrap(),
+        report.unbaked_held_out_psnr.unwrap(),
+    );
+    // The same margin as the optimised bake's test above.
+    assert!(
+        solved >= unbaked + 10.0,
+        "solved {solved:.2} dB vs unbaked {unbaked:.2} dB"
+    );
+    let s = &report.scene;
+    assert!(same_geometry(s, &bundle.scene));
+    assert_eq!(s.opacity_logits, bundle.scene.opacity_logits);
+    let k = s.sh_coeffs_per_gaussian();
+    assert!((0..s.len()).all(|i| s.sh[i * k + 1..(i + 1) * k]
+        .iter()
+        .flatten()
+        .all(|&v| v == 0.0)));
+    // No solve and no optimisation: the bundle's own colours.
+    let none = BakeConfig {
+        solve_iterations: 0,
+        ..cfg
+    };
+    let plain = bake(bundle, stats, &none, None, &Run::in_memory()).unwrap();
+    assert!(plain.solve.is_none());
+    let (kb, ps) = (bundle.scene.sh_coeffs_per_gaussian(), &plain.scene);
+    assert!((0..ps.len()).all(|i| ps.sh[i * k] == bundle.scene.sh[i * kb]));
+    println!(
+        "held-out PSNR: solved {solved:.2} dB in {} iterations, {:.2} s; bundle's DC {:.2} dB",
+        solve.iterations,
+        solve.seconds,
+        plain.held_out_psnr.unwrap()
+    );
+}
+
 #[test]
 #[cfg_attr(
     debug_assertions,

@@ -1,0 +1,287 @@
+//! The closed-form colour fit of a bake (`train::colour_solve`) on small scenes in `f64`:
+//! it recovers colours that generated the targets exactly, it equals the dense least-squares
+//! solution of the normal equations built column by column from the rasterizer, it leaves
+//! Gaussians no view sees alone, and it gives the same bits for any number of threads.
+
+use gaussian::{camera_path::look_at, Camera, FeatureGaussians, Intrinsics, Real};
+use glam::DVec3;
+use raster::{render, Channels, RenderOptions};
+use train::colour_solve::{solve_colours, SolveSettings, SolveTarget};
+
+/// A small deterministic generator in `[0, 1)`.
+struct Lcg(u64);
+impl Lcg {
+    fn next(&mut self) -> f64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// `n` Gaussians in a cube around the origin, some translucent, sizes large enough to overlap.
+fn scene<T: Real>(n: usize, seed: u64) -> FeatureGaussians<T> {
+    let mut r = Lcg(seed);
+    let mut s = FeatureGaussians::<T> {
+        sh_degree: 0,
+        ..Default::default()
+    };
+    for _ in 0..n {
+        let p = [0, 1, 2].map(|_| T::lit(1.2 * r.next() - 0.6));
+        s.means.push(p);
+        s.log_scales
+            .push([0, 1, 2].map(|_| T::lit(-1.6 + 0.6 * r.next())));
+        s.quats.push([0, 1, 2, 3].map(|_| T::lit(r.next() - 0.3)));
+        s.opacity_logits.push(T::lit(3.0 * r.next() - 1.0));
+        s.sh.push([T::zero(); 3]);
+    }
+    s
+}
+
+/// `k` 20x20 cameras on a ring looking at the origin.
+fn cameras(k: usize) -> Vec<Camera> {
+    let intr = Intrinsics {
+        fx: 24.0,
+        fy: 24.0,
+        cx: 10.0,
+        cy: 10.0,
+        width: 20,
+        height: 20,
+    };
+    (0..k)
+        .map(|i| {
+            let a = i as f64 * std::f64::consts::TAU / k as f64;
+            let eye = DVec3::new(3.0 * a.cos(), 3.0 * a.sin(), 1.0 + 0.3 * (i % 2) as f64);
+            look_at(intr, eye, DVec3::ZERO, DVec3::Z).unwrap()
+        })
+        .collect()
+}
+
+/// The image of `scene` with per-Gaussian `colours` over `background`, as the linear model sees
+/// it (colours as a 3-channel feature).
+fn image<T: Real>(
+    scene: &FeatureGaussians<T>,
+    colours: &[[T; 3]],
+    camera: &Camera,
+    background: [T; 3],
+) -> Vec<T> {
+    let s = FeatureGaussians {
+        feature_dim: 3,
+        features: colours.iter().flatten().copied().collect(),
+        ..scene.clone()
+    };
+    render(
+        camera,
+        &s,
+        &RenderOptions::new(Channels::Features, background.to_vec()),
+    )
+    .unwrap()
+    .raster
+    .image
+}
+
+const EXACT: SolveSettings = SolveSettings {
+    iterations: 200,
+    tolerance: 1e-14,
+};
+
+fn targets<'a, T>(cams: &'a [Camera], images: &'a [Vec<T>]) -> Vec<SolveTarget<'a, T>> {
+    cams.iter()
+        .zip(images)
+        .map(|(camera, image)| SolveTarget {
+            camera,
+            image: image.as_slice(),
+        })
+        .collect()
+}
+
+#[test]
+fn colours_that_made_the_targets_are_recovered() {
+    let (n, bg) = (12, [0.2, 0.5, 0.9]);
+    let s = scene::<f64>(n, 3);
+    let cams = cameras(6);
+    let mut r = Lcg(11);
+    let truth: Vec<[f64; 3]> = (0..n).map(|_| [0, 1, 2].map(|_| r.next())).collect();
+    let images: Vec<Vec<f64>> = cams.iter().map(|c| image(&s, &truth, c, bg)).collect();
+    let start = vec![[0.5; 3]; n];
+    let out = solve_colours(&s, &targets(&cams, &images), bg, &start, EXACT).unwrap();
+    assert_eq!(out.unseen, 0);
+    // Conjugate gradients on 12 unknowns a channel: exact after at most 12 steps in exact
+    // arithmetic; in f64 the colours agree to rounding amplified by the system's condition.
+    assert!(out.iterations <= 3 * n, "{} iterations", out.iterations);
+    for (a, b) in out.colours.iter().zip(&truth) {
+        for k in 0..3 {
+            assert!((a[k] - b[k]).abs() < 1e-7, "{a:?} vs {b:?}");
+        }
+    }
+    assert!(
+        out.energy[1] < 1e-20 * out.energy[0].max(1.0),
+        "{:?}",
+        out.energy
+    );
+    assert!(out.residuals.windows(2).all(|w| w[1].is_finite()));
+}
+
+/// The normal equations built from the rasterizer one Gaussian at a time (column `i` of `A` is
+/// the image of Gaussian `i` alone at unit colour, the others at zero, over a black
+/// background) and solved densely by Gaussian elimination: the solve's colours are that
+/// solution, for targets no colours reproduce exactly (random images).
+#[test]
+fn the_solve_is_the_dense_least_squares_solution() {
+    let (n, bg) = (10, [0.1, 0.0, 0.3]);
+    let s = scene::<f64>(n, 5);
+    let cams = cameras(5);
+    let mut r = Lcg(17);
+    let images: Vec<Vec<f64>> = cams
+        .iter()
+        .map(|c| {
+            (0..c.intrinsics.width * c.intrinsics.height * 3)
+                .map(|_| r.next())
+                .collect()
+        })
+        .collect();
+    let out = solve_colours(&s, &targets(&cams, &images), bg, &vec![[0.0; 3]; n], EXACT).unwrap();
+    let mut positive = 0;
+    for ch in 0..3 {
+        // Columns of A for this channel (every view stacked), and rhs = y - T b.
+        let mut cols = Vec::new();
+        for i in 0..n {
+            let mut c = vec![[0.0; 3]; n];
+            c[i] = [1.0; 3];
+            let col: Vec<f64> = cams
+                .iter()
+                .flat_map(|cam| image(&s, &c, cam, [0.0; 3]))
+                .skip(ch)
+                .step_by(3)
+                .collect();
+            cols.push(col);
+        }
+        let tb: Vec<f64> = cams
+            .iter()
+            .flat_map(|cam| image(&s, &vec![[0.0; 3]; n], cam, bg))
+            .skip(ch)
+            .step_by(3)
+            .collect();
+        let y: Vec<f64> = images
+            .iter()
+            .flatten()
+            .copied()
+            .skip(ch)
+            .step_by(3)
+            .collect();
+        let rhs: Vec<f64> = y.iter().zip(&tb).map(|(a, b)| a - b).collect();
+        let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+        let mut m: Vec<Vec<f64>> = (0..n)
+            .map(|i| {
+                let mut row: Vec<f64> = (0..n).map(|j| dot(&cols[i], &cols[j])).collect();
+                row.push(dot(&cols[i], &rhs));
+                row
+            })
+            .collect();
+        // Gaussian elimination with partial pivoting.
+        for k in 0..n {
+            let p = (k..n)
+                .max_by(|&a, &b| m[a][k].abs().total_cmp(&m[b][k].abs()))
+                .unwrap();
+            m.swap(k, p);
+            assert!(m[k][k].abs() > 1e-9, "the test scene's system is singular");
+            let pivot = m[k].clone();
+            for row in m.iter_mut().skip(k + 1) {
+                let f = row[k] / pivot[k];
+                for (a, b) in row.iter_mut().zip(&pivot).skip(k) {
+                    *a -= f * b;
+                }
+            }
+        }
+        let mut x = vec![0.0; n];
+        for k in (0..n).rev() {
+            x[k] = (m[k][n] - (k + 1..n).map(|j| m[k][j] * x[j]).sum::<f64>()) / m[k][k];
+        }
+        for (i, &xi) in x.iter().enumerate() {
+            // The solve clamps at zero, as the renderer does.
+            let want = xi.max(0.0);
+            positive += usize::from(xi > 0.0);
+            assert!(
+                (out.colours[i][ch] - want).abs() < 1e-7 * (1.0 + want.abs()),
+                "Gaussian {i} channel {ch}: {} vs {want}",
+                out.colours[i][ch]
+            );
+        }
+    }
+    // Most of the solution is away from the clamp, so the comparison says something.
+    assert!(positive >= 2 * n, "{positive} positive values of {}", 3 * n);
+}
+
+#[test]
+fn gaussians_no_view_sees_keep_their_colour() {
+    let (n, bg) = (9, [0.0; 3]);
+    let mut s = scene::<f64>(n, 7);
+    // Gaussian 0 far outside every camera's view (above the ring, behind the up axis).
+    s.means[0] = [0.0, 0.0, 40.0];
+    let cams = cameras(4);
+    let images: Vec<Vec<f64>> = cams.iter().map(|_| vec![0.4; 20 * 20 * 3]).collect();
+    let start: Vec<[f64; 3]> = (0..n).map(|i| [0.1 * i as f64, 0.2, 0.3]).collect();
+    let out = solve_colours(&s, &targets(&cams, &images), bg, &start, EXACT).unwrap();
+    assert_eq!(out.unseen, 1);
+    assert_eq!(out.colours[0], start[0]);
+    assert!(out.energy[1] < out.energy[0]);
+}
+
+#[test]
+fn the_solve_is_the_same_for_any_number_of_threads() {
+    let (n, bg) = (40, [0.3f32, 0.3, 0.3]);
+    let s = scene::<f32>(n, 9);
+    let cams = cameras(3);
+    let mut r = Lcg(23);
+    let images: Vec<Vec<f32>> = cams
+        .iter()
+        .map(|_| (0..20 * 20 * 3).map(|_| r.next() as f32).collect())
+        .collect();
+    let run = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                solve_colours(
+                    &s,
+                    &targets(&cams, &images),
+                    bg,
+                    &vec![[0.5; 3]; n],
+                    SolveSettings::default(),
+                )
+                .unwrap()
+            })
+    };
+    let one = run(1);
+    for t in [2, 3] {
+        let other = run(t);
+        assert_eq!(other.iterations, one.iterations);
+        let bits = |o: &train::colour_solve::SolveOutcome<f32>| -> Vec<u32> {
+            o.colours.iter().flatten().map(|v| v.to_bits()).collect()
+        };
+        assert_eq!(bits(&other), bits(&one), "{t} threads");
+    }
+}
+
+#[test]
+fn bad_inputs_are_refused() {
+    let s = scene::<f64>(3, 1);
+    let cams = cameras(1);
+    let short = vec![0.0; 10];
+    let t = [SolveTarget {
+        camera: &cams[0],
+        image: short.as_slice(),
+    }];
+    let e = solve_colours(&s, &t, [0.0; 3], &[[0.0; 3]; 3], EXACT).unwrap_err();
+    assert!(e.to_string().contains("10 values"), "{e}");
+    let good = vec![0.0; 20 * 20 * 3];
+    let t = [SolveTarget {
+        camera: &cams[0],
+        image: good.as_slice(),
+    }];
+    let e = solve_colours(&s, &t, [0.0; 3], &[[0.0; 3]; 2], EXACT).unwrap_err();
+    assert!(e.to_string().contains("2 initial colours"), "{e}");
+    assert!(solve_colours(&s, &[], [0.0; 3], &[[0.0; 3]; 3], EXACT).is_err());
+}

@@ -439,7 +439,6 @@ fn out_of_range_numbers_are_refused_while_parsing_naming_flag_and_range() {
         (&decoder, &["--lr=-1"], "0 or more"),
         (&features, &["--feature-dim", "0"], "at least 1"),
         (&features, &["--downscale=-2"], "above 0"),
-        (&bake, &["--iterations", "0"], "at least 1"),
         (&bake, &["--sh-degree", "9"], "between 0 and 3"),
         (&bake, &["--resolution-scale", "0"], "above 0"),
         (&["demo"], &["--frames", "0"], "at least 1"),

@@ -51,7 +51,7 @@ pub struct BakeOverrides {
         BakeConfig::default().iterations,
     ))]
     pub iterations: Option<u64>,
-    /// Conjugate-gradient iterations of the colour solve (`--solve-iterations`; key
+    /// Iterations of the colour solve (`--solve-iterations`; key
     /// `solve_iterations`).
     #[arg(long, help = with_default(
         "Most iterations of the closed-form colour solve that starts the bake (0: no solve, \

@@ -21,9 +21,9 @@
 //!    decoded `render_batch` at a time in parallel (each view on its own, so the images do not
 //!    depend on the thread count).
 //! 3. Colour solve (fresh bakes, [`BakeConfig::solve_iterations`] > 0): the DC colours are
-//!    replaced by the least-squares colours for the training targets through the frozen
-//!    geometry ([`crate::colour_solve`], conjugate gradients on the normal equations, exact in
-//!    the renderer's linear model), starting from the bundle's own DC colours.
+//!    replaced by the non-negative least-squares colours for the training targets through the
+//!    frozen geometry ([`crate::colour_solve`], a majorize-minimize iteration with momentum on
+//!    the renderer's exact linear model), starting from the bundle's own DC colours.
 //! 4. Optimisation ([`bake`], [`BakeConfig::iterations`], 0 for the solve alone): the geometry
 //!    stage's loss `0.8 L1 + 0.2 (1 - SSIM)`
 //!    ([`crate::loss`]) of the colour render ([`crate::render`]) against one target per
@@ -90,10 +90,14 @@ pub struct BakeConfig {
     pub sh_degree: usize,
     /// Optimisation iterations after the solve, one target view each (0: the solve alone).
     pub iterations: u64,
-    /// Most conjugate-gradient iterations of the closed-form colour solve that starts a fresh
+    /// Most iterations of the closed-form colour solve that starts a fresh
     /// bake ([`crate::colour_solve`]; 0: no solve, the optimisation starts from the bundle's
     /// colours).
     pub solve_iterations: usize,
+    /// Training targets the colour solve fits, spread evenly over them (0: all). Each solve
+    /// iteration renders every one of them forward and backward, and a few dozen views
+    /// constrain the diffuse colours about as well as hundreds.
+    pub solve_views: usize,
     /// Adam rate of the SH DC coefficients (3DGS: 0.0025).
     pub feature_lr: f64,
     /// The higher SH coefficients use `feature_lr / feature_rest_divisor` (3DGS: 20).
@@ -144,7 +148,8 @@ impl Default for BakeConfig {
         BakeConfig {
             sh_degree: 3,
             iterations: 3000,
-            solve_iterations: 30,
+            solve_iterations: 10,
+            solve_views: 24,
             feature_lr: 0.0025,
             feature_rest_divisor: 20.0,
             lambda_dssim: 0.2,
@@ -548,9 +553,9 @@ pub struct BakeReport {
 /// What the closed-form colour solve of a bake did.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct BakeSolveReport {
-    /// Conjugate-gradient iterations run.
+    /// Iterations run.
     pub iterations: usize,
-    /// The relative preconditioned residual after the last iteration.
+    /// The last step's size relative to the first's.
     pub residual: f64,
     /// Gaussians no training target sees, which kept the bundle's colour.
     pub unseen: usize,
@@ -561,7 +566,8 @@ pub struct BakeSolveReport {
 }
 
 /// Replaces the DC colours of `scene` (SH stored at degree 3, higher bands zero) by the
-/// least-squares colours for `targets` ([`crate::colour_solve`]), starting from its own.
+/// non-negative least-squares colours for `targets` ([`crate::colour_solve`]), starting from
+/// its own.
 fn solve_dc(
     scene: &mut FeatureGaussians<f32>,
     targets: &[View],
@@ -717,7 +723,14 @@ pub fn bake_targets(
     // A fresh bake starts from the least-squares DC colours; a resumed one from its checkpoint.
     let solve = match (resume, config.solve_iterations) {
         (None, iterations @ 1..) => {
-            let report = solve_dc(&mut initial, &train, background, iterations)?;
+            let chosen: Vec<View> = match config.solve_views {
+                0 => train.clone(),
+                k => even_indices(train.len(), k)
+                    .into_iter()
+                    .map(|i| train[i].clone())
+                    .collect(),
+            };
+            let report = solve_dc(&mut initial, &chosen, background, iterations)?;
             let held_out_psnr = mean_psnr(&initial, config.sh_degree, background, &held_out)?;
             Some(BakeSolveReport {
                 held_out_psnr,

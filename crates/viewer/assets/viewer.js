@@ -1423,8 +1423,8 @@ async function bake() {
     return;
   }
   const iterations = Math.round(Number($("iterations").value));
-  if (!(iterations >= 1 && iterations <= 100000)) {
-    setStatus("bake-status", "Iterations must be 1 to 100000.", true);
+  if (!(iterations >= 0 && iterations <= 100000)) {
+    setStatus("bake-status", "Iterations must be 0 (the colour solve alone) to 100000.", true);
     return;
   }
   $("bake").disabled = true;

@@ -111,7 +111,7 @@ pub struct BakeRequest {
     /// Style strength.
     #[serde(default = "one")]
     pub alpha: f64,
-    /// Optimisation iterations (1 to 100,000).
+    /// Optimisation iterations after the colour solve (0, the solve alone, to 100,000).
     pub iterations: u64,
 }
 

@@ -478,9 +478,10 @@ impl State {
     pub(crate) fn start_bake(self: &Arc<Self>, req: &BakeRequest) -> Result<String, ApiError> {
         self.bundle()?;
         stylize::check_alpha(req.alpha).map_err(|e| ApiError::bad(chain(&e)))?;
-        if !(1..=MAX_BAKE_ITERATIONS).contains(&req.iterations) {
+        if req.iterations > MAX_BAKE_ITERATIONS {
             return Err(ApiError::bad(format!(
-                "iterations {}: a bake runs 1 to {MAX_BAKE_ITERATIONS} iterations",
+                "iterations {}: a bake runs 0 (the colour solve alone) to {MAX_BAKE_ITERATIONS} \
+                 iterations",
                 req.iterations
             )));
         }

@@ -172,10 +172,10 @@ pub struct BundleStyleArgs {
 /// The style flags of `stylize` and `eval`.
 #[derive(Args)]
 pub struct StyleArgs {
-    /// Style image; repeat for several (at least one).
+    /// Style image or folder of them; repeat for several (at least one).
     #[arg(long = "style")]
     pub styles: Vec<PathBuf>,
-    /// Mix the styles into one output with these weights (comma-separated, one per --style,
+    /// Mix the styles into one output with these weights (comma-separated, one per style image,
     /// each 0 or more, not all 0) [default: none: one output per style]
     #[arg(long, value_delimiter = ',', value_parser = non_negative)]
     pub mix: Option<Vec<f64>>,
@@ -330,10 +330,11 @@ pub struct FitFeaturesArgs {
 pub struct BakeArgs {
     /// Scene bundle directory.
     pub bundle: PathBuf,
-    /// Style image; repeat for several, mixed with --mix into one (at least one).
+    /// Style image or folder of them; repeat for several, mixed with --mix into one (at least
+    /// one).
     #[arg(long = "style", required = true)]
     pub styles: Vec<PathBuf>,
-    /// Mix the styles with these weights (comma-separated, one per --style, each 0 or more, not
+    /// Mix the styles with these weights (comma-separated, one per style image, each 0 or more, not
     /// all 0) [default: none; needed with several styles]
     #[arg(long, value_delimiter = ',', value_parser = non_negative)]
     pub mix: Option<Vec<f64>>,
@@ -476,7 +477,8 @@ pub struct AssembleArgs {
 pub struct ViewArgs {
     /// The scene: a scene bundle directory (stylizable) or any 3DGS .ply file.
     pub scene: PathBuf,
-    /// Style image offered in the page; repeat for several (the page can upload more).
+    /// Style image (or folder of them) offered in the page; repeat for several (the page can
+    /// upload more).
     #[arg(long = "style")]
     pub styles: Vec<PathBuf>,
     /// Port to listen on (0: any free port).

@@ -153,7 +153,10 @@ fn path_list_flags_take_one_value_per_occurrence_and_are_repeated() {
 fn weights_names_network_files_and_mix_the_weights_of_a_style_mixture() {
     for command in ["stylize", "eval", "bake"] {
         let h = help(command);
-        assert!(flag_help(&h, "--mix").contains("one per --style"), "{h}");
+        assert!(
+            flag_help(&h, "--mix").contains("one per style image"),
+            "{h}"
+        );
         assert!(!h.contains("--weights"), "{command}: {h}");
     }
     for command in ["fit-features", "pretrain-decoder", "demo"] {

@@ -80,11 +80,25 @@ pub fn style_names(paths: &[PathBuf]) -> Vec<String> {
 
 /// Reads and decodes every style image, each reduced so its longer side is at most `max_side`
 /// ([`image_io::load_style_image`]), failing on the first that is missing, not an image or
-/// beyond the size limits, with a message naming it (`style image {path}: ...`).
+/// beyond the size limits, with a message naming it (`style image {path}: ...`). A folder
+/// stands for its `.png` and `.jpg` files in name order (a folder without any is an error
+/// naming it).
 pub fn load_styles(paths: &[PathBuf], max_side: u32) -> Result<Vec<StyleImage>> {
     if paths.is_empty() {
         bail!("no style image given (--style IMG)");
     }
+    let mut expanded = Vec::with_capacity(paths.len());
+    for p in paths {
+        if p.is_dir() {
+            expanded.extend(crate::stylize_image::image_files(
+                std::slice::from_ref(p),
+                "style",
+            )?);
+        } else {
+            expanded.push(p.clone());
+        }
+    }
+    let paths = &expanded;
     let names = style_names(paths);
     paths
         .iter()

@@ -1,7 +1,7 @@
 //! Inputs that must be refused up front, with a message naming the value or file and the
 //! problem once: style images that do not decode (before any output exists), image sizes
 //! beyond the limits (before anything is allocated), style strengths and mixture weights out
-//! of range, and missing bundles or empty scenes.
+//! of range, missing bundles or empty scenes, and style folders (their images, in name order).
 //!
 //! The stages run on a tiny bundle: 64 Gaussians on a grid with random 4-d features, a random
 //! lifter, the real relu3_1 WCT encoder and decoder (from the shared data), and 8 orbit cameras
@@ -509,6 +509,33 @@ fn an_orbit_around_an_empty_scene_names_its_file() {
     assert!(
         text.starts_with(&format!("{}: ", ply.display())) && text.contains("no Gaussians"),
         "{text}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A style folder stands for its images in name order (other files ignored); an empty folder
+/// is an error naming it; files given beside a folder keep their place.
+#[test]
+fn a_style_folder_stands_for_its_images_in_name_order() {
+    let dir = scratch("style-folder");
+    let folder = dir.join("paintings");
+    std::fs::create_dir_all(&folder).unwrap();
+    for name in ["b.png", "a.jpg"] {
+        std::fs::copy(style(), folder.join(name)).unwrap();
+    }
+    std::fs::write(folder.join("notes.txt"), "not an image").unwrap();
+    let styles = pipeline::stylize::load_styles(&[style(), folder.clone()], 64).unwrap();
+    let paths: Vec<PathBuf> = styles.iter().map(|s| s.path.clone()).collect();
+    assert_eq!(paths, [style(), folder.join("a.jpg"), folder.join("b.png")]);
+    let empty = dir.join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let err = format!(
+        "{:#}",
+        pipeline::stylize::load_styles(std::slice::from_ref(&empty), 64).unwrap_err()
+    );
+    assert!(
+        err.contains("empty") && err.contains("no .png or .jpg"),
+        "{err}"
     );
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -1,5 +1,6 @@
 //! Images in and out: PNG frames, animated GIFs, contact sheets, MP4 through an external
-//! `ffmpeg`, and the conversions between the two image layouts of dsgs.
+//! `ffmpeg`, the conversions between the two image layouts of dsgs, and the image files of a
+//! list of files and folders ([`image_files`]).
 //!
 //! Images are [`RgbImage`]s (row-major RGB `f32`, channels interleaved, nominally in `[0, 1]`)
 //! or network tensors `[1, 3, H, W]`. Writing quantises `round(255 clamp(v, 0, 1))`. Every file
@@ -337,6 +338,40 @@ pub fn encode_mp4(ffmpeg: &Path, dir: &Path, fps: f64, out: &Path) -> Result<()>
         );
     }
     std::fs::rename(&tmp, out).with_context(|| format!("writing {}", out.display()))
+}
+
+/// The image files of `sources`: files as given, folders' image files (`.png`, `.jpg`,
+/// `.jpeg`) in name order. A missing path or a folder without images is an error naming it.
+pub fn image_files(sources: &[PathBuf], role: &str) -> Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    for s in sources {
+        if s.is_dir() {
+            let mut found: Vec<PathBuf> = std::fs::read_dir(s)
+                .with_context(|| format!("reading the {role} folder {}", s.display()))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.is_file() && is_image_name(p))
+                .collect();
+            if found.is_empty() {
+                bail!("{role} folder {}: no .png or .jpg files", s.display());
+            }
+            found.sort();
+            out.extend(found);
+        } else if s.is_file() {
+            out.push(s.clone());
+        } else {
+            bail!("{role} {}: no such file or folder", s.display());
+        }
+    }
+    if out.is_empty() {
+        bail!("no {role} images given");
+    }
+    Ok(out)
+}
+
+fn is_image_name(p: &Path) -> bool {
+    p.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["png", "jpg", "jpeg"].contains(&e.to_ascii_lowercase().as_str()))
 }
 
 #[cfg(test)]

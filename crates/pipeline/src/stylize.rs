@@ -90,7 +90,7 @@ pub fn load_styles(paths: &[PathBuf], max_side: u32) -> Result<Vec<StyleImage>> 
     let mut expanded = Vec::with_capacity(paths.len());
     for p in paths {
         if p.is_dir() {
-            expanded.extend(crate::stylize_image::image_files(
+            expanded.extend(crate::image_io::image_files(
                 std::slice::from_ref(p),
                 "style",
             )?);

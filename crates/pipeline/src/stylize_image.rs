@@ -32,7 +32,7 @@ use train::Variant;
 
 use crate::cli::{fraction, non_negative, variant};
 use crate::error::{bail, Context, Result};
-use crate::image_io::{self, nchw_from_rgb, rgb_from_nchw, RgbImage};
+use crate::image_io::{self, image_files, nchw_from_rgb, rgb_from_nchw, RgbImage};
 use crate::pretrain_decoder::NetworkFiles;
 use crate::stylize::{check_alpha, normalised_weights};
 use crate::{Control, Stage, Tally};
@@ -191,34 +191,6 @@ impl StylizeImageReport {
     }
 }
 
-/// The image files of `sources`: files as given, folders' image files (`.png`, `.jpg`,
-/// `.jpeg`) in name order. A missing path or a folder without images is an error naming it.
-pub fn image_files(sources: &[PathBuf], role: &str) -> Result<Vec<PathBuf>> {
-    let mut out = Vec::new();
-    for s in sources {
-        if s.is_dir() {
-            let mut found: Vec<PathBuf> = std::fs::read_dir(s)
-                .with_context(|| format!("reading the {role} folder {}", s.display()))?
-                .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| p.is_file() && is_image_name(p))
-                .collect();
-            if found.is_empty() {
-                bail!("{role} folder {}: no .png or .jpg files", s.display());
-            }
-            found.sort();
-            out.extend(found);
-        } else if s.is_file() {
-            out.push(s.clone());
-        } else {
-            bail!("{role} {}: no such file or folder", s.display());
-        }
-    }
-    if out.is_empty() {
-        bail!("no {role} images given");
-    }
-    Ok(out)
-}
-
 /// `img` centre-cropped to the largest size whose sides are multiples of `m` (at least `m`).
 fn crop_to_multiple(img: RgbImage, m: u32) -> RgbImage {
     let (w, h) = ((img.width / m * m).max(m), (img.height / m * m).max(m));
@@ -236,12 +208,6 @@ fn crop_to_multiple(img: RgbImage, m: u32) -> RgbImage {
         height: h,
         data,
     }
-}
-
-fn is_image_name(p: &Path) -> bool {
-    p.extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| ["png", "jpg", "jpeg"].contains(&e.to_ascii_lowercase().as_str()))
 }
 
 fn stem(p: &Path) -> String {

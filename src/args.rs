@@ -10,21 +10,20 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use clap::builder::StyledStr;
-use clap::error::{ContextKind, ContextValue, ErrorKind};
 use clap::{Args, CommandFactory, FromArgMatches, Parser, Subcommand};
 use pipeline::bake::BakeOverrides;
 use pipeline::cameras::CameraArgs;
 use pipeline::cli::{
-    at_least_one, decoder_mode, feature_norm, fraction, mebibytes, non_negative, one_of, positive,
-    renamed_to_mix, variant, with_default, BAKE_CONFIG_HELP, CONFIG_HELP,
+    at_least_one, background, decoder_mode, feature_norm, fraction, mebibytes, non_negative,
+    one_of_or_alias, positive, renamed_to_mix, variant, with_default, BAKE_CONFIG_HELP,
+    CONFIG_HELP,
 };
 use pipeline::consistency::WarpOptions;
 use pipeline::demo::DemoSettings;
-use pipeline::fit_features::{FeatureOverrides, FitFeaturesConfig};
+use pipeline::fit_features::{DatasetArg, FeatureOverrides, FitFeaturesConfig};
 use pipeline::fit_geometry::{FitGeometryConfig, FitSettings};
 use pipeline::pretrain_decoder::DecoderOverrides;
-use pipeline::render::{DepthStyle, RenderKind};
+use pipeline::render::{DepthStyle, RenderKind, SceneArg};
 use pipeline::shard::{Invocation, Part, Shard};
 use pipeline::stylize_image::StylizeImageSettings;
 use train::{BakeConfig, DecoderMode, DecoderTrainConfig, FeatureNorm, Variant};
@@ -183,7 +182,7 @@ pub struct StyleArgs {
     #[arg(long, default_value_t = 1.0, value_parser = fraction)]
     pub alpha: f64,
     /// Keep the scene's colours (the style images are colour-matched to the colour renders).
-    #[arg(long)]
+    #[arg(long, alias = "preserve-color")]
     pub preserve_colour: bool,
     #[command(flatten)]
     pub bundle: BundleStyleArgs,
@@ -258,12 +257,11 @@ pub struct PretrainDecoderArgs {
 
 #[derive(Args)]
 pub struct FitFeaturesArgs {
+    #[command(flatten)]
+    pub dataset: DatasetArg,
     /// The trained geometry (.ply).
     #[arg(long)]
     pub geometry: PathBuf,
-    /// The dataset the geometry was trained on (COLMAP, NeRF-synthetic or LLFF layout).
-    #[arg(long)]
-    pub dataset: PathBuf,
     /// Style image folder or file; repeat for several (at least one).
     #[arg(long = "style", required = true)]
     pub styles: Vec<PathBuf>,
@@ -358,17 +356,20 @@ pub struct BakeArgs {
 
 #[derive(Args)]
 pub struct RenderArgs {
-    /// The scene: a .ply file or a scene bundle directory.
-    #[arg(long)]
-    pub scene: PathBuf,
+    #[command(flatten)]
+    pub scene: SceneArg,
     #[command(flatten)]
     pub cameras: CameraArgs,
     /// What to draw.
-    #[arg(long, default_value = "color", value_parser = one_of::<RenderKind>(RenderKind::NAMES.iter().copied()))]
+    #[arg(long, default_value = "colour", value_parser = one_of_or_alias::<RenderKind>(RenderKind::NAMES, RenderKind::ALIASES))]
     pub what: RenderKind,
     /// How depth is drawn.
-    #[arg(long, default_value = "colour", value_parser = one_of::<DepthStyle>(DepthStyle::NAMES.iter().copied()))]
+    #[arg(long, default_value = "colour", value_parser = one_of_or_alias::<DepthStyle>(DepthStyle::NAMES, DepthStyle::ALIASES))]
     pub depth_style: DepthStyle,
+    /// Background of colour renders: white, black or R,G,B in [0, 1] [default: a bundle's
+    /// training background; black for a .ply]
+    #[arg(long, value_parser = background)]
+    pub background: Option<[f32; 3]>,
     /// Output directory (frame_XXXX.png).
     #[arg(short, long)]
     pub output: PathBuf,
@@ -507,11 +508,6 @@ pub struct ViewArgs {
 
 // ---- Parsing ----
 
-/// The tip added to an unexpected positional argument: most likely a second value given to a
-/// one-value path flag.
-const REPEAT_TIP: &str = "a flag takes one path per occurrence: repeat it for several, as in \
-                          '--style a.jpg --style b.jpg'";
-
 /// The training commands' run flags whose defaults come from the command's configuration:
 /// (subcommand, checkpoint interval, log interval).
 fn run_defaults() -> [(&'static str, u64, u64); 4] {
@@ -541,24 +537,8 @@ pub fn command() -> clap::Command {
                 .mut_arg("log_every", |a| add(a, log))
         });
     }
-    cmd
-}
-
-/// Adds [`REPEAT_TIP`] to an unexpected-argument error about a value (not a flag).
-fn with_repeat_tip(mut e: clap::Error) -> clap::Error {
-    let about_a_value = matches!(
-        e.get(ContextKind::InvalidArg),
-        Some(ContextValue::String(a)) if !a.starts_with('-')
-    );
-    if e.kind() == ErrorKind::UnknownArgument && about_a_value {
-        let mut tips = match e.get(ContextKind::Suggested) {
-            Some(ContextValue::StyledStrs(t)) => t.clone(),
-            _ => Vec::new(),
-        };
-        tips.push(StyledStr::from(REPEAT_TIP));
-        e.insert(ContextKind::Suggested, ContextValue::StyledStrs(tips));
-    }
-    e
+    cmd = pipeline::cameras::with_default_sources(cmd);
+    cmd.mut_subcommand("stylize", |sub| sub.mut_arg("styles", |a| a.required(true)))
 }
 
 /// Parses the process's arguments, or exits with clap's message.
@@ -568,7 +548,12 @@ pub fn parse() -> Cli {
         .and_then(|m| Cli::from_arg_matches(&m));
     match parsed {
         Ok(cli) => cli,
-        Err(e) => with_repeat_tip(e).exit(),
+        Err(e) => {
+            let sub = std::env::args()
+                .nth(1)
+                .and_then(|n| command().find_subcommand(&n).cloned());
+            pipeline::cli::with_repeat_tip(e, sub.as_ref()).exit()
+        }
     }
 }
 

@@ -7,12 +7,12 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{bail, Context, Result};
 use pipeline::bake::{BakeOverrides, BakeSettings};
-use pipeline::cameras::{CameraSource, KnownCameras};
+use pipeline::cameras::{default_source, KnownCameras};
 use pipeline::fit_features::{FeatureOverrides, FitFeaturesSettings};
 use pipeline::fit_geometry::{FitSettings, GeometryOverrides};
 use pipeline::open::load_bundle;
 use pipeline::pretrain_decoder::{DecoderOverrides, NetworkFiles, PretrainSettings};
-use pipeline::render::SceneInput;
+use pipeline::render::{render_views, SceneInput};
 use pipeline::shard::Part;
 use pipeline::{Control, RunOutcome};
 
@@ -173,7 +173,7 @@ pub fn pretrain_decoder(a: PretrainDecoderArgs) -> Result<()> {
 pub fn fit_features(a: FitFeaturesArgs) -> Result<()> {
     let settings = FitFeaturesSettings {
         geometry: a.geometry,
-        dataset: a.dataset,
+        dataset: a.dataset.path()?,
         styles: a.styles,
         eval_styles: a.eval_styles,
         networks: NetworkFiles {
@@ -242,15 +242,12 @@ pub fn bake(a: BakeArgs, part: Part) -> Result<()> {
 }
 
 pub fn render(a: RenderArgs) -> Result<()> {
-    let scene = SceneInput::open(&a.scene)?;
-    let cams = a.cameras.select(
-        CameraSource::Orbit,
-        scene.known_cameras(),
-        scene.gaussians(),
-    )?;
+    let scene = SceneInput::open(&a.scene.path()?)?;
+    let source = default_source("render");
+    let cams = (a.cameras).select(source, scene.known_cameras(), scene.gaussians())?;
     let terminal = Terminal::new("render", !a.no_progress);
-    let written =
-        pipeline::render::render_views(&scene, &cams, a.what, a.depth_style, &a.output, &terminal)?;
+    let look = (a.what, a.depth_style);
+    let written = render_views(&scene, &cams, look, a.background, &a.output, &terminal)?;
     println!("{} images written to {}", written.len(), a.output.display());
     Ok(())
 }
@@ -266,9 +263,6 @@ pub fn demo(a: DemoArgs) -> Result<()> {
 }
 
 pub fn stylize(a: StylizeArgs, part: Part) -> Result<()> {
-    if a.style.styles.is_empty() {
-        bail!("give at least one --style image to stylize with");
-    }
     let style = a.style;
     let bundle = load_bundle(
         &a.bundle,
@@ -278,7 +272,7 @@ pub fn stylize(a: StylizeArgs, part: Part) -> Result<()> {
     let known = KnownCameras::from_bundle(&bundle, &a.bundle.display().to_string());
     let cams = a
         .cameras
-        .select(CameraSource::Orbit, known, &bundle.scene)?;
+        .select(default_source("stylize"), known, &bundle.scene)?;
     let settings = pipeline::stylize::StylizeSettings {
         styles: style.styles,
         weights: style.mix,
@@ -314,7 +308,7 @@ pub fn eval(a: EvalArgs, part: Part) -> Result<()> {
         let known = scene.known_cameras();
         let cams = a
             .cameras
-            .select(CameraSource::Dense, known, scene.gaussians())?;
+            .select(default_source("eval"), known, scene.gaussians())?;
         pipeline::eval::evaluate_frames(&scene, &cams, frames_dir, &a.warp, &terminal)?
     } else {
         let Some(dir) = &a.bundle else {
@@ -325,7 +319,7 @@ pub fn eval(a: EvalArgs, part: Part) -> Result<()> {
         let known = KnownCameras::from_bundle(&bundle, &dir.display().to_string());
         let cams = a
             .cameras
-            .select(CameraSource::Dense, known, &bundle.scene)?;
+            .select(default_source("eval"), known, &bundle.scene)?;
         let settings = pipeline::eval::EvalSettings {
             styles: style.styles,
             weights: style.mix,

@@ -108,9 +108,8 @@ fn path_list_flags_take_one_value_per_occurrence_and_are_repeated() {
     ]);
     parses(&[
         "fit-features",
-        "--geometry",
         m,
-        "--dataset",
+        "--geometry",
         m,
         "--style",
         "a.jpg",
@@ -355,6 +354,22 @@ fn every_value_flag_shows_its_default_and_enumerated_flags_their_values() {
     let render = help("render");
     assert!(flag_help(&render, "--what").contains("[possible values: "));
     assert!(flag_help(&render, "--cameras").contains("[possible values: "));
+    // Each command shows its own default camera source, and only that one.
+    for (command, source) in [("render", "orbit"), ("stylize", "orbit"), ("eval", "dense")] {
+        let text = flag_help(&help(command), "--cameras");
+        assert_eq!(text.matches("[default: ").count(), 1, "{command}: `{text}`");
+        assert!(text.contains(&format!("[default: {source}]")), "{command}: `{text}`");
+    }
+}
+
+#[test]
+fn a_missing_required_input_is_a_usage_error_whichever_it_is() {
+    // Without --style or without -o, stylize stops at parsing with the same status.
+    let no_style = parse_error(&["stylize", "BUNDLE", "-o", "out"]);
+    assert!(no_style.contains("--style"), "{no_style}");
+    let no_output = parse_error(&["stylize", "BUNDLE", "--style", "a.jpg"]);
+    assert!(no_output.contains("--output"), "{no_output}");
+    parse_error(&["render", "-o", "out"]);
 }
 
 #[test]
@@ -388,7 +403,7 @@ fn every_long_running_command_takes_no_progress() {
 #[test]
 fn out_of_range_numbers_are_refused_while_parsing_naming_flag_and_range() {
     let stylize = ["stylize", "B", "--style", "a.jpg", "-o", "o"];
-    let render = ["render", "--scene", "s.ply", "-o", "o"];
+    let render = ["render", "s.ply", "-o", "o"];
     let bake = ["bake", "B", "--style", "a.jpg", "-o", "x.ply"];
     let geometry = ["fit-geometry", "D", "-o", "o"];
     let decoder = [

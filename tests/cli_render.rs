@@ -13,7 +13,7 @@ fn orbit_renders_have_the_requested_size() {
     for what in ["color", "depth", "alpha"] {
         let out = dir.join(what);
         ok(dsgs()
-            .args(["render", "--scene"])
+            .arg("render")
             .arg(&ply)
             .args([
                 "--cameras",
@@ -78,7 +78,7 @@ fn bad_render_input_is_refused_with_a_message() {
     // A .ply carries no cameras.
     let err = fails(
         dsgs()
-            .args(["render", "--scene"])
+            .arg("render")
             .arg(&ply)
             .args(["--cameras", "dataset", "-o"])
             .arg(dir.join("x")),
@@ -90,7 +90,7 @@ fn bad_render_input_is_refused_with_a_message() {
     // No features to project.
     let err = fails(
         dsgs()
-            .args(["render", "--scene"])
+            .arg("render")
             .arg(&ply)
             .args(["--what", "features-pca", "--frames", "1", "-o"])
             .arg(dir.join("y")),
@@ -99,7 +99,7 @@ fn bad_render_input_is_refused_with_a_message() {
     // A missing scene.
     let err = fails(
         dsgs()
-            .args(["render", "--scene", "no/such/scene.ply", "-o"])
+            .args(["render", "no/such/scene.ply", "-o"])
             .arg(dir.join("z")),
     );
     assert!(err.contains("no/such/scene.ply"), "{err}");
@@ -118,7 +118,7 @@ fn a_huge_image_size_is_refused_quickly_naming_the_limit() {
         let started = std::time::Instant::now();
         let err = fails(
             dsgs()
-                .args(["render", "--scene"])
+                .arg("render")
                 .arg(&ply)
                 .args(["--frames", "1", flag, value, "-o"])
                 .arg(&out),
@@ -132,5 +132,80 @@ fn a_huge_image_size_is_refused_quickly_naming_the_limit() {
             started.elapsed()
         );
     }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The frames of `dir`, decoded, in name order.
+fn frames(dir: &std::path::Path) -> Vec<image::RgbImage> {
+    let mut names: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    names.sort();
+    names
+        .iter()
+        .map(|p| image::open(p).unwrap().to_rgb8())
+        .collect()
+}
+
+#[test]
+fn the_scene_is_the_first_argument_and_spellings_and_backgrounds_are_accepted() {
+    let ply = shared_path("data/gaussians/trained_9080.ply");
+    let dir = scratch("render-spellings");
+    let render = |name: &str, extra: &[&str]| {
+        let out = dir.join(name);
+        ok(dsgs()
+            .arg("render")
+            .arg(&ply)
+            .args(["--frames", "2"])
+            .args(if extra.contains(&"--scale") || extra.contains(&"--downscale") {
+                &[][..]
+            } else {
+                &["--width", "48"][..]
+            })
+            .args(extra)
+            .arg("-o")
+            .arg(&out));
+        frames(&out)
+    };
+    let colour = render("colour", &["--what", "colour"]);
+    // Both spellings draw the same images; so does the flag the scene was given by before.
+    assert_eq!(render("color", &["--what", "color"]), colour);
+    let out = dir.join("flag");
+    ok(dsgs()
+        .args(["render", "--scene"])
+        .arg(&ply)
+        .args(["--frames", "2", "--width", "48", "-o"])
+        .arg(&out));
+    assert_eq!(frames(&out), colour);
+    assert_eq!(
+        render("grey", &["--what", "depth", "--depth-style", "grey"]),
+        render("gray", &["--what", "depth", "--depth-style", "gray"])
+    );
+    // A .ply is drawn over black; --background white changes exactly the pixels the scene does
+    // not cover completely, towards white.
+    let white = render("white", &["--background", "white"]);
+    let corner = |f: &image::RgbImage| f.get_pixel(0, 0).0;
+    assert_eq!(corner(&colour[0]), [0, 0, 0]);
+    assert_eq!(corner(&white[0]), [255, 255, 255]);
+    for (b, w) in colour[0].pixels().zip(white[0].pixels()) {
+        assert!(b.0.iter().zip(w.0).all(|(b, w)| w >= *b), "{b:?} {w:?}");
+    }
+    // --downscale is the inverse of --scale.
+    let half = render("half", &["--scale", "0.5"]);
+    assert_eq!(render("down", &["--downscale", "2"]), half);
+    // Without cameras an orbit is 256 pixels square (--width alone keeps it square).
+    assert_eq!(half[0].dimensions(), (128, 128));
+    assert_eq!(colour[0].dimensions(), (48, 48));
+    // A second scene is not taken for a repeated flag: no tip about repeating --style.
+    let err = fails(
+        dsgs()
+            .arg("render")
+            .arg(&ply)
+            .arg(&ply)
+            .arg("-o")
+            .arg(dir.join("two")),
+    );
+    assert!(err.contains("unexpected argument") && !err.contains("--style"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }

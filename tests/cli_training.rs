@@ -529,7 +529,7 @@ fn bake_writes_a_plain_ply_and_a_report() {
     // cameras 0 and 8 of the 16 64x64 orbit cameras.
     let frames = dir.join("baked_test");
     ok(dsgs()
-        .args(["render", "--scene"])
+        .arg("render")
         .arg(&out)
         .arg("--dataset")
         .arg(bundle)

@@ -366,6 +366,22 @@ fn a_scene_that_cannot_be_read_is_named() {
     assert!(err.contains("nothing.ply"), "{err}");
 }
 
+#[test]
+fn a_port_in_use_is_named_with_the_way_out() {
+    // Hold a loopback port, then ask the viewer for it.
+    let held = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = held.local_addr().unwrap().port().to_string();
+    let out = Command::new(env!("CARGO_BIN_EXE_dsgs"))
+        .arg("view")
+        .arg(repo_fixture("ply/tiny_ascii_deg1.ply"))
+        .args(["--port", &port])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains(&port) && err.contains("--port 0"), "{err}");
+}
+
 /// An all-zero RGB PNG of `side x side` pixels, written row by row (a decompression bomb: a
 /// few hundred KB that decode to `3 * side^2` bytes).
 fn zero_png(side: u32) -> Vec<u8> {

@@ -132,7 +132,7 @@ fn the_page_draws_a_bundle_camera_as_dsgs_render_does() {
 
     let frames = dir.join("render");
     ok(dsgs()
-        .args(["render", "--scene"])
+        .arg("render")
         .arg(&bundle)
         .args(["--cameras", "dataset", "--no-progress", "-o"])
         .arg(&frames));

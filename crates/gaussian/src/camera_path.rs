@@ -4,6 +4,13 @@
 //! unit quaternions) are slerped along the shorter arc, camera centres and intrinsics are lerped.
 //! Orbits circle a centre at a fixed radius and elevation above the plane orthogonal to `up`,
 //! every camera looking at the centre with its image "up" (OpenCV -y) along the world `up`.
+//!
+//! A [`tour`] is the smooth video path through a capture: the cameras' azimuths about `up`
+//! around the centre they look at fix the arc it sweeps (the whole circle when they surround
+//! the centre, else the range they cover), and the radius and elevation along it are the
+//! cameras' own, smoothed by a kernel in azimuth, so that it never jumps between cameras that
+//! are far apart in the capture's order, never comes nearer the centre than the nearest camera,
+//! and keeps the centre in the middle of every frame.
 
 use glam::{DMat3, DQuat, DVec3};
 
@@ -25,7 +32,7 @@ pub enum CameraPathError {
     #[error("orbit up axis must be a finite non-zero vector, got {}", plain_numbers(&.0.to_array()))]
     Up(DVec3),
     /// [`orbit_from`]'s start camera lies on the line through `center` along `up`, so it has no
-    /// horizontal direction to start from.
+    /// horizontal direction to start from (for [`tour`]: every camera does).
     #[error("orbit start camera sits on the orbit axis through the centre")]
     OnAxis,
 }
@@ -222,6 +229,101 @@ fn start_on_orbit(
         up_n,
         e1,
     )
+}
+
+/// The widest gap (radians) between neighbouring camera azimuths for which a [`tour`] circles
+/// the whole way round: with no gap wider than a quarter turn the cameras surround the centre.
+pub const TOUR_CLOSED_GAP: f64 = std::f64::consts::FRAC_PI_2;
+
+/// The kernel width (radians) of the smoothing of radius and elevation along a [`tour`]: the
+/// standard deviation of a Gaussian in azimuth, wide enough that neighbouring cameras at
+/// different heights or distances give a gentle slope, not a corner.
+pub const TOUR_SMOOTHING: f64 = 0.5;
+
+/// `n_frames` cameras on a smooth path around `center` through the region the `cameras` see it
+/// from, each looking at `center` with its image up along `up`, with the first camera's
+/// intrinsics.
+///
+/// Each camera's position is taken in cylindrical terms about the axis through `center` along
+/// `up`: azimuth, elevation and distance. When no two neighbouring azimuths are more than
+/// [`TOUR_CLOSED_GAP`] apart the path is a loop starting at the first camera's azimuth
+/// (`2 pi f / n_frames`, no frame repeated); otherwise it sweeps, at a constant angular step,
+/// the arc the cameras cover (the circle without its widest gap), from one end to the other.
+/// At each azimuth the elevation and the distance are averages over all cameras weighted by a
+/// Gaussian of their azimuth difference ([`TOUR_SMOOTHING`], wrapped around the circle), so
+/// they vary smoothly and the distance stays within the cameras' range. Cameras on the axis
+/// have no azimuth and are left out; [`CameraPathError::OnAxis`] when all are.
+pub fn tour(
+    cameras: &[Camera],
+    center: DVec3,
+    up: DVec3,
+    n_frames: usize,
+) -> Result<Vec<Camera>, CameraPathError> {
+    use std::f64::consts::{PI, TAU};
+    let up_n = check_up(up)?;
+    let first = cameras.first().ok_or(CameraPathError::NoKeyframes)?;
+    let e1 = up_n.any_orthonormal_vector();
+    let e2 = up_n.cross(e1);
+    // (azimuth, elevation, distance) of every camera off the axis.
+    let mut polar = Vec::with_capacity(cameras.len());
+    for c in cameras {
+        let offset = c.center() - center;
+        let height = offset.dot(up_n);
+        let horizontal = offset - height * up_n;
+        // A camera on the axis has no azimuth: it does not shape the path.
+        if horizontal.length() <= 1e-9 * offset.length() || !horizontal.is_finite() {
+            continue;
+        }
+        let azimuth = horizontal.dot(e2).atan2(horizontal.dot(e1)).rem_euclid(TAU);
+        polar.push((azimuth, height.atan2(horizontal.length()), offset.length()));
+    }
+    if polar.is_empty() {
+        return Err(CameraPathError::OnAxis);
+    }
+    let mut sorted: Vec<f64> = polar.iter().map(|p| p.0).collect();
+    sorted.sort_by(f64::total_cmp);
+    // The widest gap between neighbouring azimuths, the wrap-around one included.
+    let (mut gap, mut gap_end) = (sorted[0] + TAU - sorted[sorted.len() - 1], sorted[0]);
+    for w in sorted.windows(2) {
+        if w[1] - w[0] > gap {
+            (gap, gap_end) = (w[1] - w[0], w[1]);
+        }
+    }
+    let closed = gap <= TOUR_CLOSED_GAP;
+    let azimuth = |f: usize| -> f64 {
+        if closed {
+            polar[0].0 + TAU * f as f64 / n_frames as f64
+        } else {
+            let span = TAU - gap;
+            let t = if n_frames > 1 {
+                f as f64 / (n_frames - 1) as f64
+            } else {
+                0.5
+            };
+            gap_end + span * t
+        }
+    };
+    (0..n_frames)
+        .map(|f| {
+            let phi = azimuth(f);
+            let (mut weight, mut elevation, mut distance) = (0.0, 0.0, 0.0);
+            for &(a, e, r) in &polar {
+                let d = (phi - a + PI).rem_euclid(TAU) - PI;
+                let w = (-0.5 * (d / TOUR_SMOOTHING).powi(2)).exp();
+                weight += w;
+                elevation += w * e;
+                distance += w * r;
+            }
+            // Every weight is at least exp(-0.5 (pi / TOUR_SMOOTHING)^2), about 3e-9: no
+            // division by zero.
+            let (elevation, distance) = (elevation / weight, distance / weight);
+            let (s, c) = phi.sin_cos();
+            let (se, ce) = elevation.sin_cos();
+            let eye = center + distance * (ce * (c * e1 + s * e2) + se * up_n);
+            look_at(first.intrinsics, eye, center, up_n)
+                .ok_or(CameraPathError::Elevation(elevation))
+        })
+        .collect()
 }
 
 fn check_up(up: DVec3) -> Result<DVec3, CameraPathError> {
@@ -477,5 +579,111 @@ mod tests {
             orbit(intr(), c, 1.0, f64::NAN, 4, DVec3::Y),
             Err(CameraPathError::Elevation(_))
         ));
+    }
+
+    /// Cameras looking at `target` from the given (azimuth, elevation, distance) about +z, in
+    /// the given order.
+    fn scattered(target: DVec3, polar: &[(f64, f64, f64)]) -> Vec<Camera> {
+        polar
+            .iter()
+            .map(|&(a, e, r)| {
+                let eye = target + r * DVec3::new(e.cos() * a.cos(), e.cos() * a.sin(), e.sin());
+                look_at(intr(), eye, target, DVec3::Z).unwrap()
+            })
+            .collect()
+    }
+
+    /// Pseudo-random numbers in [0, 1), reproducible.
+    fn uniform(n: usize, seed: u64) -> Vec<f64> {
+        let mut x = seed;
+        (0..n)
+            .map(|_| {
+                x = x
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (x >> 11) as f64 / (1u64 << 53) as f64
+            })
+            .collect()
+    }
+
+    /// A camera's azimuth about +z around `target`.
+    fn azimuth(c: &Camera, target: DVec3) -> f64 {
+        let d = c.center() - target;
+        d.y.atan2(d.x)
+    }
+
+    #[test]
+    fn a_tour_round_cameras_in_random_order_steps_evenly_and_keeps_its_distance() {
+        // 40 cameras all round a target, in random order, at random heights and distances: the
+        // order a NeRF-synthetic capture lists its cameras in.
+        let target = DVec3::new(0.5, -1.0, 2.0);
+        let u = uniform(120, 7);
+        let polar: Vec<_> = (0..40)
+            .map(|i| {
+                let a = std::f64::consts::TAU * u[3 * i];
+                (a, 0.1 + 1.0 * u[3 * i + 1], 3.0 + 2.0 * u[3 * i + 2])
+            })
+            .collect();
+        let cams = scattered(target, &polar);
+        let n = 48;
+        let path = tour(&cams, target, DVec3::Z, n).unwrap();
+        assert_eq!(path.len(), n);
+        // A loop from the first camera's azimuth, a constant step round the axis.
+        let step = std::f64::consts::TAU / n as f64;
+        assert!((azimuth(&path[0], target) - azimuth(&cams[0], target)).abs() < 1e-9);
+        for (i, w) in path.windows(2).enumerate() {
+            let turn =
+                (azimuth(&w[1], target) - azimuth(&w[0], target)).rem_euclid(std::f64::consts::TAU);
+            assert!((turn - step).abs() < 1e-9, "frame {i}: {turn}");
+            // No jumps: consecutive frames are little more than the turn's arc apart (a
+            // frame-to-frame path through the cameras in their order moves up to 10 units).
+            let moved = (w[1].center() - w[0].center()).length();
+            let r = (w[0].center() - target).length();
+            assert!(moved < 1.25 * step * r, "frame {i}: {moved}");
+        }
+        for c in &path {
+            // Never nearer than the nearest camera, never farther than the farthest.
+            let r = (c.center() - target).length();
+            assert!((3.0..=5.0).contains(&r), "{r}");
+            // The target at the principal point of every frame.
+            let p = c.camera_from_world.transform_point3(target);
+            let (x, y) = (
+                c.intrinsics.fx * p.x / p.z + c.intrinsics.cx,
+                c.intrinsics.fy * p.y / p.z + c.intrinsics.cy,
+            );
+            assert!(
+                p.z > 0.0
+                    && (x - c.intrinsics.cx).abs() < 1e-6
+                    && (y - c.intrinsics.cy).abs() < 1e-6
+            );
+        }
+    }
+
+    #[test]
+    fn a_tour_of_cameras_on_one_side_sweeps_their_arc() {
+        // Cameras between azimuths 1.0 and 2.0 only (a forward-facing capture), shuffled.
+        let target = DVec3::ZERO;
+        let order = [3, 0, 5, 1, 4, 2];
+        let polar: Vec<_> = order
+            .iter()
+            .map(|&k| (1.0 + 0.2 * k as f64, 0.3, 4.0))
+            .collect();
+        let cams = scattered(target, &polar);
+        let path = tour(&cams, target, DVec3::Z, 11).unwrap();
+        assert!((azimuth(&path[0], target) - 1.0).abs() < 1e-9);
+        assert!((azimuth(&path[10], target) - 2.0).abs() < 1e-9);
+        for w in path.windows(2) {
+            let turn = azimuth(&w[1], target) - azimuth(&w[0], target);
+            assert!((turn - 0.1).abs() < 1e-9, "{turn}");
+        }
+        // All cameras at one height and distance: so is the path.
+        for c in &path {
+            assert!(((c.center() - target).length() - 4.0).abs() < 1e-9);
+            assert!(((c.center() - target).z - 4.0 * 0.3f64.sin()).abs() < 1e-9);
+        }
+        // Cameras on the axis only: no path.
+        let above = scattered(target, &[(0.0, std::f64::consts::FRAC_PI_2, 2.0)]);
+        assert!(tour(&above, target, DVec3::Z, 4).is_err());
+        assert!(tour(&[], target, DVec3::Z, 4).is_err());
     }
 }

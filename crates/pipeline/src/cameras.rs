@@ -1,5 +1,5 @@
 //! Where rendering commands put their cameras: the cameras of a dataset or a bundle, the
-//! held-out split, an interpolated path through them, or an orbit.
+//! held-out split, a smooth tour of where they stand, or an orbit.
 //!
 //! Cameras follow `gaussian::camera` (`camera_from_world` in OpenCV axes, pixel centres at
 //! `i + 0.5`).
@@ -7,8 +7,11 @@
 //! * `dataset`: every known camera (at most `frames` of them, evenly spaced, when given).
 //! * `test`: the held-out ones (a bundle's `held_out` flags; for a dataset every 8th image,
 //!   index `% 8 == 0`, as `gaussian::dataset::eval_split`).
-//! * `path`: `frames` cameras interpolated through all known cameras in order
-//!   ([`gaussian::camera_path::interpolate`]).
+//! * `path`: `frames` cameras on a smooth tour of the region the known cameras see the scene
+//!   from ([`gaussian::camera_path::tour`]): all the way round when they surround it, else along
+//!   the arc they cover, at their (smoothed) heights and distances, always looking at the point
+//!   nearest to all their optical axes, about their mean image-up direction (or `up`). Never
+//!   a jump between cameras that are far apart in the capture's order.
 //! * `orbit`: `frames` cameras on a circle. With known cameras it starts at the first one and
 //!   circles the point nearest to all their optical axes (least squares) about their mean
 //!   image-up direction ([`gaussian::camera_path::orbit_from`]). Without cameras it circles the
@@ -30,7 +33,7 @@
 use crate::cli::{at_least_one, direction, one_of, positive, whole_in};
 use crate::error::{bail, Context, Error, Result};
 use gaussian::camera::MAX_IMAGE_SIDE;
-use gaussian::camera_path::{arc_from, interpolate, look_at_point, mean_up, orbit, orbit_from};
+use gaussian::camera_path::{arc_from, look_at_point, mean_up, orbit, orbit_from, tour};
 use gaussian::{Camera, FeatureGaussians, Intrinsics};
 use glam::DVec3;
 
@@ -74,6 +77,38 @@ pub fn check_camera_sizes(cameras: &[Camera]) -> Result<()> {
     Ok(())
 }
 
+/// The help of `--cameras`, without its default: each command adds its own
+/// ([`DEFAULT_SOURCES`]).
+pub const CAMERAS_HELP: &str = "Camera source: the dataset's or bundle's cameras, the held-out \
+     ones, a smooth tour round what they look at through where they stand, an orbit, or a dense \
+     arc (frames 1 degree apart around what the cameras look at)";
+
+/// The camera source of each command that renders when `--cameras` is not given.
+pub const DEFAULT_SOURCES: [(&str, CameraSource); 3] = [
+    ("render", CameraSource::Orbit),
+    ("stylize", CameraSource::Orbit),
+    ("eval", CameraSource::Dense),
+];
+
+/// `cmd` with each command's default camera source ([`DEFAULT_SOURCES`]) in the help of its
+/// `--cameras`.
+pub fn with_default_sources(mut cmd: clap::Command) -> clap::Command {
+    for (name, source) in DEFAULT_SOURCES {
+        let help = crate::cli::with_default(CAMERAS_HELP, source.as_str());
+        cmd = cmd.mut_subcommand(name, |sub| sub.mut_arg("cameras", |a| a.help(help)));
+    }
+    cmd
+}
+
+/// The camera source of `command` when `--cameras` is not given ([`DEFAULT_SOURCES`]; orbit for
+/// a command not listed).
+pub fn default_source(command: &str) -> CameraSource {
+    DEFAULT_SOURCES
+        .iter()
+        .find(|(c, _)| *c == command)
+        .map_or(CameraSource::Orbit, |(_, s)| *s)
+}
+
 /// The orbit radius, in median distances of the Gaussians from their median centre.
 pub const ORBIT_RADIUS_FACTOR: f64 = 2.5;
 /// Default number of frames of generated paths and orbits.
@@ -89,7 +124,7 @@ pub enum CameraSource {
     Dataset,
     /// The held-out cameras.
     Test,
-    /// A path interpolated through the cameras.
+    /// A smooth tour round what the cameras look at, through where they stand.
     Path,
     /// An orbit around the scene.
     Orbit,
@@ -233,9 +268,7 @@ pub struct CameraArgs {
     #[arg(
         long,
         value_parser = one_of::<CameraSource>(CameraSource::NAMES.iter().copied()),
-        help = "Camera source: the dataset's or bundle's cameras, the held-out ones, a path \
-                through them, an orbit, or a dense arc (frames 1 degree apart around what the \
-                cameras look at) [default: orbit; eval: dense]"
+        help = CAMERAS_HELP
     )]
     pub cameras: Option<CameraSource>,
     /// [`CameraRequest::frames`].
@@ -264,6 +297,16 @@ pub struct CameraArgs {
         help = "Scale every camera's image by this factor (above 0) [default: 1]"
     )]
     pub scale: Option<f64>,
+    /// The inverse of `scale`, in the words of the dataset commands (`fit-geometry`'s
+    /// `dataset.downscale`): the cameras of a dataset at the size a scene was fitted at.
+    #[arg(
+        long,
+        value_parser = positive,
+        conflicts_with = "scale",
+        help = "Divide every camera's image size by this factor, as fit-geometry's --downscale \
+                does (above 0; the inverse of --scale) [default: 1]"
+    )]
+    pub downscale: Option<f64>,
     /// Take the known cameras from this dataset or bundle directory instead of the scene's
     /// ([`KnownCameras::from_dir`]).
     #[arg(
@@ -292,7 +335,7 @@ impl CameraArgs {
             frames: self.frames,
             width: self.width,
             height: self.height,
-            scale: self.scale,
+            scale: self.scale.or(self.downscale.map(|d| 1.0 / d)),
             up: self.up,
         }
     }
@@ -511,7 +554,17 @@ pub fn select(
             if known.cameras.is_empty() {
                 return Err(no_cameras(known, "path"));
             }
-            interpolate(&known.cameras, req.frames.unwrap_or(DEFAULT_FRAMES))?
+            let centre = look_at_point(&known.cameras).unwrap_or_else(|| median_centre(scene));
+            let up = req
+                .up
+                .or_else(|| mean_up(&known.cameras))
+                .unwrap_or(DVec3::NEG_Y);
+            tour(
+                &known.cameras,
+                centre,
+                up,
+                req.frames.unwrap_or(DEFAULT_FRAMES),
+            )?
         }
         CameraSource::Orbit => orbit_cameras(req, known, scene)?,
         CameraSource::Dense => {
@@ -575,7 +628,11 @@ fn orbit_cameras(
     dist.sort_by(f64::total_cmp);
     let radius = ORBIT_RADIUS_FACTOR * dist[dist.len() / 2].max(1e-6);
     let side = DEFAULT_SIDE;
-    let (w, h) = (req.width.unwrap_or(side), req.height.unwrap_or(side));
+    // Square unless both sides are given: one alone keeps the default's aspect ratio.
+    let (w, h) = (
+        req.width.or(req.height).unwrap_or(side),
+        req.height.or(req.width).unwrap_or(side),
+    );
     let focal = 0.5 * w as f64 / 30f64.to_radians().tan();
     let k = Intrinsics {
         fx: focal,
@@ -653,5 +710,33 @@ mod tests {
         req.source = CameraSource::Dataset;
         let e = select(&req, &empty, &scene).unwrap_err().to_string();
         assert!(e.contains("scene.ply") && e.contains("no cameras"), "{e}");
+    }
+
+    #[test]
+    fn the_path_is_smooth_whatever_the_cameras_order() {
+        // The ring's cameras in a scrambled order (as NeRF-synthetic captures list theirs): the
+        // path still turns evenly round what they look at, never jumping across the ring.
+        let ring = ring(16);
+        let cameras: Vec<Camera> = (0..16).map(|i| ring[(i * 7) % 16]).collect();
+        let known = KnownCameras {
+            held_out: vec![false; 16],
+            cameras,
+            names: Vec::new(),
+            origin: "ring".into(),
+        };
+        let mut req = CameraRequest::new(CameraSource::Path);
+        req.frames = Some(24);
+        let path = select(&req, &known, &FeatureGaussians::<f32>::default()).unwrap();
+        let target = DVec3::new(1.0, 2.0, 3.0);
+        let radius = (known.cameras[0].center() - target).length();
+        let arc = std::f64::consts::TAU / 24.0 * radius;
+        for w in path.windows(2) {
+            let moved = (w[1].center() - w[0].center()).length();
+            assert!(moved < 1.01 * arc, "{moved} against {arc}");
+        }
+        for c in &path {
+            let p = c.camera_from_world.transform_point3(target);
+            assert!(p.z > 0.0 && p.x.abs() < 1e-6 * p.z && p.y.abs() < 1e-6 * p.z);
+        }
     }
 }

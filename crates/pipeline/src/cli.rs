@@ -27,12 +27,16 @@
 //! * an enumerated value lists its allowed values in `--help` and in the error for any other;
 //! * a flag overriding a configuration file has no `clap` default (absent, it leaves the file's
 //!   value), so its help states the configuration's default, taken from the configuration's
-//!   `Default` through [`with_default`] so that it cannot drift.
+//!   `Default` through [`with_default`] so that it cannot drift;
+//! * an unexpected value in a command with a repeated path flag gets a tip on repeating flags
+//!   ([`with_repeat_tip`]).
 
 use std::fmt::Display;
 use std::str::FromStr;
 
-use clap::builder::{PossibleValuesParser, TypedValueParser};
+use clap::builder::{PossibleValue, PossibleValuesParser, StyledStr, TypedValueParser};
+use clap::error::{ContextKind, ContextValue, ErrorKind};
+use clap::ArgAction;
 use glam::DVec3;
 use train::{DecoderMode, FeatureNorm, Variant};
 
@@ -65,6 +69,22 @@ where
     T: FromStr<Err = String> + Clone + Send + Sync + 'static,
 {
     PossibleValuesParser::new(names).try_map(|s| s.parse::<T>())
+}
+
+/// [`one_of`] that also accepts other spellings, `(alias, name)`, e.g. `color` for `colour`
+/// (not listed in `--help`; `T::from_str` must accept them too).
+pub fn one_of_or_alias<T>(
+    names: &'static [&'static str],
+    aliases: &'static [(&'static str, &'static str)],
+) -> impl TypedValueParser<Value = T>
+where
+    T: FromStr<Err = String> + Clone + Send + Sync + 'static,
+{
+    let values = names.iter().map(|&name| {
+        let of = aliases.iter().filter(move |(_, n)| *n == name);
+        PossibleValue::new(name).aliases(of.map(|(a, _)| *a))
+    });
+    PossibleValuesParser::new(values).try_map(|s| s.parse::<T>())
 }
 
 /// The `--variant` parser: `standard` or `fullres`, listed in `--help`.
@@ -192,6 +212,30 @@ pub fn direction(s: &str) -> Result<DVec3, String> {
     Ok(d)
 }
 
+/// A background colour: `white`, `black`, or `r,g,b` with each channel in `[0, 1]`.
+pub fn background(s: &str) -> Result<[f32; 3], String> {
+    match s.trim() {
+        "white" => return Ok([1.0; 3]),
+        "black" => return Ok([0.0; 3]),
+        _ => {}
+    }
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|x| {
+            x.trim()
+                .parse::<f32>()
+                .map_err(|_| format!("`{x}` is not a number (or give white or black)"))
+        })
+        .collect::<Result<_, _>>()?;
+    match v.as_slice() {
+        [r, g, b] if [r, g, b].iter().all(|c| (0.0..=1.0).contains(*c)) => Ok([*r, *g, *b]),
+        [_, _, _] => Err(format!("`{s}`: each channel must be in [0, 1]")),
+        _ => Err(format!(
+            "expected white, black or three comma-separated numbers in [0, 1], got `{s}`"
+        )),
+    }
+}
+
 /// An amount of memory in MiB: 1 to 1048576 (1 TiB).
 pub fn mebibytes() -> impl TypedValueParser<Value = u64> {
     clap::value_parser!(u64).range(1..=1 << 20)
@@ -205,6 +249,33 @@ pub fn renamed_to_mix(_: &str) -> Result<String, String> {
          --style); --weights names a network weights file, which this command does not take"
             .into(),
     )
+}
+
+/// The tip added to an unexpected positional argument: most likely a second value given to a
+/// one-value path flag.
+const REPEAT_TIP: &str = "a flag takes one path per occurrence: repeat it for several, as in \
+                          '--style a.jpg --style b.jpg'";
+
+/// Adds [`REPEAT_TIP`] to an unexpected-argument error about a value (not a flag) of a command
+/// with a flag repeated for several values (`sub`).
+pub fn with_repeat_tip(mut e: clap::Error, sub: Option<&clap::Command>) -> clap::Error {
+    let about_a_value = matches!(
+        e.get(ContextKind::InvalidArg),
+        Some(ContextValue::String(a)) if !a.starts_with('-')
+    );
+    let repeats = sub.is_some_and(|c| {
+        c.get_arguments()
+            .any(|a| a.get_action().takes_values() && matches!(a.get_action(), ArgAction::Append))
+    });
+    if e.kind() == ErrorKind::UnknownArgument && about_a_value && repeats {
+        let mut tips = match e.get(ContextKind::Suggested) {
+            Some(ContextValue::StyledStrs(t)) => t.clone(),
+            _ => Vec::new(),
+        };
+        tips.push(StyledStr::from(REPEAT_TIP));
+        e.insert(ContextKind::Suggested, ContextValue::StyledStrs(tips));
+    }
+    e
 }
 
 #[cfg(test)]
@@ -235,6 +306,12 @@ mod tests {
         assert_eq!(direction("0, 1,-0.5"), Ok(DVec3::new(0.0, 1.0, -0.5)));
         for bad in ["0,0,0", "1,2", "1,nan,0", "1,inf,0"] {
             assert!(direction(bad).is_err(), "{bad}");
+        }
+        assert_eq!(background("white"), Ok([1.0; 3]));
+        assert_eq!(background("black"), Ok([0.0; 3]));
+        assert_eq!(background("0, 0.5,1"), Ok([0.0, 0.5, 1.0]));
+        for bad in ["grey", "1,1", "0,0,1.5", "-0.1,0,0", "nan,0,0"] {
+            assert!(background(bad).is_err(), "{bad}");
         }
     }
 

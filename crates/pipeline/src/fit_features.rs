@@ -208,6 +208,28 @@ impl FeatureOverrides {
     }
 }
 
+/// The dataset argument of `dsgs fit-features`: the first positional argument, as in
+/// `fit-geometry`, or `--dataset` as before it became one (kept for a release, hidden from
+/// `--help`).
+#[derive(Clone, Debug, clap::Args)]
+pub struct DatasetArg {
+    /// The dataset the geometry was trained on (COLMAP, NeRF-synthetic or LLFF layout).
+    #[arg(required_unless_present = "dataset_flag")]
+    dataset: Option<PathBuf>,
+    #[arg(long = "dataset", hide = true, conflicts_with = "dataset")]
+    dataset_flag: Option<PathBuf>,
+}
+
+impl DatasetArg {
+    /// The dataset's path, however it was given.
+    pub fn path(&self) -> Result<PathBuf> {
+        match self.dataset.as_ref().or(self.dataset_flag.as_ref()) {
+            Some(p) => Ok(p.clone()),
+            None => crate::error::bail!("give the dataset: dsgs fit-features DATASET ..."),
+        }
+    }
+}
+
 /// What to run.
 #[derive(Clone, Debug)]
 pub struct FitFeaturesSettings {

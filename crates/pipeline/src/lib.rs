@@ -63,7 +63,8 @@
 //! let out = std::env::temp_dir().join(format!("dsgs-doc-render-{}", std::process::id()));
 //! let events = Mutex::new(Vec::new());
 //! let sink = |e: Event| events.lock().unwrap().push(e);
-//! let frames = render_views(&scene, &cams, RenderKind::Color, DepthStyle::Colour, &out, &sink)?;
+//! let look = (RenderKind::Colour, DepthStyle::Colour);
+//! let frames = render_views(&scene, &cams, look, None, &out, &sink)?;
 //!
 //! assert_eq!(frames.len(), 4);
 //! assert_eq!(frames[3], out.join("frame_0003.png"));

@@ -22,6 +22,27 @@ use raster::{render, Channels, RenderOptions};
 
 use crate::image_io::{colour_map, RgbImage};
 
+/// The scene argument of `dsgs render`: the first positional argument, or `--scene` as before
+/// it became one (kept for a release, hidden from `--help`).
+#[derive(Clone, Debug, clap::Args)]
+pub struct SceneArg {
+    /// The scene: a .ply file or a scene bundle directory.
+    #[arg(required_unless_present = "scene_flag")]
+    scene: Option<PathBuf>,
+    #[arg(long = "scene", hide = true, conflicts_with = "scene")]
+    scene_flag: Option<PathBuf>,
+}
+
+impl SceneArg {
+    /// The scene's path, however it was given.
+    pub fn path(&self) -> Result<PathBuf> {
+        match self.scene.as_ref().or(self.scene_flag.as_ref()) {
+            Some(p) => Ok(p.clone()),
+            None => bail!("give the scene: dsgs render SCENE -o OUT"),
+        }
+    }
+}
+
 /// A scene to render: a `.ply` file or a scene bundle directory.
 pub enum SceneInput {
     /// A 3DGS `.ply` file: Gaussians without cameras, rendered over black.
@@ -342,8 +363,8 @@ impl Pca {
 /// What `dsgs render` draws.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum RenderKind {
-    /// SH colour over the background (`color`).
-    Color,
+    /// SH colour over the background (`colour`, also `color`).
+    Colour,
     /// Normalised depth, as a colour map or grey ([`DepthStyle`]; `depth`).
     Depth,
     /// Accumulated opacity as grey (`alpha`).
@@ -364,12 +385,14 @@ pub enum DepthStyle {
 
 impl RenderKind {
     /// Every value, by its command-line name.
-    pub const NAMES: &'static [&'static str] = &["color", "depth", "alpha", "features-pca"];
+    pub const NAMES: &'static [&'static str] = &["colour", "depth", "alpha", "features-pca"];
+    /// Other spellings accepted on the command line: (alias, name).
+    pub const ALIASES: &'static [(&'static str, &'static str)] = &[("color", "colour")];
 
     /// The command-line name.
     pub fn as_str(self) -> &'static str {
         match self {
-            RenderKind::Color => "color",
+            RenderKind::Colour => "colour",
             RenderKind::Depth => "depth",
             RenderKind::Alpha => "alpha",
             RenderKind::FeaturesPca => "features-pca",
@@ -381,12 +404,12 @@ impl std::str::FromStr for RenderKind {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
         match s {
-            "color" => Ok(RenderKind::Color),
+            "colour" | "color" => Ok(RenderKind::Colour),
             "depth" => Ok(RenderKind::Depth),
             "alpha" => Ok(RenderKind::Alpha),
             "features-pca" => Ok(RenderKind::FeaturesPca),
             _ => Err(format!(
-                "unknown render kind `{s}` (expected one of: color, depth, alpha, features-pca)"
+                "unknown render kind `{s}` (expected one of: colour, depth, alpha, features-pca)"
             )),
         }
     }
@@ -395,6 +418,9 @@ impl std::str::FromStr for RenderKind {
 impl DepthStyle {
     /// Every value, by its command-line name.
     pub const NAMES: &'static [&'static str] = &["colour", "grey"];
+    /// Other spellings accepted on the command line: (alias, name).
+    pub const ALIASES: &'static [(&'static str, &'static str)] =
+        &[("color", "colour"), ("gray", "grey")];
 
     /// The command-line name.
     pub fn as_str(self) -> &'static str {
@@ -409,8 +435,8 @@ impl std::str::FromStr for DepthStyle {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
         match s {
-            "colour" => Ok(DepthStyle::Colour),
-            "grey" => Ok(DepthStyle::Grey),
+            "colour" | "color" => Ok(DepthStyle::Colour),
+            "grey" | "gray" => Ok(DepthStyle::Grey),
             _ => Err(format!(
                 "unknown depth style `{s}` (expected one of: colour, grey)"
             )),
@@ -453,13 +479,14 @@ pub fn depth_image(r: &ColourRender, range: (f64, f64), style: DepthStyle) -> Rg
 }
 
 /// Renders `kind` for every camera into `out_dir/frame_XXXX.png`; returns the written paths.
+/// Colour renders are drawn over `background` (`None`: the scene's, [`SceneInput::background`]).
 /// Reports one [`Stage::Render`](crate::Stage::Render) unit per view to `sink`. Every camera's
 /// size is checked first ([`crate::cameras::check_camera_sizes`]).
 pub fn render_views(
     scene: &SceneInput,
     cameras: &[Camera],
-    kind: RenderKind,
-    depth_style: DepthStyle,
+    (kind, depth_style): (RenderKind, DepthStyle),
+    background: Option<[f32; 3]>,
     out_dir: &Path,
     sink: &dyn crate::Sink,
 ) -> Result<Vec<PathBuf>> {
@@ -472,6 +499,7 @@ pub fn render_views(
             scene.path().display()
         );
     }
+    let background = background.unwrap_or(scene.background());
     let mut depth_fixed = None;
     let mut pca: Option<Pca> = None;
     let mut written = Vec::new();
@@ -479,11 +507,11 @@ pub fn render_views(
     for (i, cam) in cameras.iter().enumerate() {
         let (w, h) = (cam.intrinsics.width, cam.intrinsics.height);
         let img = match kind {
-            RenderKind::Color => {
-                crate::image_io::clamped(&render_colour(g, cam, scene.background())?.image)
+            RenderKind::Colour => {
+                crate::image_io::clamped(&render_colour(g, cam, background)?.image)
             }
             RenderKind::Alpha => {
-                let r = render_colour(g, cam, scene.background())?;
+                let r = render_colour(g, cam, background)?;
                 RgbImage {
                     width: w,
                     height: h,
@@ -491,7 +519,7 @@ pub fn render_views(
                 }
             }
             RenderKind::Depth => {
-                let r = render_colour(g, cam, scene.background())?;
+                let r = render_colour(g, cam, background)?;
                 let range = *depth_fixed.get_or_insert_with(|| depth_range(&r));
                 depth_image(&r, range, depth_style)
             }

@@ -328,8 +328,8 @@ fn oversized_cameras_given_to_a_stage_are_refused_before_any_output() {
     let e = render_views(
         &scene,
         &[cams()[0], huge],
-        RenderKind::Color,
-        DepthStyle::Colour,
+        (RenderKind::Colour, DepthStyle::Colour),
+        None,
         &out,
         &Quiet,
     )

@@ -374,7 +374,17 @@ pub fn start(config: ViewerConfig) -> Result<Running, ViewerError> {
         .map_err(io("starting the server's runtime".into()))?;
     let listener = runtime
         .block_on(tokio::net::TcpListener::bind(addr))
-        .map_err(io(format!("listening on {addr}")))?;
+        .map_err(|error| {
+            let what = if error.kind() == std::io::ErrorKind::AddrInUse {
+                format!(
+                    "listening on {addr} (another program, or another dsgs view, has that port: \
+                     choose another with --port, or --port 0 for any free one)"
+                )
+            } else {
+                format!("listening on {addr}")
+            };
+            ViewerError::Io { what, error }
+        })?;
     let addr = listener
         .local_addr()
         .map_err(io("reading the bound address".into()))?;

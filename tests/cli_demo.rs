@@ -25,7 +25,7 @@ fn a_toy_demo_runs_every_stage_and_a_rerun_skips_them() {
             .arg("-o")
             .arg(&out)
             .args(["--downscale", "25", "--geometry-iterations", "30"])
-            .args(["--align-warmup", "10", "--feature-iterations", "3"])
+            .args(["--align-warmup", "10", "--feature-iterations", "13"])
             .args(["--frames", "4", "--no-progress"]);
         c
     };
@@ -33,6 +33,12 @@ fn a_toy_demo_runs_every_stage_and_a_rerun_skips_them() {
     let text = String::from_utf8_lossy(&first.stdout).into_owned();
     assert!(text.contains("geometry: held-out PSNR"), "{text}");
     assert!(!text.contains("skipped"), "{text}");
+    // The summary names the bundle and how to open it.
+    let bundle = out.join("features/bundle");
+    assert!(
+        text.contains(&format!("dsgs view {}", bundle.display())),
+        "{text}"
+    );
 
     // Four unseen styles, each with frames and a GIF; the sheet has the colour row and one
     // row per style, the style thumbnail column and the four views.
@@ -129,7 +135,7 @@ fn an_undecodable_style_image_fails_before_any_stage_runs() {
             .arg("-o")
             .arg(&out)
             .args(["--downscale", "25", "--geometry-iterations", "30"])
-            .args(["--align-warmup", "10", "--feature-iterations", "3"])
+            .args(["--align-warmup", "10", "--feature-iterations", "13"])
             .args(["--frames", "4", "--no-progress", "--style"])
             .arg(&bad),
     );

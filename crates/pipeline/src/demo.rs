@@ -14,8 +14,8 @@
 //!    white background, 1,000 iterations of the 3DGS schedule scaled to that length
 //!    ([`geometry_config`]).
 //! 3. `features/`: `dsgs fit-features` on that geometry, styles from
-//!    `SHARED/data/styles/small-set`: 1,500 cheap alignment-only iterations, then 300 with the
-//!    full loss (alignment, content and style).
+//!    `SHARED/data/styles/small-set`: 1,800 iterations, the first 1,500 cheap alignment-only
+//!    ones, the last 300 with the full loss (alignment, content and style).
 //! 4. `stylized/`: `dsgs stylize` of an orbit with styles never used in training: PNG frames, a
 //!    GIF per style and `contact_sheet.png` (styles x views).
 //! 5. `eval.json`: `dsgs eval` of the same orbit (short- and long-range consistency, style and
@@ -154,11 +154,15 @@ pub struct DemoSettings {
         help = "Alignment-only feature iterations (cheap) before the full loss"
     )]
     pub align_warmup: u64,
-    /// Feature iterations with the full loss, after the warm-up.
+    /// Feature iterations in all, the warm-up included (as `fit-features --iterations` counts
+    /// them); those after the warm-up use the full loss.
     #[arg(
         long,
-        default_value_t = 300,
-        help = "Feature iterations with the full loss (alignment, content, style)"
+        default_value_t = 1800,
+        value_parser = at_least_one::<u64>(),
+        help = "Feature iterations in all, the --align-warmup ones included, as fit-features \
+                --iterations counts them; those after the warm-up use the full loss (alignment, \
+                content, style) (at least 1)"
     )]
     pub feature_iterations: u64,
     /// Stylization styles (default: [`STYLES`] under `SHARED/data/styles`).
@@ -192,6 +196,8 @@ pub struct DemoReport {
     pub eval: EvalReport,
     /// Where the evaluation report was written (`OUT/eval.json`).
     pub eval_json: PathBuf,
+    /// The scene bundle the features stage wrote (`OUT/features/bundle`), for `dsgs view`.
+    pub bundle: PathBuf,
     /// Seconds of each stage run now (`None`: skipped, its output was already there).
     pub seconds: Vec<(&'static str, Option<f64>)>,
 }
@@ -215,7 +221,13 @@ impl std::fmt::Display for DemoReport {
         for p in s.gifs.iter().chain(&s.contact_sheet) {
             writeln!(f, "output {}", p.display())?;
         }
-        writeln!(f, "output {}", self.eval_json.display())
+        writeln!(f, "output {}", self.eval_json.display())?;
+        writeln!(f, "scene bundle {}", self.bundle.display())?;
+        writeln!(
+            f,
+            "look around it and stylize any view in the browser: dsgs view {}",
+            self.bundle.display()
+        )
     }
 }
 
@@ -239,8 +251,16 @@ pub const STYLE_SIDE: u32 = 256;
 /// with where to get them), then that every image a stage will read decodes: the stylization
 /// styles always, and the training styles and the scene's images unless the stages reading them
 /// (geometry and features) are already done. Errors name the file
-/// (`style image PATH: ...`).
+/// (`style image PATH: ...`). A warm-up longer than the feature stage is refused first.
 pub fn check_inputs(s: &DemoSettings) -> Result<()> {
+    if s.align_warmup > s.feature_iterations {
+        bail!(
+            "--align-warmup {} is longer than --feature-iterations {}, which counts the warm-up \
+             too (as fit-features --iterations does)",
+            s.align_warmup,
+            s.feature_iterations
+        );
+    }
     let mut missing = Vec::new();
     let mut need = |p: PathBuf| {
         if !p.exists() {
@@ -366,10 +386,10 @@ pub fn feature_config(s: &DemoSettings) -> FitFeaturesConfig {
     let mut c = FitFeaturesConfig {
         background: [1.0, 1.0, 1.0],
         features: FeatureTrainConfig {
-            iterations: s.align_warmup + s.feature_iterations,
+            iterations: s.feature_iterations,
             align_warmup: s.align_warmup,
             variant: s.variant,
-            checkpoint_interval: ((s.align_warmup + s.feature_iterations) / 6).max(1),
+            checkpoint_interval: (s.feature_iterations / 6).max(1),
             log_interval: 0,
             // The demo evaluates its result with `eval`; no loss curve.
             eval_pairs: 0,
@@ -563,6 +583,7 @@ pub fn run(s: &DemoSettings, control: &Control) -> Result<DemoReport> {
         stylized,
         eval,
         eval_json,
+        bundle: bundle_dir,
         seconds,
     })
 }
@@ -798,10 +819,24 @@ mod tests {
             downscale: 8.0,
             geometry_iterations: 1000,
             align_warmup: 1500,
-            feature_iterations: 300,
+            feature_iterations: 1800,
             styles: styles_or_default(shared, &[]),
             frames: 24,
         }
+    }
+
+    #[test]
+    fn the_feature_iterations_count_the_warm_up() {
+        let dir = std::env::temp_dir().join(format!("dsgs-demo-warmup-{}", std::process::id()));
+        let s = settings(&dir);
+        assert_eq!(feature_config(&s).features.iterations, 1800);
+        assert_eq!(feature_config(&s).features.align_warmup, 1500);
+        let short = DemoSettings {
+            feature_iterations: 1000,
+            ..s
+        };
+        let err = check_inputs(&short).unwrap_err().to_string();
+        assert!(err.contains("--align-warmup 1500") && err.contains("1000"), "{err}");
     }
 
     #[test]

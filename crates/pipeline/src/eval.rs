@@ -742,13 +742,21 @@ pub fn table(r: &EvalReport) -> String {
             p.degrees, p.distance
         );
     }
+    // The name column fits the longest name (a painting's file name can be long).
+    let w = r
+        .outputs
+        .iter()
+        .map(|o| o.name.chars().count())
+        .max()
+        .unwrap_or(0)
+        .max(16);
     s += &format!(
-        "{:<16} {:>10} {:>10} {:>10} {:>10} {:>11} {:>11}\n",
+        "{:<w$} {:>10} {:>10} {:>10} {:>10} {:>11} {:>11}\n",
         "output", "short rmse", "short perc", "long rmse", "long perc", "style loss", "content"
     );
     for o in &r.outputs {
         s += &format!(
-            "{:<16} {:>10} {:>10} {:>10} {:>10} {:>11} {:>11}\n",
+            "{:<w$} {:>10} {:>10} {:>10} {:>10} {:>11} {:>11}\n",
             o.name,
             opt(o.short_range.rmse, 5),
             opt(o.short_range.perceptual, 5),

@@ -100,7 +100,9 @@ pub struct GeometryOverrides {
         "Total iterations (at least 1); the configuration's schedule (learning-rate decay, \
          densification window and interval, opacity resets, SH degree steps, test, save and \
          checkpoint iterations) is stretched or compressed to it, keeping density control at \
-         least 50 and opacity resets at least 300 steps apart",
+         least 50 and opacity resets at least 300 steps apart. With --resume it stretches the \
+         stopped run's schedule (its OUT/config.toml) to the new length: the steps already \
+         taken stay, the rest follow the new schedule",
         FitGeometryConfig::default().geometry.iterations,
     ))]
     pub iterations: Option<u64>,

@@ -21,7 +21,7 @@ fn toy(out: &Path, styles: Vec<PathBuf>) -> DemoSettings {
         downscale: 25.0,
         geometry_iterations: 30,
         align_warmup: 10,
-        feature_iterations: 3,
+        feature_iterations: 13,
         styles,
         frames: 4,
     }

@@ -70,12 +70,11 @@ fn eval_report_and_frames_agree() {
         }
     }
     for s in &outputs[1..] {
-        assert!(
-            num(s, &["style_loss"]) > 0.0 && num(s, &["content_loss"]) > 0.0,
-            "{s}"
-        );
+        for key in ["style_loss", "texture_distance", "content_loss"] {
+            assert!(num(s, &[key]) > 0.0, "{key}: {s}");
+        }
     }
-    assert!(outputs[0]["style_loss"].is_null());
+    assert!(outputs[0]["style_loss"].is_null() && outputs[0]["texture_distance"].is_null());
     for stage in ["raster", "lift_transform", "decode"] {
         assert!(num(&r, &["seconds_per_view", stage]) >= 0.0);
     }
@@ -219,9 +218,15 @@ fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
     let encoder = &bundle.encoder;
     let deepest = |img: &RgbImage| encoder.forward(nchw_from_rgb(img).view()).unwrap();
     let colour: Vec<RgbImage> = renders.iter().map(|r| clamped(&r.image)).collect();
+    let grams = |f: &[ndarray::Array4<f32>]| -> Vec<_> {
+        f.iter().map(|l| style::gram(l, 0).unwrap()).collect()
+    };
     let mut sequences = vec![(colour.clone(), None)];
-    for t in &targets {
+    for (t, s) in targets.iter().zip(&styles) {
+        let input = stylize::style_input(s, Some(&content)).unwrap();
+        let style_grams = grams(&encoder.forward(input.view()).unwrap());
         let (mut frames, mut style_sum, mut content_sum) = (Vec::new(), 0.0f64, 0.0f64);
+        let mut texture_sum = 0.0f64;
         for (c, colour_image) in cams.iter().zip(&colour) {
             let img = bundle
                 .frame(c, t.stats.deepest(), settings.alpha, settings.tile_budget)
@@ -229,12 +234,16 @@ fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
                 .image;
             let f = deepest(&img);
             style_sum += style::style_loss(&f, &t.stats.levels).unwrap() as f64;
+            texture_sum += style::gram_distance_of(&grams(&f), &style_grams).unwrap();
             let colour_deepest = deepest(colour_image).pop().unwrap();
             content_sum += style::content_loss(f.last().unwrap(), &colour_deepest).unwrap() as f64;
             frames.push(img);
         }
         let n = cams.len() as f64;
-        sequences.push((frames, Some((style_sum / n, content_sum / n))));
+        sequences.push((
+            frames,
+            Some((style_sum / n, content_sum / n, texture_sum / n)),
+        ));
     }
 
     assert_eq!(report.outputs.len(), 1 + targets.len());
@@ -247,5 +256,6 @@ fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
         }
         assert_eq!(o.style_loss, losses.map(|l| l.0), "{}", o.name);
         assert_eq!(o.content_loss, losses.map(|l| l.1), "{}", o.name);
+        assert_eq!(o.texture_distance, losses.map(|l| l.2), "{}", o.name);
     }
 }

@@ -358,7 +358,10 @@ fn every_value_flag_shows_its_default_and_enumerated_flags_their_values() {
     for (command, source) in [("render", "orbit"), ("stylize", "orbit"), ("eval", "dense")] {
         let text = flag_help(&help(command), "--cameras");
         assert_eq!(text.matches("[default: ").count(), 1, "{command}: `{text}`");
-        assert!(text.contains(&format!("[default: {source}]")), "{command}: `{text}`");
+        assert!(
+            text.contains(&format!("[default: {source}]")),
+            "{command}: `{text}`"
+        );
     }
 }
 

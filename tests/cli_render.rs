@@ -158,11 +158,13 @@ fn the_scene_is_the_first_argument_and_spellings_and_backgrounds_are_accepted() 
             .arg("render")
             .arg(&ply)
             .args(["--frames", "2"])
-            .args(if extra.contains(&"--scale") || extra.contains(&"--downscale") {
-                &[][..]
-            } else {
-                &["--width", "48"][..]
-            })
+            .args(
+                if extra.contains(&"--scale") || extra.contains(&"--downscale") {
+                    &[][..]
+                } else {
+                    &["--width", "48"][..]
+                },
+            )
             .args(extra)
             .arg("-o")
             .arg(&out));
@@ -206,6 +208,9 @@ fn the_scene_is_the_first_argument_and_spellings_and_backgrounds_are_accepted() 
             .arg("-o")
             .arg(dir.join("two")),
     );
-    assert!(err.contains("unexpected argument") && !err.contains("--style"), "{err}");
+    assert!(
+        err.contains("unexpected argument") && !err.contains("--style"),
+        "{err}"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -836,7 +836,10 @@ mod tests {
             ..s
         };
         let err = check_inputs(&short).unwrap_err().to_string();
-        assert!(err.contains("--align-warmup 1500") && err.contains("1000"), "{err}");
+        assert!(
+            err.contains("--align-warmup 1500") && err.contains("1000"),
+            "{err}"
+        );
     }
 
     #[test]

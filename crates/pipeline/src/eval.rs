@@ -15,10 +15,15 @@
 //! * style loss: `style::style_loss` of the output's encoder features (the bundle's encoder at
 //!   its variant, as the style statistics were computed) against the target's statistics at
 //!   every level, averaged over views;
+//! * texture distance: `style::gram_distance_of` between the Gram matrices of the output's
+//!   encoder features and of the style image's at every level (the same encoder), averaged over
+//!   views: what the style loss's channel means and deviations cannot see, e.g. one texture
+//!   given to every painting. For a mixture, the target Gram matrices are the styles' mixed
+//!   with the mixture's weights;
 //! * content loss: the mean squared difference of the deepest features of the output and of the
 //!   plain colour render of the same view, averaged over views.
 //!
-//! Frames are decoded in tiles within the tile budget, and encoded for the two losses and the
+//! Frames are decoded in tiles within the tile budget, and encoded for the three measures and the
 //! perceptual distance whole when the budget allows, else tile by tile ([`FrameLosses`],
 //! [`crate::consistency::perceptual_distance`]).
 //!
@@ -38,11 +43,11 @@ use std::path::{Path, PathBuf};
 use crate::error::{bail, Context, Result};
 use gaussian::dataset::images::image_size;
 use gaussian::Camera;
-use ndarray::Array4;
+use ndarray::{Array2, Array4};
 use nets::Encoder;
 use runtime::SceneBundle;
 use serde::{Deserialize, Serialize};
-use style::{ChannelMoments, ChannelStats};
+use style::{ChannelMoments, ChannelStats, GramSums};
 
 use crate::cameras::evenly_spaced;
 use crate::consistency::{
@@ -73,6 +78,10 @@ pub struct OutputReport {
     pub long_range: RangeMetrics,
     /// Style loss against the target's statistics, averaged over views (stylized outputs only).
     pub style_loss: Option<f64>,
+    /// Texture distance to the style image's Gram matrices, averaged over views (stylized
+    /// outputs only; absent from reports written before it was measured).
+    #[serde(default)]
+    pub texture_distance: Option<f64>,
     /// Content loss against the plain colour render's deepest features, averaged over views
     /// (stylized outputs only).
     pub content_loss: Option<f64>,
@@ -158,8 +167,8 @@ pub fn shard_line(shard: Shard, views: usize, report: &Path) -> String {
 /// A shard's partial results ([`crate::shard::Manifest::data`]): what the report adds up.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct ShardSums {
-    /// Per view of the shard's block, per target: `(style loss, content loss)`.
-    pub losses: Vec<Vec<(f64, f64)>>,
+    /// Per view of the shard's block, per stylized output: its measures.
+    pub losses: Vec<Vec<FrameLoss>>,
     /// Per output (colour first), per offset (short, long): the pairs that start in the block.
     pub pairs: Vec<Vec<Vec<PairRecord>>>,
     /// Sums over the decoded views of the stage seconds.
@@ -200,16 +209,38 @@ fn check_same_size(cameras: &[Camera]) -> Result<(u32, u32)> {
     Ok((k.width, k.height))
 }
 
-/// The style and content losses of the decoded frames of one view: the style loss against a
-/// style's per-level statistics, the content loss against the deepest encoding of the view's
-/// colour render.
+/// The measures of one decoded frame ([`FrameLosses::of`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct FrameLoss {
+    /// Style loss against the target's statistics.
+    pub style: f64,
+    /// Texture distance to the target's Gram matrices.
+    pub texture: f64,
+    /// Content loss against the colour render's deepest features.
+    pub content: f64,
+}
+
+/// What a frame's style is measured against: a target's statistics (style loss) and Gram
+/// matrices (texture distance) at every encoder level.
+#[derive(Clone, Copy, Debug)]
+pub struct StyleMeasures<'a> {
+    /// The statistics, per level.
+    pub stats: &'a [ChannelStats<f32>],
+    /// The normalised Gram matrices, per level.
+    pub grams: &'a [Array2<f64>],
+}
+
+/// The style loss, texture distance and content loss of the decoded frames of one view: the
+/// style loss against a style's per-level statistics, the texture distance against its per-level
+/// Gram matrices, the content loss against the deepest encoding of the view's colour render.
 ///
 /// When one tile of the budget covers every level of the frame's encoding, the frames are
 /// encoded whole (`style::style_loss`, `style::content_loss`). Otherwise each level is encoded
 /// tile by tile (`Encoder::forward_region`, the same features bit for bit): its statistics are
-/// accumulated over the tiles ([`style::ChannelMoments`]) and the content loss's squared
-/// differences summed in `f64`, so no full-frame feature map is held; the losses then differ from
-/// the whole-frame ones only by the `f64` rounding of the other summation order.
+/// accumulated over the tiles ([`style::ChannelMoments`], [`style::GramSums`]) and the content
+/// loss's squared differences summed in `f64`, so no full-frame feature map is held; the
+/// measures then differ from the whole-frame ones only by the `f64` rounding of the other
+/// summation order.
 pub struct FrameLosses<'e> {
     encoder: &'e Encoder<f32>,
     colour: Array4<f32>,
@@ -246,8 +277,8 @@ impl<'e> FrameLosses<'e> {
         self.colour_deepest.is_none()
     }
 
-    /// `(style loss, content loss)` of the decoded frame `image`.
-    pub fn of(&self, image: &RgbImage, style: &[ChannelStats<f32>]) -> Result<(f64, f64)> {
+    /// The measures of the decoded frame `image` against `style`.
+    pub fn of(&self, image: &RgbImage, style: StyleMeasures) -> Result<FrameLoss> {
         let x = nchw_from_rgb(image);
         if x.dim() != self.colour.dim() {
             bail!(
@@ -260,21 +291,31 @@ impl<'e> FrameLosses<'e> {
         }
         if let Some(colour_deepest) = &self.colour_deepest {
             let f = self.encoder.forward(x.view())?;
-            let style_loss = style::style_loss(&f, style)? as f64;
+            let style_loss = style::style_loss(&f, style.stats)? as f64;
+            let grams = f
+                .iter()
+                .map(|l| style::gram(l, 0))
+                .collect::<Result<Vec<_>, _>>()?;
             let content =
                 style::content_loss(f.last().expect("encoder depth >= 1"), colour_deepest)?;
-            return Ok((style_loss, content as f64));
+            return Ok(FrameLoss {
+                style: style_loss,
+                texture: style::gram_distance_of(&grams, style.grams)?,
+                content: content as f64,
+            });
         }
         let enc = self.encoder;
         let hw = (x.dim().2, x.dim().3);
         let depth = enc.depth();
         let mut stats = Vec::with_capacity(depth);
+        let mut grams = Vec::with_capacity(depth);
         let (mut squares, mut count) = (0.0f64, 0usize);
         for level in 1..=depth {
             let (oh, ow) = enc.output_size(hw, level)?;
             let (bytes, halo) = enc.tile_cost(hw, level)?;
             let side = nets::tiled::tile_side(self.tile_budget, bytes, halo, oh, ow);
             let mut moments = None;
+            let mut gram_sums = None;
             for r in nets::tiled::grid(oh, ow, side) {
                 let need = enc.input_region(hw, level, r)?;
                 let encode = |img: &Array4<f32>| {
@@ -285,6 +326,9 @@ impl<'e> FrameLosses<'e> {
                 moments
                     .get_or_insert_with(|| ChannelMoments::new(f.dim().0, f.dim().1))
                     .add(&f)?;
+                gram_sums
+                    .get_or_insert_with(|| GramSums::new(f.dim().1))
+                    .add(&f, 0)?;
                 if level == depth {
                     let fc = encode(&self.colour)?;
                     squares += f
@@ -296,11 +340,16 @@ impl<'e> FrameLosses<'e> {
                 }
             }
             stats.push(moments.expect("a level has at least one tile").stats()?);
+            grams.push(gram_sums.expect("a level has at least one tile").gram()?);
         }
-        let style_loss = style::style_loss_of_stats(&stats, style)? as f64;
+        let style_loss = style::style_loss_of_stats(&stats, style.stats)? as f64;
         // Rounded to `f32` as the whole-frame content loss is.
         let content = (squares / count as f64) as f32;
-        Ok((style_loss, content as f64))
+        Ok(FrameLoss {
+            style: style_loss,
+            texture: style::gram_distance_of(&grams, style.grams)?,
+            content: content as f64,
+        })
     }
 }
 
@@ -329,6 +378,41 @@ pub fn baseline_view(
     let (h, w) = (x.dim().2, x.dim().3);
     let y = runtime::frame::crop(y, w as u32, h as u32)?;
     Ok(image_io::clamped(&image_io::rgb_from_nchw(&y)?))
+}
+
+/// The texture targets, one per style target of [`stylize::style_targets`]: the normalised Gram
+/// matrices of each style image's encoding at every level (after the same colour matching), or
+/// for a mixture the styles' matrices mixed with its normalised weights.
+fn target_grams(
+    bundle: &SceneBundle,
+    styles: &[stylize::StyleImage],
+    weights: Option<&[f64]>,
+    colour: Option<&Array4<f32>>,
+) -> Result<Vec<Vec<Array2<f64>>>> {
+    let mut each = Vec::with_capacity(styles.len());
+    for s in styles {
+        let img = stylize::style_input(s, colour)?;
+        let f = bundle
+            .encoder
+            .forward(img.view())
+            .with_context(|| format!("encoding the style {}", s.path.display()))?;
+        each.push(
+            f.iter()
+                .map(|l| style::gram(l, 0))
+                .collect::<Result<Vec<_>, _>>()?,
+        );
+    }
+    let Some(w) = weights else {
+        return Ok(each);
+    };
+    let w = stylize::normalised_weights(w, each.len())?;
+    let mut mixed: Vec<Array2<f64>> = each[0].iter().map(|g| g * 0.0).collect();
+    for (grams, wt) in each.iter().zip(w) {
+        for (m, g) in mixed.iter_mut().zip(grams) {
+            m.scaled_add(wt, g);
+        }
+    }
+    Ok(vec![mixed])
 }
 
 /// The stylized outputs of an evaluation, after the colour render: per target its baseline
@@ -445,6 +529,12 @@ fn evaluate(
         settings.weights.as_deref(),
         content.as_ref(),
     )?;
+    let grams = target_grams(
+        bundle,
+        &styles,
+        settings.weights.as_deref(),
+        content.as_ref(),
+    )?;
     let fingerprint = fingerprint(bundle, cameras, &targets, settings);
     let n = cameras.len();
     let sums: Vec<ShardSums> = match (&settings.part, shard_dir) {
@@ -478,7 +568,7 @@ fn evaluate(
             let part = evaluate_block(
                 bundle,
                 cameras,
-                &targets,
+                (&targets, &grams),
                 settings,
                 block.clone(),
                 views,
@@ -514,15 +604,16 @@ fn evaluate(
         let range = |k: usize, offset: usize| {
             range_metrics(offset, sums.iter().flat_map(|s| &s.pairs[o][k]))
         };
-        let (style_loss, content_loss) = if o == 0 {
-            (None, None)
+        let mean = if o == 0 {
+            None
         } else {
-            let (mut style_sum, mut content_sum) = (0.0f64, 0.0f64);
-            for (style, content) in sums.iter().flat_map(|s| &s.losses).map(|l| l[o - 1]) {
-                style_sum += style;
-                content_sum += content;
+            let mut sum = FrameLoss::default();
+            for l in sums.iter().flat_map(|s| &s.losses).map(|l| l[o - 1]) {
+                sum.style += l.style;
+                sum.texture += l.texture;
+                sum.content += l.content;
             }
-            (Some(style_sum / views), Some(content_sum / views))
+            Some(sum)
         };
         reports.push(OutputReport {
             name: match o.checked_sub(1).map(|k| stylized[k]) {
@@ -532,8 +623,9 @@ fn evaluate(
             },
             short_range: range(0, SHORT_RANGE),
             long_range: range(1, LONG_RANGE),
-            style_loss,
-            content_loss,
+            style_loss: mean.map(|m| m.style / views),
+            texture_distance: mean.map(|m| m.texture / views),
+            content_loss: mean.map(|m| m.content / views),
         });
     }
     let decoded: usize = sums.iter().map(|s| s.decoded).sum();
@@ -562,7 +654,7 @@ fn evaluate(
 fn evaluate_block(
     bundle: &SceneBundle,
     cameras: &[Camera],
-    targets: &[stylize::StyleTarget],
+    (targets, grams): (&[stylize::StyleTarget], &[Vec<Array2<f64>>]),
     settings: &EvalSettings,
     block: std::ops::Range<usize>,
     views: std::ops::Range<usize>,
@@ -605,7 +697,11 @@ fn evaluate_block(
                 img
             };
             if let Some(l) = &losses {
-                view_losses.push(l.of(&img, &target.stats.levels)?);
+                let measures = StyleMeasures {
+                    stats: &target.stats.levels,
+                    grams: &grams[t],
+                };
+                view_losses.push(l.of(&img, measures)?);
             }
             images.push(img);
             tally.advance(1, "decode");
@@ -719,6 +815,7 @@ pub fn evaluate_frames(
             short_range: short,
             long_range: long,
             style_loss: None,
+            texture_distance: None,
             content_loss: None,
         }],
         seconds_per_view: None,
@@ -751,18 +848,26 @@ pub fn table(r: &EvalReport) -> String {
         .unwrap_or(0)
         .max(16);
     s += &format!(
-        "{:<w$} {:>10} {:>10} {:>10} {:>10} {:>11} {:>11}\n",
-        "output", "short rmse", "short perc", "long rmse", "long perc", "style loss", "content"
+        "{:<w$} {:>10} {:>10} {:>10} {:>10} {:>11} {:>11} {:>11}\n",
+        "output",
+        "short rmse",
+        "short perc",
+        "long rmse",
+        "long perc",
+        "style loss",
+        "texture",
+        "content"
     );
     for o in &r.outputs {
         s += &format!(
-            "{:<w$} {:>10} {:>10} {:>10} {:>10} {:>11} {:>11}\n",
+            "{:<w$} {:>10} {:>10} {:>10} {:>10} {:>11} {:>11} {:>11}\n",
             o.name,
             opt(o.short_range.rmse, 5),
             opt(o.short_range.perceptual, 5),
             opt(o.long_range.rmse, 5),
             opt(o.long_range.perceptual, 5),
             opt(o.style_loss, 4),
+            opt(o.texture_distance, 4),
             opt(o.content_loss, 4)
         );
     }

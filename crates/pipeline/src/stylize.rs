@@ -208,6 +208,17 @@ pub fn style_targets(
     mix_targets(encoded, weights)
 }
 
+/// The style image as the encoder sees it: its colours first matched to `colour` when given
+/// ([`style::preserve_colour`]).
+pub fn style_input(s: &StyleImage, colour: Option<&Array4<f32>>) -> Result<Array4<f32>> {
+    let img = image_io::nchw_from_rgb(&s.image);
+    match colour {
+        Some(content) => style::preserve_colour(&img, content)
+            .with_context(|| format!("colour preservation of {}", s.path.display())),
+        None => Ok(img),
+    }
+}
+
 /// One target per style: its statistics at every level of the bundle's encoder, its colours
 /// first matched to `colour` when given ([`style::preserve_colour`]).
 pub fn encode_styles(
@@ -217,11 +228,7 @@ pub fn encode_styles(
 ) -> Result<Vec<StyleTarget>> {
     let mut encoded = Vec::new();
     for s in styles {
-        let mut img = image_io::nchw_from_rgb(&s.image);
-        if let Some(content) = colour {
-            img = style::preserve_colour(&img, content)
-                .with_context(|| format!("colour preservation of {}", s.path.display()))?;
-        }
+        let img = style_input(s, colour)?;
         let stats = style::encode_style(&bundle.encoder, &img)
             .with_context(|| format!("encoding the style {}", s.path.display()))?;
         encoded.push(StyleTarget {

@@ -1,6 +1,9 @@
 //! The evaluation's losses of a frame encoded tile by tile (`eval::FrameLosses` under a small
 //! budget) against the frame encoded whole, with the real relu3_1 encoder in both variants.
 //!
+//! The texture distance (Gram matrices accumulated in `f64` over the tiles) 1e-12 relative: the
+//! same `f64` products of bit-identical features, summed in another order.
+//!
 //! Also the perceptual distance of the consistency metrics, tiled against whole: the same `f64`
 //! terms of bit-identical features summed in another order, so 1e-12 relative.
 //!
@@ -14,9 +17,9 @@ use dsgs_testkit::shared_path;
 use gaussian::dataset::images::RgbImage;
 use nets::{Encoder, Resolution};
 use pipeline::consistency::{encodes_whole, perceptual_distance};
-use pipeline::eval::FrameLosses;
+use pipeline::eval::{FrameLosses, StyleMeasures};
 use proptest::prelude::*;
-use style::channel_stats;
+use style::{channel_stats, gram};
 
 fn image(seed: u64, width: u32, height: u32) -> RgbImage {
     let mut state = seed;
@@ -56,19 +59,20 @@ proptest! {
         let colour = image(seed, width, height);
         let frame = image(seed ^ 1, width, height);
         let painting = pipeline::image_io::nchw_from_rgb(&image(seed ^ 2, 40, 30));
-        let style: Vec<_> = enc
-            .forward(painting.view())
-            .unwrap()
-            .iter()
-            .map(|f| channel_stats(f).unwrap())
-            .collect();
+        let encoded = enc.forward(painting.view()).unwrap();
+        let stats: Vec<_> = encoded.iter().map(|f| channel_stats(f).unwrap()).collect();
+        let grams: Vec<_> = encoded.iter().map(|f| gram(f, 0).unwrap()).collect();
+        let style = StyleMeasures { stats: &stats, grams: &grams };
         let whole = FrameLosses::new(&enc, &colour, 1 << 40).unwrap();
         let tiled = FrameLosses::new(&enc, &colour, 1 << 20).unwrap();
         prop_assert!(!whole.tiled() && tiled.tiled());
-        let (sw, cw) = whole.of(&frame, &style).unwrap();
-        let (st, ct) = tiled.of(&frame, &style).unwrap();
-        prop_assert!(rel(st, sw) <= 1e-6, "style {st} {sw}");
-        prop_assert!(rel(ct, cw) <= 1e-6, "content {ct} {cw}");
+        let w = whole.of(&frame, style).unwrap();
+        let t = tiled.of(&frame, style).unwrap();
+        prop_assert!(rel(t.style, w.style) <= 1e-6, "style {t:?} {w:?}");
+        prop_assert!(rel(t.content, w.content) <= 1e-6, "content {t:?} {w:?}");
+        // The texture distance is summed in f64 throughout: only the summation order differs.
+        prop_assert!(rel(t.texture, w.texture) <= 1e-12, "texture {t:?} {w:?}");
+        prop_assert!(w.texture > 0.0);
 
         let mask: Vec<bool> = (0..width * height).map(|i| !(i * 7 + seed as u32 % 5).is_multiple_of(11)).collect();
         let distance = |budget| perceptual_distance(&enc, &colour, &frame, &mask, budget).unwrap().unwrap();

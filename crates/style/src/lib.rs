@@ -111,4 +111,4 @@ pub use stats::{
     resize_mask_nearest, ChannelMoments, ChannelStats, STATS_EPS,
 };
 pub use stylize::{encode_style, stylize, stylize_image};
-pub use texture::{gram, gram_distance};
+pub use texture::{gram, gram_distance, gram_distance_of, GramSums};

@@ -58,6 +58,9 @@ pub enum Command {
     StylizeImage(StylizeImageArgs),
     /// Measure multi-view consistency, style and content losses and stage timings.
     Eval(EvalArgs),
+    /// From a capture and paintings to a stylized tour in one resumable command: geometry,
+    /// features, stylized frames and GIFs along a smooth tour, a contact sheet, the evaluation.
+    Run(RunPipelineArgs),
     /// Run the whole pipeline on the lego scene at low resolution: geometry, features, a
     /// stylized orbit with four unseen styles, its evaluation, a contact sheet and GIFs.
     Demo(DemoArgs),
@@ -448,6 +451,15 @@ pub struct EvalArgs {
     #[command(flatten)]
     pub shard: ShardArgs,
     /// No progress bar (a plain progress line at least every minute instead)
+    #[arg(long)]
+    pub no_progress: bool,
+}
+
+#[derive(Args)]
+pub struct RunPipelineArgs {
+    #[command(flatten)]
+    pub settings: pipeline::run::RunSettings,
+    /// No progress bars (a plain progress line at least every minute instead)
     #[arg(long)]
     pub no_progress: bool,
 }

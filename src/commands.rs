@@ -18,7 +18,7 @@ use pipeline::{Control, RunOutcome};
 
 use crate::args::{
     AssembleArgs, BakeArgs, Command, DemoArgs, EvalArgs, FitFeaturesArgs, FitGeometryArgs,
-    PretrainDecoderArgs, RenderArgs, StylizeArgs, StylizeImageArgs, ViewArgs,
+    PretrainDecoderArgs, RenderArgs, RunPipelineArgs, StylizeArgs, StylizeImageArgs, ViewArgs,
 };
 use crate::terminal::Terminal;
 
@@ -252,12 +252,18 @@ pub fn render(a: RenderArgs) -> Result<()> {
     Ok(())
 }
 
+pub fn run(a: RunPipelineArgs) -> Result<()> {
+    let plan = pipeline::run::plan(&a.settings)?;
+    print!("{}", pipeline::run::describe(&plan));
+    let r = with_control("run", a.no_progress, |c| pipeline::run::execute(&plan, c))?;
+    print!("{r}");
+    Ok(())
+}
+
 pub fn demo(a: DemoArgs) -> Result<()> {
-    let settings = pipeline::demo::DemoSettings {
-        styles: pipeline::demo::styles_or_default(&a.settings.shared, &a.settings.styles),
-        ..a.settings
-    };
-    let r = with_control("demo", a.no_progress, |c| pipeline::demo::run(&settings, c))?;
+    let r = with_control("demo", a.no_progress, |c| {
+        pipeline::demo::run(&a.settings, c)
+    })?;
     print!("{r}");
     Ok(())
 }

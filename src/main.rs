@@ -83,6 +83,7 @@ fn run(cli: Cli) -> Result<()> {
             let part = a.shard.part()?;
             commands::eval(a, part)?
         }
+        Command::Run(a) => commands::run(a)?,
         Command::Demo(a) => commands::demo(a)?,
         Command::Assemble(a) => commands::assemble(a)?,
         Command::View(a) => commands::view(a)?,

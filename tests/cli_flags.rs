@@ -319,6 +319,7 @@ fn every_value_flag_shows_its_default_and_enumerated_flags_their_values() {
         "stylize",
         "eval",
         "demo",
+        "run",
     ];
     for command in commands {
         let h = help(command);
@@ -386,6 +387,7 @@ fn every_long_running_command_takes_no_progress() {
         "stylize",
         "eval",
         "demo",
+        "run",
     ];
     for command in commands {
         assert!(help(command).contains("--no-progress"), "{command}");

@@ -256,7 +256,7 @@ pub fn renamed_to_mix(_: &str) -> Result<String, String> {
 const REPEAT_TIP: &str = "a flag takes one path per occurrence: repeat it for several, as in \
                           '--style a.jpg --style b.jpg'";
 
-/// Adds [`REPEAT_TIP`] to an unexpected-argument error about a value (not a flag) of a command
+/// Adds a tip on repeating flags to an unexpected-argument error about a value (not a flag) of a command
 /// with a flag repeated for several values (`sub`).
 pub fn with_repeat_tip(mut e: clap::Error, sub: Option<&clap::Command>) -> clap::Error {
     let about_a_value = matches!(

@@ -100,6 +100,7 @@ pub mod image_io;
 pub mod open;
 pub mod pretrain_decoder;
 pub mod render;
+pub mod run;
 pub mod shard;
 pub mod stylize;
 pub mod stylize_image;

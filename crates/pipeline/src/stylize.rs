@@ -84,6 +84,24 @@ pub fn style_names(paths: &[PathBuf]) -> Vec<String> {
 /// stands for its `.png` and `.jpg` files in name order (a folder without any is an error
 /// naming it).
 pub fn load_styles(paths: &[PathBuf], max_side: u32) -> Result<Vec<StyleImage>> {
+    let paths = &style_files(paths)?;
+    let names = style_names(paths);
+    paths
+        .iter()
+        .zip(names)
+        .map(|(p, name)| {
+            Ok(StyleImage {
+                name,
+                path: p.clone(),
+                image: image_io::load_style_image(p, max_side)?,
+            })
+        })
+        .collect()
+}
+
+/// The style image files of `paths`: each file as given, each folder's `.png` and `.jpg` files
+/// in name order ([`crate::image_io::image_files`]). At least one path must be given.
+pub fn style_files(paths: &[PathBuf]) -> Result<Vec<PathBuf>> {
     if paths.is_empty() {
         bail!("no style image given (--style IMG)");
     }
@@ -98,19 +116,7 @@ pub fn load_styles(paths: &[PathBuf], max_side: u32) -> Result<Vec<StyleImage>> 
             expanded.push(p.clone());
         }
     }
-    let paths = &expanded;
-    let names = style_names(paths);
-    paths
-        .iter()
-        .zip(names)
-        .map(|(p, name)| {
-            Ok(StyleImage {
-                name,
-                path: p.clone(),
-                image: image_io::load_style_image(p, max_side)?,
-            })
-        })
-        .collect()
+    Ok(expanded)
 }
 
 /// One stylization target: an output name and the statistics of every encoder level.

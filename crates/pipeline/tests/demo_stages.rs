@@ -7,7 +7,8 @@ use std::path::{Path, PathBuf};
 use std::time::SystemTime;
 
 use dsgs_testkit::{scratch_dir, shared_dir};
-use pipeline::demo::{run, DemoReport, DemoSettings};
+use pipeline::demo::{run, DemoSettings};
+use pipeline::run::RunReport;
 use pipeline::Control;
 use train::Variant;
 
@@ -46,7 +47,7 @@ fn files(dir: &Path) -> BTreeMap<PathBuf, SystemTime> {
 }
 
 /// The stages that ran (`Some` seconds), by name.
-fn ran(r: &DemoReport) -> Vec<&'static str> {
+fn ran(r: &RunReport) -> Vec<&'static str> {
     r.seconds
         .iter()
         .filter(|(_, t)| t.is_some())

@@ -47,7 +47,10 @@ use train::RunOutcome;
 pub struct BakeOverrides {
     /// Optimisation iterations after the colour solve (`--iterations`; key `iterations`).
     #[arg(long, help = with_default(
-        "Optimisation iterations after the closed-form colour solve (0: the solve alone)",
+        "Optimisation iterations after the closed-form colour solve. 0: the solve alone, in \
+         seconds, with the style already in the colours (on the 100x100 demo bundle 23.0 dB on \
+         held-out stylized views, against 23.3 dB after 300 iterations, 23.8 after 1,000 and \
+         24.5 after 3,000, which add view-dependent colour; docs/results.md)",
         BakeConfig::default().iterations,
     ))]
     pub iterations: Option<u64>,

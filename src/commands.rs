@@ -381,6 +381,7 @@ pub fn stylize_image(a: StylizeImageArgs) -> Result<()> {
 
 /// `dsgs view SCENE`: serves until the process is stopped.
 pub fn view(a: ViewArgs) -> Result<()> {
+    let (tx, rx) = std::sync::mpsc::channel::<viewer::Activity>();
     let config = viewer::ViewerConfig {
         styles: a.styles,
         bind: a.bind,
@@ -389,24 +390,23 @@ pub fn view(a: ViewArgs) -> Result<()> {
         tile_budget: a.tile_budget << 20,
         max_upload_pixels: a.max_upload_pixels,
         memory_budget: a.memory_budget << 20,
+        activity: Some(tx),
         ..viewer::ViewerConfig::new(&a.scene)
     };
     let running = viewer::start(config)
         .with_context(|| format!("starting the viewer of {}", a.scene.display()))?;
-    let mut text = format!("dsgs view: {} at {}\n", a.scene.display(), running.url());
-    if !running.addr().ip().is_loopback() {
-        text += &format!(
-            "listening on {}: every machine that reaches it can use this viewer\n",
-            running.addr()
-        );
-    }
-    text += "press Ctrl-C to stop\n";
-    // A closed standard output (the reader went away) must not stop the server.
+    say(&running.banner(&a.scene));
+    std::thread::spawn(move || rx.iter().for_each(|e| say(&format!("{e}\n"))));
+    running.wait();
+    Ok(())
+}
+
+/// Prints `text` and flushes; a closed standard output (the reader went away) must not stop
+/// the server.
+fn say(text: &str) {
     use std::io::Write;
     let mut out = std::io::stdout();
     let _ = out.write_all(text.as_bytes()).and_then(|()| out.flush());
-    running.wait();
-    Ok(())
 }
 
 /// `dsgs assemble OUTPUT`: finds the shards of OUTPUT ([`pipeline::assemble::find_run`]) and runs

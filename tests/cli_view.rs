@@ -18,7 +18,22 @@ struct Server {
     child: Child,
     url: String,
     /// The program's standard output, kept open while it runs.
-    _stdout: BufReader<std::process::ChildStdout>,
+    stdout: BufReader<std::process::ChildStdout>,
+}
+
+impl Server {
+    /// The next line the program prints that contains `needle` (the lines before it skipped).
+    fn said(&mut self, needle: &str) -> String {
+        let mut line = String::new();
+        loop {
+            line.clear();
+            let n = self.stdout.read_line(&mut line).unwrap();
+            assert!(n > 0, "the server's output ended before `{needle}`");
+            if line.contains(needle) {
+                return line;
+            }
+        }
+    }
 }
 
 impl Drop for Server {
@@ -48,11 +63,7 @@ fn serve(scene: &Path, args: &[&str]) -> Server {
         .trim_end_matches('/')
         .to_string();
     assert!(url.starts_with("http://127.0.0.1:"), "{url}");
-    Server {
-        child,
-        url,
-        _stdout: stdout,
-    }
+    Server { child, url, stdout }
 }
 
 fn agent() -> ureq::Agent {
@@ -136,7 +147,7 @@ fn the_api_serves_the_scene_stylizes_views_and_refuses_bad_requests() {
     let dir = scratch("view-api");
     let bundle = save_tiny_bundle(&dir);
     let style = shared_path("data/styles/mondrian.jpg");
-    let s = serve(&bundle, &["--style", style.to_str().unwrap()]);
+    let mut s = serve(&bundle, &["--style", style.to_str().unwrap()]);
 
     let (status, page) = get(&s, "/");
     assert_eq!(status, 200);
@@ -179,6 +190,12 @@ fn the_api_serves_the_scene_stylizes_views_and_refuses_bad_requests() {
     };
     let (status, png) = post_json(&s, "/api/stylize", &request(Value::Null));
     assert_eq!(status, 200, "{}", String::from_utf8_lossy(&png));
+    // The server says what it did.
+    let line = s.said("stylized");
+    assert!(
+        line.contains("64 x 64") && line.contains("mondrian"),
+        "{line}"
+    );
     let out = dir.join("stylized");
     ok(dsgs()
         .arg("stylize")
@@ -315,6 +332,8 @@ fn the_api_serves_the_scene_stylizes_views_and_refuses_bad_requests() {
         std::thread::sleep(std::time::Duration::from_millis(100));
     }
     assert_eq!(info["state"], "done", "{info}");
+    assert!(s.said(&job).contains("baking"));
+    assert!(s.said(&job).contains("baked in"));
     let (status, baked) = get(&s, &format!("/api/jobs/{job}/gaussians"));
     assert_eq!(status, 200);
     assert_eq!(baked.len(), 1500 * (11 + 48) * 4);

@@ -5,6 +5,8 @@ import { sortBackToFront, newScratch } from "./sort-worker.js";
 const params = new URLSearchParams(location.search);
 const FPS_MODE = params.get("fps") === "1";
 const BARE = params.get("ui") === "0";
+// ?size=native shows a scene camera at its own pixel size instead of fitted to the window.
+const NATIVE = params.get("size") === "native";
 const PREVIEW_SIDE = 192;
 
 const $ = (id) => document.getElementById(id);
@@ -170,8 +172,29 @@ function fitWindow() {
   markCameraList();
 }
 
+// The room for the view: the stage, or half of it when the result is shown beside.
+function viewRoom() {
+  const beside = !resultBeside.hidden;
+  let w = stage.clientWidth;
+  if (beside) w = (w - 8) / 2;
+  return [Math.max(1, Math.floor(w)), Math.max(1, Math.floor(stage.clientHeight))];
+}
+
 function applySize() {
-  if (view.mode === "fit") {
+  if (view.mode === "camera" && !NATIVE) {
+    // The scene camera scaled to fit the room: its pose and field of view, scaled intrinsics.
+    const cam = scene.info.cameras[view.camIndex];
+    const [rw, rh] = viewRoom();
+    const s = Math.min(rw / cam.width, rh / cam.height);
+    view.width = Math.max(1, Math.floor(cam.width * s));
+    view.height = Math.max(1, Math.floor(cam.height * s));
+    const sx = view.width / cam.width;
+    const sy = view.height / cam.height;
+    view.fx = cam.fx * sx;
+    view.fy = cam.fy * sy;
+    view.cx = cam.cx * sx;
+    view.cy = cam.cy * sy;
+  } else if (view.mode === "fit") {
     const beside = !resultBeside.hidden;
     let w = stage.clientWidth;
     if (beside) w = (w - 8) / 2;
@@ -193,6 +216,7 @@ function applySize() {
   $("view-size").textContent =
     `${view.width} x ${view.height} px, f ${view.fx.toFixed(1)}, ` +
     (view.mode === "camera" ? `camera ${view.camIndex}` : "fitted to the window");
+  sizeResult();
   requestDraw();
 }
 
@@ -950,7 +974,7 @@ function frame(now) {
     // The first complete frame: wait for the GPU so that it is there to be captured.
     renderer.gl.finish();
     ready = true;
-    document.title = "dsgs view: ready";
+    document.title = `dsgs view: ${scene.info.name}`;
     window.dsgsReady = true;
   }
 }
@@ -1107,7 +1131,8 @@ async function start() {
     requestDraw();
   });
 
-  // The first view: ?camera=K (index or name) at its size, else camera 0 fitted to the window.
+  // The first view: ?camera=K (index or name) fitted to the window (at its own size with
+  // ?size=native), else camera 0's view filling the window.
   world.up = upFromCameras(info.cameras);
   const wanted = params.get("camera");
   let camIndex = -1;
@@ -1147,7 +1172,7 @@ async function start() {
 }
 
 new ResizeObserver(() => {
-  if (view.mode === "fit" && scene.info) applySize();
+  if (scene.info && (view.mode === "fit" || (view.mode === "camera" && !NATIVE))) applySize();
 }).observe(stage);
 
 $("fit").addEventListener("click", () => {
@@ -1378,11 +1403,8 @@ async function stylizeView() {
 function showResult(blob, caption, camera) {
   if (resultUrl) URL.revokeObjectURL(resultUrl);
   resultUrl = URL.createObjectURL(blob);
-  for (const img of [$("result-img"), $("result-over")]) {
-    img.src = resultUrl;
-    img.style.width = `${camera.width}px`;
-    img.style.height = `${camera.height}px`;
-  }
+  for (const img of [$("result-img"), $("result-over")]) img.src = resultUrl;
+  resultSize = [camera.width, camera.height];
   $("result-caption").textContent = `Result: ${caption} (${camera.width} x ${camera.height} view)`;
   const save = $("result-save");
   save.href = resultUrl;
@@ -1393,6 +1415,21 @@ function showResult(blob, caption, camera) {
 }
 
 let showingResult = false;
+// The pixel size of the result shown.
+let resultSize = [1, 1];
+
+// The result beside the view fits the other half of the stage (its aspect kept); over the
+// view it covers the view.
+function sizeResult() {
+  const [rw, rh] = viewRoom();
+  const s = Math.min(rw / resultSize[0], rh / resultSize[1]);
+  const img = $("result-img");
+  img.style.width = `${Math.max(1, Math.floor(resultSize[0] * s))}px`;
+  img.style.height = `${Math.max(1, Math.floor(resultSize[1] * s))}px`;
+  const over = $("result-over");
+  over.style.width = `${view.width}px`;
+  over.style.height = `${view.height}px`;
+}
 
 function placeResult() {
   const over = $("overlay").checked;
@@ -1400,8 +1437,9 @@ function placeResult() {
   const beside = showingResult && !over;
   if (resultBeside.hidden !== !beside) {
     resultBeside.hidden = !beside;
-    if (view.mode === "fit") applySize();
+    applySize();
   }
+  sizeResult();
 }
 
 function hideResult() {

@@ -69,6 +69,81 @@ pub struct ViewerConfig {
     /// or waiting for a slot) may take by its estimate ([`Budget`](crate::budget::Budget)); a
     /// request that would pass it is answered 503 at once.
     pub memory_budget: u64,
+    /// Where the server reports what it does ([`Activity`]), for a program to show (`None`:
+    /// nowhere).
+    pub activity: Option<std::sync::mpsc::Sender<Activity>>,
+}
+
+/// What the server did, reported as it happens (the library never prints; a program shows
+/// these, e.g. one line each through their `Display`).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Activity {
+    /// A view was stylized.
+    Stylized {
+        /// The view's size in pixels.
+        width: u32,
+        /// The view's height in pixels.
+        height: u32,
+        /// The styles mixed (their names).
+        styles: Vec<String>,
+        /// Wall time of the stylization, in seconds.
+        seconds: f64,
+    },
+    /// A stylization failed.
+    StylizeFailed {
+        /// Why.
+        message: String,
+    },
+    /// A bake started.
+    BakeStarted {
+        /// The job's id.
+        job: String,
+        /// Optimisation iterations after the colour solve.
+        iterations: u64,
+    },
+    /// A bake ended.
+    BakeEnded {
+        /// The job's id.
+        job: String,
+        /// `None` when it succeeded, else why it failed.
+        error: Option<String>,
+        /// Wall time of the bake, in seconds.
+        seconds: f64,
+    },
+}
+
+impl std::fmt::Display for Activity {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Activity::Stylized {
+                width,
+                height,
+                styles,
+                seconds,
+            } => write!(
+                f,
+                "stylized a {width} x {height} view with {} in {seconds:.1} s",
+                styles.join(" + ")
+            ),
+            Activity::StylizeFailed { message } => write!(f, "stylizing a view failed: {message}"),
+            Activity::BakeStarted { job, iterations } => {
+                write!(
+                    f,
+                    "{job}: baking (colour solve, then {iterations} iterations)"
+                )
+            }
+            Activity::BakeEnded {
+                job,
+                error: None,
+                seconds,
+            } => write!(f, "{job}: baked in {seconds:.1} s"),
+            Activity::BakeEnded {
+                job,
+                error: Some(e),
+                seconds,
+            } => write!(f, "{job}: the bake failed after {seconds:.1} s: {e}"),
+        }
+    }
 }
 
 impl ViewerConfig {
@@ -88,6 +163,7 @@ impl ViewerConfig {
             max_uploads: 16,
             max_upload_pixels: 4096 * 4096,
             memory_budget: 4 << 30,
+            activity: None,
         }
     }
 }

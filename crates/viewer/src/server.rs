@@ -330,6 +330,20 @@ impl Running {
         format!("http://{}/", self.addr)
     }
 
+    /// What a program tells its user once the server is up: the scene and the address (the
+    /// first line), a warning when the address is reachable from other machines, and how to
+    /// stop.
+    pub fn banner(&self, scene: &std::path::Path) -> String {
+        let mut text = format!("dsgs view: {} at {}\n", scene.display(), self.url());
+        if !self.addr.ip().is_loopback() {
+            text += &format!(
+                "listening on {}: every machine that reaches it can use this viewer\n",
+                self.addr
+            );
+        }
+        text + "press Ctrl-C to stop; what the server does is shown below\n"
+    }
+
     /// Blocks until the server ends (it runs until the process is stopped).
     pub fn wait(mut self) {
         if let Some(t) = self.thread.take() {

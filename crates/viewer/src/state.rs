@@ -22,7 +22,7 @@ use crate::api::{
 };
 use crate::budget::Budget;
 use crate::scene::{pack_gaussians, stride, CameraJson};
-use crate::{ViewerConfig, ViewerError};
+use crate::{Activity, ViewerConfig, ViewerError};
 
 /// Side of the style thumbnails, in pixels.
 const THUMBNAIL_SIDE: u32 = 128;
@@ -117,6 +117,39 @@ fn thumbnail(img: &RgbImage) -> Result<Vec<u8>, pipeline::Error> {
     image_io::encode_png(&image_io::thumbnail(img, w, h))
 }
 
+/// The names of the folders and files that the pipeline's own layouts give every scene
+/// (`OUT/features/bundle`, `OUT/geometry/point_cloud.ply`, the official
+/// `point_cloud/iteration_N/point_cloud.ply`): they say nothing of which scene it is.
+const LAYOUT_NAMES: [&str; 5] = [
+    "bundle",
+    "features",
+    "geometry",
+    "point_cloud",
+    "point_cloud.ply",
+];
+
+/// The scene's name for the page: the last component of its path that is not a name of the
+/// pipeline's layouts ([`LAYOUT_NAMES`], `iteration_N`), so `dsgs-demo/features/bundle` is
+/// `dsgs-demo`; the file or folder name when every component is one.
+fn scene_name(path: &Path) -> String {
+    let absolute = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    let names: Vec<String> = absolute
+        .components()
+        .filter_map(|c| match c {
+            std::path::Component::Normal(n) => Some(n.to_string_lossy().into_owned()),
+            _ => None,
+        })
+        .collect();
+    let generic = |n: &str| LAYOUT_NAMES.contains(&n) || n.starts_with("iteration_");
+    names
+        .iter()
+        .rev()
+        .find(|n| !generic(n))
+        .or(names.last())
+        .cloned()
+        .unwrap_or_else(|| "scene".into())
+}
+
 /// An upload's name: its printable characters, at most 64, or `upload`.
 fn clean_name(name: &str) -> String {
     let n: String = name
@@ -140,11 +173,7 @@ impl State {
     /// Reads the scene and the style images.
     pub(crate) fn load(config: ViewerConfig) -> Result<State, ViewerError> {
         let scene = SceneInput::open(&config.scene)?;
-        let name = config
-            .scene
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "scene".into());
+        let name = scene_name(&config.scene);
         let known = scene.known_cameras();
         let cameras: Vec<(String, Camera)> = if known.cameras.is_empty() {
             let request = CameraRequest {
@@ -453,6 +482,45 @@ impl State {
         req: &StylizeRequest,
         camera: &Camera,
     ) -> Result<Vec<u8>, ApiError> {
+        let started = std::time::Instant::now();
+        let result = self.stylize_png(req, camera);
+        self.report(match &result {
+            Ok(_) => Activity::Stylized {
+                width: camera.intrinsics.width,
+                height: camera.intrinsics.height,
+                styles: self.style_names(&req.styles),
+                seconds: started.elapsed().as_secs_f64(),
+            },
+            Err(e) => Activity::StylizeFailed {
+                message: e.1.clone(),
+            },
+        });
+        result
+    }
+
+    /// The names of the chosen styles (their ids where unknown).
+    fn style_names(&self, chosen: &[WeightedStyle]) -> Vec<String> {
+        let styles = lock(&self.styles);
+        chosen
+            .iter()
+            .map(|c| {
+                styles
+                    .iter()
+                    .find(|s| s.info.id == c.id)
+                    .map_or_else(|| c.id.clone(), |s| s.info.name.clone())
+            })
+            .collect()
+    }
+
+    /// Tells the program what happened ([`ViewerConfig::activity`]); a program that stopped
+    /// listening is not an error.
+    fn report(&self, activity: Activity) {
+        if let Some(tx) = &self.config.activity {
+            let _ = tx.send(activity);
+        }
+    }
+
+    fn stylize_png(&self, req: &StylizeRequest, camera: &Camera) -> Result<Vec<u8>, ApiError> {
         let bundle = self.bundle()?;
         let camera = *camera;
         let content = if req.preserve_colour {
@@ -504,8 +572,19 @@ impl State {
         };
         let state = self.clone();
         let (alpha, iterations) = (req.alpha, req.iterations);
+        self.report(Activity::BakeStarted {
+            job: id.clone(),
+            iterations,
+        });
+        let job_id = id.clone();
         std::thread::spawn(move || {
+            let started = std::time::Instant::now();
             let result = state.bake(&target, alpha, iterations, &job);
+            state.report(Activity::BakeEnded {
+                job: job_id,
+                error: result.as_ref().err().cloned(),
+                seconds: started.elapsed().as_secs_f64(),
+            });
             let mut j = lock(&job);
             match result {
                 Ok(g) => {
@@ -598,5 +677,27 @@ fn stage_name(stage: Stage) -> String {
     match stage {
         Stage::BakeTargets => "rendering the stylized targets".into(),
         other => format!("{other:?}").to_lowercase(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_scene_is_named_by_its_folder_not_by_the_pipeline_layout() {
+        for (path, name) in [
+            ("/runs/dsgs-demo/features/bundle", "dsgs-demo"),
+            ("/runs/beer/geometry/point_cloud.ply", "beer"),
+            (
+                "/o/garden/point_cloud/iteration_30000/point_cloud.ply",
+                "garden",
+            ),
+            ("/scenes/lego_bundle", "lego_bundle"),
+            ("/x/trained_9080.ply", "trained_9080.ply"),
+            ("/bundle", "bundle"),
+        ] {
+            assert_eq!(scene_name(Path::new(path)), name, "{path}");
+        }
     }
 }

@@ -246,6 +246,29 @@ fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
         ));
     }
 
+    // The texture distance between the two paintings' frames, view by view.
+    let (a, b) = (&sequences[1].0, &sequences[2].0);
+    let between: f64 = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| {
+            let gx = grams(&deepest(x));
+            let gy = grams(&deepest(y));
+            style::gram_distance_of(&gx, &gy).unwrap()
+        })
+        .sum::<f64>()
+        / cams.len() as f64;
+    assert_eq!(report.texture_between.len(), 1);
+    let pair = &report.texture_between[0];
+    assert_eq!((pair.a.as_str(), pair.b.as_str()), ("mondrian", "sketch"));
+    // The frames are encoded in tiles here (the budget), whose Gram matrices are summed over
+    // the tiles in f64: equal to the whole frame's up to that summation order, 1e-12 relative.
+    assert!(
+        (pair.distance - between).abs() <= 1e-12 * between,
+        "{} {between}",
+        pair.distance
+    );
+    assert!(between > 0.0);
     assert_eq!(report.outputs.len(), 1 + targets.len());
     for (o, (frames, losses)) in report.outputs.iter().zip(&sequences) {
         for (got, offset) in [(o.short_range, SHORT_RANGE), (o.long_range, LONG_RANGE)] {
@@ -256,6 +279,11 @@ fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
         }
         assert_eq!(o.style_loss, losses.map(|l| l.0), "{}", o.name);
         assert_eq!(o.content_loss, losses.map(|l| l.1), "{}", o.name);
-        assert_eq!(o.texture_distance, losses.map(|l| l.2), "{}", o.name);
+        // As the texture distance between outputs: 1e-12 relative.
+        let (got, want) = (o.texture_distance, losses.map(|l| l.2));
+        assert_eq!(got.is_some(), want.is_some(), "{}", o.name);
+        if let (Some(g), Some(w)) = (got, want) {
+            assert!((g - w).abs() <= 1e-12 * w, "{}: {g} {w}", o.name);
+        }
     }
 }

@@ -20,6 +20,9 @@
 //!   views: what the style loss's channel means and deviations cannot see, e.g. one texture
 //!   given to every painting. For a mixture, the target Gram matrices are the styles' mixed
 //!   with the mixture's weights;
+//! * texture distance between outputs: the same Gram distance between the frames of every two
+//!   of dsgs's outputs (and of every two 2D baselines) of the same view, averaged over views
+//!   ([`EvalReport::texture_between`]): near 0 when different paintings give one texture;
 //! * content loss: the mean squared difference of the deepest features of the output and of the
 //!   plain colour render of the same view, averaged over views.
 //!
@@ -114,6 +117,22 @@ pub struct EvalReport {
     pub outputs: Vec<OutputReport>,
     /// Mean seconds per view of each stage (stylized outputs only).
     pub seconds_per_view: Option<StageSeconds>,
+    /// The texture distance between the frames of every two of dsgs's outputs, and of every
+    /// two 2D baselines, averaged over views: how different the textures of different
+    /// paintings' outputs are (absent from reports written before it was measured).
+    #[serde(default)]
+    pub texture_between: Vec<TexturePair>,
+}
+
+/// The texture distance between two outputs of an evaluation ([`EvalReport::texture_between`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TexturePair {
+    /// One output's name.
+    pub a: String,
+    /// The other's.
+    pub b: String,
+    /// The mean over views of the Gram distance between their frames.
+    pub distance: f64,
 }
 
 /// Settings of a bundle evaluation.
@@ -169,6 +188,10 @@ pub fn shard_line(shard: Shard, views: usize, report: &Path) -> String {
 pub struct ShardSums {
     /// Per view of the shard's block, per stylized output: its measures.
     pub losses: Vec<Vec<FrameLoss>>,
+    /// Per view of the shard's block, per pair of [`output_pairs`]: the texture distance
+    /// between the two outputs' frames.
+    #[serde(default)]
+    pub between: Vec<Vec<f64>>,
     /// Per output (colour first), per offset (short, long): the pairs that start in the block.
     pub pairs: Vec<Vec<Vec<PairRecord>>>,
     /// Sums over the decoded views of the stage seconds.
@@ -279,6 +302,16 @@ impl<'e> FrameLosses<'e> {
 
     /// The measures of the decoded frame `image` against `style`.
     pub fn of(&self, image: &RgbImage, style: StyleMeasures) -> Result<FrameLoss> {
+        Ok(self.measure(image, style)?.0)
+    }
+
+    /// [`FrameLosses::of`] and the frame's own Gram matrices at every level, for comparing
+    /// frames with each other.
+    pub fn measure(
+        &self,
+        image: &RgbImage,
+        style: StyleMeasures,
+    ) -> Result<(FrameLoss, Vec<Array2<f64>>)> {
         let x = nchw_from_rgb(image);
         if x.dim() != self.colour.dim() {
             bail!(
@@ -298,11 +331,12 @@ impl<'e> FrameLosses<'e> {
                 .collect::<Result<Vec<_>, _>>()?;
             let content =
                 style::content_loss(f.last().expect("encoder depth >= 1"), colour_deepest)?;
-            return Ok(FrameLoss {
+            let loss = FrameLoss {
                 style: style_loss,
                 texture: style::gram_distance_of(&grams, style.grams)?,
                 content: content as f64,
-            });
+            };
+            return Ok((loss, grams));
         }
         let enc = self.encoder;
         let hw = (x.dim().2, x.dim().3);
@@ -345,11 +379,12 @@ impl<'e> FrameLosses<'e> {
         let style_loss = style::style_loss_of_stats(&stats, style.stats)? as f64;
         // Rounded to `f32` as the whole-frame content loss is.
         let content = (squares / count as f64) as f32;
-        Ok(FrameLoss {
+        let loss = FrameLoss {
             style: style_loss,
             texture: style::gram_distance_of(&grams, style.grams)?,
             content: content as f64,
-        })
+        };
+        Ok((loss, grams))
     }
 }
 
@@ -413,6 +448,22 @@ fn target_grams(
         }
     }
     Ok(vec![mixed])
+}
+
+/// The pairs of stylized outputs whose frames are compared with each other, as indices into
+/// [`stylized_outputs`]: every two of dsgs's outputs, then every two of the per-frame 2D
+/// baselines (so that "every painting gives the same texture" shows as a small distance).
+fn output_pairs(stylized: &[(usize, bool)]) -> Vec<(usize, usize)> {
+    let mut pairs = Vec::new();
+    for baseline in [false, true] {
+        let of: Vec<usize> = (0..stylized.len())
+            .filter(|&k| stylized[k].1 == baseline)
+            .collect();
+        for (i, &a) in of.iter().enumerate() {
+            pairs.extend(of[i + 1..].iter().map(|&b| (a, b)));
+        }
+    }
+    pairs
 }
 
 /// The stylized outputs of an evaluation, after the colour render: per target its baseline
@@ -628,6 +679,19 @@ fn evaluate(
             content_loss: mean.map(|m| m.content / views),
         });
     }
+    let names: Vec<String> = reports.iter().skip(1).map(|o| o.name.clone()).collect();
+    let texture_between = output_pairs(&stylized)
+        .iter()
+        .enumerate()
+        .map(|(k, &(a, b))| {
+            let sum: f64 = sums.iter().flat_map(|s| &s.between).map(|v| v[k]).sum();
+            TexturePair {
+                a: names[a].clone(),
+                b: names[b].clone(),
+                distance: sum / views,
+            }
+        })
+        .collect();
     let decoded: usize = sums.iter().map(|s| s.decoded).sum();
     let d = decoded.max(1) as f64;
     let total = |f: fn(&StageSeconds) -> f64| sums.iter().map(|s| f(&s.seconds)).sum::<f64>() / d;
@@ -646,6 +710,7 @@ fn evaluate(
             lift_transform: total(|s| s.lift_transform),
             decode: total(|s| s.decode),
         }),
+        texture_between,
     }))
 }
 
@@ -678,6 +743,7 @@ fn evaluate_block(
             .transpose()?;
         let mut images = Vec::with_capacity(1 + stylized.len());
         let mut view_losses = Vec::with_capacity(stylized.len());
+        let mut view_grams = Vec::with_capacity(stylized.len());
         for &(t, is_baseline) in &stylized {
             let target = &targets[t];
             let img = if is_baseline {
@@ -701,7 +767,9 @@ fn evaluate_block(
                     stats: &target.stats.levels,
                     grams: &grams[t],
                 };
-                view_losses.push(l.of(&img, measures)?);
+                let (loss, grams) = l.measure(&img, measures)?;
+                view_losses.push(loss);
+                view_grams.push(grams);
             }
             images.push(img);
             tally.advance(1, "decode");
@@ -709,6 +777,11 @@ fn evaluate_block(
         images.insert(0, colour_image);
         if losses.is_some() {
             out.losses.push(view_losses);
+            let between = output_pairs(&stylized)
+                .iter()
+                .map(|&(a, b)| style::gram_distance_of(&view_grams[a], &view_grams[b]))
+                .collect::<Result<Vec<_>, _>>()?;
+            out.between.push(between);
         }
         drop(features);
         stream.push(StreamFrame {
@@ -819,6 +892,7 @@ pub fn evaluate_frames(
             content_loss: None,
         }],
         seconds_per_view: None,
+        texture_between: Vec::new(),
     })
 }
 
@@ -869,6 +943,12 @@ pub fn table(r: &EvalReport) -> String {
             opt(o.style_loss, 4),
             opt(o.texture_distance, 4),
             opt(o.content_loss, 4)
+        );
+    }
+    for p in &r.texture_between {
+        s += &format!(
+            "texture distance between {} and {}: {:.4}\n",
+            p.a, p.b, p.distance
         );
     }
     if let Some(t) = &r.seconds_per_view {

@@ -188,8 +188,8 @@ pub fn shard_line(shard: Shard, views: usize, report: &Path) -> String {
 pub struct ShardSums {
     /// Per view of the shard's block, per stylized output: its measures.
     pub losses: Vec<Vec<FrameLoss>>,
-    /// Per view of the shard's block, per pair of outputs compared (every two dsgs outputs, then every two 2D baselines): the texture distance
-    /// between the two outputs' frames.
+    /// Per view of the shard's block, per pair of outputs compared (every two dsgs outputs,
+    /// then every two 2D baselines): the texture distance between the two outputs' frames.
     #[serde(default)]
     pub between: Vec<Vec<f64>>,
     /// Per output (colour first), per offset (short, long): the pairs that start in the block.

@@ -40,6 +40,18 @@ pub fn fails(cmd: &mut Command) -> String {
     err
 }
 
+/// Checks the summary of a `dsgs run` or `dsgs demo` that found every stage done: each of
+/// them says it was skipped.
+pub fn every_stage_skipped(out: &Output) {
+    let text = String::from_utf8_lossy(&out.stdout);
+    for stage in ["weights", "geometry", "features", "stylize", "eval"] {
+        assert!(
+            text.contains(&format!("{stage}: done before, skipped")),
+            "{stage}: {text}"
+        );
+    }
+}
+
 /// A fresh scratch directory under the cargo target's temporary directory.
 pub fn scratch(name: &str) -> PathBuf {
     let d = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("{name}-{}", std::process::id()));

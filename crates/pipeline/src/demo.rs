@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 
 use crate::cli::{at_least_one, positive, variant};
 use crate::error::Result;
-use crate::run::{Networks, Plan, RunReport, DECODER, ENCODER, TRAINING_STYLES};
+use crate::run::{Networks, Plan, RunReport, TRAINING_STYLES};
 use crate::Control;
 use train::Variant;
 
@@ -172,13 +172,7 @@ pub fn plan(s: &DemoSettings) -> Plan {
         downscale: s.downscale,
         random_init_points: Some(20_000),
         out_dir: s.out_dir.clone(),
-        networks: match &s.weights {
-            Some(w) => Networks::File(w.clone()),
-            None => Networks::Import {
-                encoder: s.shared.join(ENCODER),
-                decoder: s.shared.join(DECODER),
-            },
-        },
+        networks: Networks::given_or_shared(s.weights.as_ref(), &s.shared),
         decoder: s.decoder.clone(),
         variant: s.variant,
         geometry_iterations: s.geometry_iterations,

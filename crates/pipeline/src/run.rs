@@ -69,6 +69,20 @@ pub enum Networks {
     },
 }
 
+impl Networks {
+    /// The weights file given, else the default checkpoints under the shared folder
+    /// ([`ENCODER`], [`DECODER`]).
+    pub fn given_or_shared(weights: Option<&PathBuf>, shared: &Path) -> Networks {
+        match weights {
+            Some(w) => Networks::File(w.clone()),
+            None => Networks::Import {
+                encoder: shared.join(ENCODER),
+                decoder: shared.join(DECODER),
+            },
+        }
+    }
+}
+
 /// Everything a run does: inputs, schedules and outputs.
 #[derive(Clone, Debug)]
 pub struct Plan {
@@ -329,13 +343,7 @@ pub fn plan(s: &RunSettings) -> Result<Plan> {
         downscale,
         random_init_points: None,
         out_dir: s.out_dir.clone(),
-        networks: match &s.weights {
-            Some(w) => Networks::File(w.clone()),
-            None => Networks::Import {
-                encoder: s.shared.join(ENCODER),
-                decoder: s.shared.join(DECODER),
-            },
-        },
+        networks: Networks::given_or_shared(s.weights.as_ref(), &s.shared),
         decoder: s.decoder.clone(),
         variant: s.variant,
         geometry_iterations: s.geometry_iterations.unwrap_or(p.geometry_iterations),

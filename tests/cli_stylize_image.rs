@@ -45,17 +45,22 @@ fn photos_are_stylized_measured_and_laid_out() {
         shared_path("data/styles/mondrian.jpg"),
         shared_path("data/styles/sketch.png"),
     ];
-    ok(dsgs()
-        .arg("stylize-image")
-        .args(&photos)
-        .arg("--style")
-        .arg(&styles[0])
-        .arg("--style")
-        .arg(&styles[1])
-        .args(networks())
-        .args(["--content-size", "64", "--style-size", "64", "--mix", "1,0"])
-        .args(["--no-progress", "-o"])
-        .arg(&out));
+    // The two photos with the two styles and their mixture (1, 0) at 64 pixels, into `out`.
+    let stylize = |extra: &[&std::ffi::OsStr], out: &std::path::Path| {
+        ok(dsgs()
+            .arg("stylize-image")
+            .args(&photos)
+            .arg("--style")
+            .arg(&styles[0])
+            .arg("--style")
+            .arg(&styles[1])
+            .args(networks())
+            .args(["--content-size", "64", "--style-size", "64", "--mix", "1,0"])
+            .args(extra)
+            .args(["--no-progress", "-o"])
+            .arg(out));
+    };
+    stylize(&[], &out);
     let report: Value =
         serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
     let pairs = report["pairs"].as_array().unwrap();
@@ -87,19 +92,7 @@ fn photos_are_stylized_measured_and_laid_out() {
     // with a deeper encoder (relu3_1): the same outputs, other measures, and the report says so.
     let measured = |name: &str, encoder: std::path::PathBuf| {
         let dir = dir.join(name);
-        ok(dsgs()
-            .arg("stylize-image")
-            .args(&photos)
-            .arg("--style")
-            .arg(&styles[0])
-            .arg("--style")
-            .arg(&styles[1])
-            .args(networks())
-            .args(["--content-size", "64", "--style-size", "64", "--mix", "1,0"])
-            .arg("--measure-with")
-            .arg(&encoder)
-            .args(["--no-progress", "-o"])
-            .arg(&dir));
+        stylize(&["--measure-with".as_ref(), encoder.as_os_str()], &dir);
         let r: Value =
             serde_json::from_slice(&std::fs::read(dir.join("report.json")).unwrap()).unwrap();
         assert_eq!(

@@ -120,16 +120,14 @@ pub fn decoder_training_loss<T: Real>(
     let (image, dtape) = decoder.forward_with_param_tape(input.view())?;
     let (loss_c, loss_s, g_image, _) =
         perceptual(encoder, &image, content_target, style, 1.0, style_weight)?;
-    let grads = decoder.backward_with_params(&dtape, g_image.view())?;
-    let loss = T::lit(loss_c.to_f64_exact() + style_weight * loss_s.to_f64_exact());
-    Ok(DecoderLoss {
+    decoder_loss(
+        decoder,
+        &dtape,
         image,
-        loss_content: loss_c,
-        loss_style: loss_s,
-        loss,
-        grad_input: grads.input,
-        grad_params: grads.params,
-    })
+        (loss_c, loss_s),
+        &g_image,
+        style_weight,
+    )
 }
 
 /// [`decoder_training_loss`] with a separate *style network* `psi`:
@@ -166,7 +164,27 @@ pub fn decoder_training_loss_with_style_network<T: Real>(
     let views: Vec<Option<ArrayView4<T>>> = cot.iter().map(|c| Some(c.view())).collect();
     let g_s = style_network.backward(&stape, &views)?;
     g_image.zip_mut_with(&g_s, |a, &b| *a += b);
-    let grads = decoder.backward_with_params(&dtape, g_image.view())?;
+    decoder_loss(
+        decoder,
+        &dtape,
+        image,
+        (loss_c, loss_s),
+        &g_image,
+        style_weight,
+    )
+}
+
+/// The decoder training loss of `image` from its two terms, `content + w_s * style` (summed in
+/// `f64`), with the decoder's input and parameter gradients from the image gradient `g_image`.
+fn decoder_loss<T: Real>(
+    decoder: &Decoder<T>,
+    tape: &nets::DecoderTape<T>,
+    image: Array4<T>,
+    (loss_c, loss_s): (T, T),
+    g_image: &Array4<T>,
+    style_weight: f64,
+) -> Result<DecoderLoss<T>> {
+    let grads = decoder.backward_with_params(tape, g_image.view())?;
     let loss = T::lit(loss_c.to_f64_exact() + style_weight * loss_s.to_f64_exact());
     Ok(DecoderLoss {
         image,

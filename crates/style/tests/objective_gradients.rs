@@ -254,26 +254,8 @@ proptest! {
         let numeric = (loss_at(&n.dec, &rp) - loss_at(&n.dec, &rm)) / (2.0 * H);
         close("raster features", dot(&out.grad_raster_features, &v), numeric, out.loss)?;
         // Decoder parameters along one random direction.
-        let mut rng = dsgs_testkit::SplitMix64(seed);
-        let dirs: Vec<(Array4<f64>, Array1<f64>)> = n
-            .dec
-            .layers()
-            .map(|l| {
-                // Each layer moves in proportion to its own weights (see the module docs).
-                let (sw, sb) = param_scales(l.weight.as_slice().unwrap(), l.bias.as_slice().unwrap());
-                let w = Array4::from_shape_simple_fn(l.weight.dim(), || sw * rng.uniform(-1.0, 1.0));
-                let b = Array1::from_shape_simple_fn(l.bias.len(), || sb * rng.uniform(-1.0, 1.0));
-                (w, b)
-            })
-            .collect();
-        let shifted = |h: f64| {
-            let mut d = n.dec.clone();
-            for (l, (dw, db)) in d.layers_mut().zip(&dirs) {
-                l.weight = &l.weight + &(dw * h);
-                l.bias = &l.bias + &(db * h);
-            }
-            d
-        };
+        let dirs = decoder_direction(&n.dec, seed);
+        let shifted = |h: f64| shifted_decoder(&n.dec, &dirs, h);
         let (dp, dm) = (shifted(H), shifted(-H));
         prop_assume!(same(&dp, &raster) && same(&dm, &raster));
         prop_assert_eq!(out.grad_decoder.len(), n.dec.layers().count());
@@ -286,6 +268,35 @@ proptest! {
         let numeric = (loss_at(&dp, &raster) - loss_at(&dm, &raster)) / (2.0 * H);
         close("decoder parameters", analytic, numeric, out.loss)?;
     }
+}
+
+/// A random direction in the decoder's parameters, one `(weight, bias)` pair per layer, each
+/// layer's entries uniform in `[-1, 1)` times the layer's own scale ([`param_scales`]; see the
+/// module docs), from `seed`.
+fn decoder_direction(dec: &Decoder<f64>, seed: u64) -> Vec<(Array4<f64>, Array1<f64>)> {
+    let mut rng = dsgs_testkit::SplitMix64(seed);
+    dec.layers()
+        .map(|l| {
+            let (sw, sb) = param_scales(l.weight.as_slice().unwrap(), l.bias.as_slice().unwrap());
+            let w = Array4::from_shape_simple_fn(l.weight.dim(), || sw * rng.uniform(-1.0, 1.0));
+            let b = Array1::from_shape_simple_fn(l.bias.len(), || sb * rng.uniform(-1.0, 1.0));
+            (w, b)
+        })
+        .collect()
+}
+
+/// `dec` moved by `h` along `dirs`.
+fn shifted_decoder(
+    dec: &Decoder<f64>,
+    dirs: &[(Array4<f64>, Array1<f64>)],
+    h: f64,
+) -> Decoder<f64> {
+    let mut d = dec.clone();
+    for (l, (dw, db)) in d.layers_mut().zip(dirs) {
+        l.weight = &l.weight + &(dw * h);
+        l.bias = &l.bias + &(db * h);
+    }
+    d
 }
 
 /// A second encoder to measure style with: the fixture encoder to relu2_1 with every weight
@@ -353,25 +364,8 @@ proptest! {
         let numeric = (loss_at(&n.dec, &tp) - loss_at(&n.dec, &tm)) / (2.0 * H);
         close("decoder input", dot(&out.grad_input, &v), numeric, out.loss)?;
         // Every decoder layer along one direction scaled to the layer (see the module docs).
-        let mut rng = dsgs_testkit::SplitMix64(seed);
-        let dirs: Vec<(Array4<f64>, Array1<f64>)> = n
-            .dec
-            .layers()
-            .map(|l| {
-                let (sw, sb) = param_scales(l.weight.as_slice().unwrap(), l.bias.as_slice().unwrap());
-                let w = Array4::from_shape_simple_fn(l.weight.dim(), || sw * rng.uniform(-1.0, 1.0));
-                let b = Array1::from_shape_simple_fn(l.bias.len(), || sb * rng.uniform(-1.0, 1.0));
-                (w, b)
-            })
-            .collect();
-        let shifted = |h: f64| {
-            let mut d = n.dec.clone();
-            for (l, (dw, db)) in d.layers_mut().zip(&dirs) {
-                l.weight = &l.weight + &(dw * h);
-                l.bias = &l.bias + &(db * h);
-            }
-            d
-        };
+        let dirs = decoder_direction(&n.dec, seed);
+        let shifted = |h: f64| shifted_decoder(&n.dec, &dirs, h);
         let (dp, dm) = (shifted(H), shifted(-H));
         prop_assume!(pat(&dp, &t) == base && pat(&dm, &t) == base);
         let analytic: f64 = out

@@ -16,7 +16,7 @@
 //! * [`fit_features`]: feature training on frozen geometry into a scene bundle
 //!   (`dsgs fit-features`).
 //! * [`bake`]: baking a style into a plain 3DGS `.ply` (`dsgs bake`).
-//! * [`cameras`]: camera sequences (dataset, held-out, interpolated path, orbit).
+//! * [`cameras`]: camera sequences (dataset, held-out, a smooth tour, orbit, dense arc).
 //! * [`render`]: colour, depth, alpha and feature renders of a scene (`dsgs render`).
 //! * [`stylize`]: zero-shot stylization of a scene bundle (`dsgs stylize`).
 //! * [`consistency`]: multi-view consistency by depth warping; [`eval`]: the evaluation
@@ -24,7 +24,8 @@
 //! * [`assemble`]: a sharded run found from its output, for `dsgs assemble`.
 //! * [`shard`]: a run's frames split over processes (`--shard K/N`), each shard's manifest,
 //!   and the checks before `dsgs assemble` merges them into the one-process outputs.
-//! * [`demo`]: the whole pipeline on the lego scene at low resolution (`dsgs demo`).
+//! * [`run`]: the whole pipeline on a capture in one resumable command (`dsgs run`), and the
+//!   stages' runner; [`demo`]: its plan for the lego scene at low resolution (`dsgs demo`).
 //! * [`image_io`]: PNG, GIF, contact sheets, MP4 through `ffmpeg`.
 //! * [`cli`]: the command-line face of the settings: the settings that map onto flags derive
 //!   `clap::Args` for a program to flatten; value parsers that refuse out-of-range numbers;

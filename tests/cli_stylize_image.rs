@@ -79,6 +79,30 @@ fn photos_are_stylized_measured_and_laid_out() {
         let (w, h) = size_of(&out.join(p["file"].as_str().unwrap()));
         assert_eq!(w.max(h), 64, "{p}");
     }
+    // Two different paintings give the photos textures a positive distance apart; one painting
+    // given twice gives the same outputs, no distance at all.
+    assert!(report["mean_texture_between"].as_f64().unwrap() > 0.0);
+    let twice = dir.join("twice");
+    ok(dsgs()
+        .arg("stylize-image")
+        .arg(&photos[0])
+        .arg("--style")
+        .arg(&styles[0])
+        .arg("--style")
+        .arg(&styles[0])
+        .args(networks())
+        .args([
+            "--content-size",
+            "64",
+            "--style-size",
+            "64",
+            "--no-progress",
+            "-o",
+        ])
+        .arg(&twice));
+    let r: Value =
+        serde_json::from_slice(&std::fs::read(twice.join("report.json")).unwrap()).unwrap();
+    assert_eq!(r["mean_texture_between"].as_f64(), Some(0.0), "{r}");
     // A mixture with weights (1, 0) is the first style exactly (the transform is affine in
     // the statistics).
     let read = |f: &str| std::fs::read(out.join(f)).unwrap();

@@ -13,7 +13,10 @@
 //! the style loss ([`style::style_loss`], channel means and deviations, as the training losses
 //! and `dsgs eval` measure it), the texture distance ([`style::gram_distance`], the correlations
 //! between channels), and the content loss against the photo's own deepest features
-//! ([`style::content_loss`]). The measuring encoder is the stylizing one unless `measure_with`
+//! ([`style::content_loss`]); and the outputs of every two different paintings of a photo are
+//! measured against each other with the same texture distance
+//! ([`StylizeImageReport::mean_texture_between`]), which is near 0 when every painting gives the
+//! same texture. The measuring encoder is the stylizing one unless `measure_with`
 //! names another (used at standard resolution): the measures of two networks compare only
 //! when one encoder measured both, since each encoder's levels have their own widths and
 //! scales.
@@ -158,6 +161,12 @@ pub struct StylizeImageReport {
     pub mean_texture_distance: f64,
     /// Mean content loss.
     pub mean_content_loss: f64,
+    /// The texture distance between the outputs of every two different paintings of the same
+    /// photo (Gram matrices at every level of the measuring encoder), averaged over the photos
+    /// and pairs: near 0 when every painting gives the photo the same texture (`None` with
+    /// fewer than two paintings; the mixture is left out).
+    #[serde(default)]
+    pub mean_texture_between: Option<f64>,
 }
 
 impl StylizeImageReport {
@@ -173,6 +182,9 @@ impl StylizeImageReport {
                 "{:<24} {:<24} {:>10.4} {:>10.4} {:>10.4}\n",
                 p.content, p.style, p.style_loss, p.texture_distance, p.content_loss
             );
+        }
+        if let Some(b) = self.mean_texture_between {
+            s += &format!("texture distance between different paintings' outputs: {b:.4}\n");
         }
         s += &format!(
             "mean: style loss {:.4}, texture distance {:.4}, content loss {:.4} (measured with \
@@ -301,6 +313,7 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
 
     let mut pairs = Vec::new();
     let mut rows = Vec::new();
+    let mut between = Vec::new();
     for (ci, (content, cfile)) in contents.iter().zip(&content_files).enumerate() {
         let x = nchw_from_rgb(content);
         let feats = encoder.forward(x.view())?;
@@ -331,6 +344,7 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
             all.push(style::mix_stats(&members)?);
         }
         let mut row = Vec::with_capacity(all.len() + 1);
+        let mut painting_grams = Vec::with_capacity(styles.len());
         for (si, target) in all.iter().enumerate() {
             let t = style::adain_alpha(deepest, target, settings.alpha)?;
             let y = decoder.forward(t.view())?;
@@ -351,6 +365,10 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
             }
             let cl = style::content_loss(out_feats.last().expect("depth >= 1"), &measured_content)?
                 as f64;
+            if si < styles.len() {
+                let grams = out_feats.iter().map(|f| style::gram(f, 0));
+                painting_grams.push(grams.collect::<Result<Vec<_>, _>>()?);
+            }
             let file = format!("{}__{}.png", stem(cfile), names[si]);
             image_io::write_png(&settings.out_dir.join(&file), &img)?;
             pairs.push(PairReport {
@@ -363,6 +381,11 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
             });
             row.push(img);
             tally.advance(1, &format!("photo {} of {}", ci + 1, contents.len()));
+        }
+        for (i, a) in painting_grams.iter().enumerate() {
+            for b in &painting_grams[i + 1..] {
+                between.push(style::gram_distance_of(a, b)?);
+            }
         }
         rows.push((content.clone(), row));
     }
@@ -381,6 +404,8 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
         mean_style_loss: mean(|p| p.style_loss),
         mean_texture_distance: mean(|p| p.texture_distance),
         mean_content_loss: mean(|p| p.content_loss),
+        mean_texture_between: (!between.is_empty())
+            .then(|| between.iter().sum::<f64>() / between.len() as f64),
         pairs,
     };
     let json = serde_json::to_vec_pretty(&report).context("encoding the report")?;

@@ -462,6 +462,9 @@ pub struct RunPipelineArgs {
     /// No progress bars (a plain progress line at least every minute instead)
     #[arg(long)]
     pub no_progress: bool,
+    /// Start at once, without timing a few steps of each stage to estimate the run's time
+    #[arg(long)]
+    pub no_estimate: bool,
 }
 
 #[derive(Args)]

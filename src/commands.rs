@@ -255,7 +255,10 @@ pub fn render(a: RenderArgs) -> Result<()> {
 pub fn run(a: RunPipelineArgs) -> Result<()> {
     let plan = pipeline::run::plan(&a.settings)?;
     print!("{}", pipeline::run::describe(&plan));
-    let r = with_control("run", a.no_progress, |c| pipeline::run::execute(&plan, c))?;
+    let r = with_control("run", a.no_progress, |c| match a.no_estimate {
+        true => pipeline::run::execute(&plan, c),
+        false => pipeline::estimate::execute_estimated(&plan, c),
+    })?;
     print!("{r}");
     Ok(())
 }

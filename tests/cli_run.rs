@@ -1,7 +1,8 @@
 //! `dsgs run` on a capture at a toy size (32 x 32 lego views, short schedules): the bundle, the
 //! frames along the smooth tour, the contact sheet and the report are written; a run stopped by
 //! SIGTERM during the geometry stage continues from its checkpoint when given the same command;
-//! a finished run reruns without redoing anything; a missing capture is named.
+//! a finished run reruns without redoing anything; the time estimate is printed before the
+//! stages and beside their times; a missing capture is named.
 
 mod common;
 
@@ -87,6 +88,23 @@ fn a_toy_run_writes_everything_and_continues_after_a_stop() {
         text.contains("1/25.000") && text.contains("4 frames along path"),
         "{text}"
     );
+    // The estimate is logged before the stages and set beside each stage's time; the geometry
+    // stage resumed half-way, so its estimate counts the iterations left.
+    let log = String::from_utf8_lossy(&first.stderr);
+    assert!(
+        log.contains("estimate on this machine")
+            && log.contains(&format!("{} iterations from", geometry / 2)),
+        "{log}"
+    );
+    for stage in ["geometry", "features", "stylize", "eval"] {
+        let timed = |l: &&str| {
+            l.trim_start().starts_with(&format!("{stage}: ")) && l.contains("(estimated ")
+        };
+        assert!(
+            text.lines().any(|l| timed(&l)),
+            "no estimate of {stage}: {text}"
+        );
+    }
     let bundle = out.join("features/bundle");
     assert!(bundle.join("bundle.json").is_file());
     assert!(
@@ -116,8 +134,12 @@ fn a_toy_run_writes_everything_and_continues_after_a_stop() {
         }
     }
 
-    // A rerun finds every stage done.
-    every_stage_skipped(&ok(&mut run(&out, geometry)));
+    // A rerun finds every stage done, and has nothing to estimate.
+    let again = ok(&mut run(&out, geometry));
+    every_stage_skipped(&again);
+    assert!(
+        String::from_utf8_lossy(&again.stderr).contains("every stage's result is already there")
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -26,6 +26,8 @@
 //!   and the checks before `dsgs assemble` merges them into the one-process outputs.
 //! * [`run`]: the whole pipeline on a capture in one resumable command (`dsgs run`), and the
 //!   stages' runner; [`demo`]: its plan for the lego scene at low resolution (`dsgs demo`).
+//! * [`estimate`]: how long each stage of a run will take on this machine, from a few timed
+//!   steps of each.
 //! * [`image_io`]: PNG, GIF, contact sheets, MP4 through `ffmpeg`.
 //! * [`cli`]: the command-line face of the settings: the settings that map onto flags derive
 //!   `clap::Args` for a program to flatten; value parsers that refuse out-of-range numbers;
@@ -94,6 +96,7 @@ pub mod config;
 pub mod consistency;
 pub mod demo;
 pub mod error;
+pub mod estimate;
 pub mod eval;
 pub mod fit_features;
 pub mod fit_geometry;

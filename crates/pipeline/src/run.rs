@@ -386,6 +386,15 @@ pub fn describe(s: &Plan) -> String {
 /// The longest side of the style images in the stylize and eval stages.
 pub const STYLE_SIDE: u32 = 256;
 
+/// A duration for people: seconds under two minutes, else minutes.
+pub fn human(seconds: f64) -> String {
+    if seconds < 120.0 {
+        format!("{seconds:.0} s")
+    } else {
+        format!("{:.1} min", seconds / 60.0)
+    }
+}
+
 /// What a run produced.
 #[derive(Clone, Debug)]
 pub struct RunReport {
@@ -404,6 +413,9 @@ pub struct RunReport {
     pub bundle: PathBuf,
     /// Seconds of each stage run now (`None`: skipped, its output was already there).
     pub seconds: Vec<(&'static str, Option<f64>)>,
+    /// Estimated seconds of stages (e.g. by [`crate::estimate`] before the run), printed beside
+    /// their times (`execute` leaves it empty).
+    pub estimated: Vec<(&'static str, f64)>,
 }
 
 /// The summary of a run: the evaluation table, the geometry's PSNR, the stage times and the
@@ -416,9 +428,16 @@ impl std::fmt::Display for RunReport {
         }
         writeln!(f, "{} Gaussians", self.gaussians)?;
         for (stage, t) in &self.seconds {
-            match t {
-                Some(t) => writeln!(f, "{stage:>9}: {t:.1} s")?,
-                None => writeln!(f, "{stage:>9}: done before, skipped")?,
+            let estimated = self.estimated.iter().find(|e| e.0 == *stage).map(|e| e.1);
+            match (t, estimated) {
+                (Some(t), Some(e)) => writeln!(
+                    f,
+                    "{stage:>9}: {t:.1} s (estimated {}, {:+.0}%)",
+                    human(e),
+                    100.0 * (e - t) / t
+                )?,
+                (Some(t), None) => writeln!(f, "{stage:>9}: {t:.1} s")?,
+                (None, _) => writeln!(f, "{stage:>9}: done before, skipped")?,
             }
         }
         let s = &self.stylized;
@@ -509,7 +528,7 @@ pub fn check_inputs(s: &Plan) -> Result<()> {
 }
 
 /// `OUT/geometry`.
-fn geometry_dir(s: &Plan) -> PathBuf {
+pub(crate) fn geometry_dir(s: &Plan) -> PathBuf {
     s.out_dir.join("geometry")
 }
 
@@ -519,7 +538,7 @@ fn bundle_dir(s: &Plan) -> PathBuf {
 }
 
 /// Whether the geometry stage has finished: its scene and its last kept checkpoint are there.
-fn geometry_done(s: &Plan) -> bool {
+pub(crate) fn geometry_done(s: &Plan) -> bool {
     let dir = geometry_dir(s);
     dir.join("point_cloud.ply").is_file()
         && dir
@@ -528,8 +547,23 @@ fn geometry_done(s: &Plan) -> bool {
 }
 
 /// Whether the feature stage has finished: the scene bundle is there.
-fn features_done(s: &Plan) -> bool {
+pub(crate) fn features_done(s: &Plan) -> bool {
     bundle_dir(s).join("bundle.json").is_file()
+}
+
+/// The iterations the geometry stage has done: those of its latest checkpoint (0 without one).
+pub(crate) fn geometry_progress(s: &Plan) -> u64 {
+    latest_geometry_checkpoint(&geometry_dir(s))
+        .and_then(|p| checkpoint_step(&p).ok())
+        .unwrap_or(0)
+}
+
+/// Whether the stylize and eval stages have left their records (a rerun may still redo them
+/// when their inputs changed).
+pub(crate) fn outputs_done(s: &Plan) -> bool {
+    ["stylize", "eval"]
+        .iter()
+        .all(|stage| record::path(&s.out_dir, stage).is_file())
 }
 
 fn timed<T>(f: impl FnOnce() -> Result<T>) -> Result<(T, f64)> {
@@ -599,6 +633,40 @@ pub fn feature_config(s: &Plan) -> FitFeaturesConfig {
     };
     c.dataset.downscale = s.downscale;
     c
+}
+
+/// The settings of the stylize stage of a run, writing into `out_dir`: the plan's paintings at
+/// full strength, a GIF per painting and a contact sheet of six views.
+pub fn stylize_settings(s: &Plan, out_dir: PathBuf) -> StylizeSettings {
+    StylizeSettings {
+        styles: s.styles.clone(),
+        weights: None,
+        alpha: 1.0,
+        preserve_colour: false,
+        style_side: STYLE_SIDE,
+        out_dir,
+        gif: true,
+        mp4: false,
+        fps: 12.0,
+        sheet_views: 6,
+        tile_budget: runtime::DEFAULT_TILE_BUDGET_BYTES,
+        part: Default::default(),
+    }
+}
+
+/// The settings of the eval stage of a run: those of its stylize stage, without the 2D baseline.
+pub fn eval_settings(st: &StylizeSettings) -> EvalSettings {
+    EvalSettings {
+        styles: st.styles.clone(),
+        weights: None,
+        alpha: st.alpha,
+        preserve_colour: st.preserve_colour,
+        style_side: st.style_side,
+        warp: WarpOptions::default(),
+        tile_budget: st.tile_budget,
+        baseline: false,
+        part: Default::default(),
+    }
 }
 
 /// Runs the plan's stages. A stop request ends a training stage early with a checkpoint and
@@ -702,20 +770,7 @@ pub fn execute(s: &Plan, control: &Control) -> Result<RunReport> {
         ..CameraRequest::new(s.cameras)
     };
     let cams = crate::cameras::select(&request, &known, &bundle.scene)?;
-    let settings = StylizeSettings {
-        styles: s.styles.clone(),
-        weights: None,
-        alpha: 1.0,
-        preserve_colour: false,
-        style_side: STYLE_SIDE,
-        out_dir: s.out_dir.join("stylized"),
-        gif: true,
-        mp4: false,
-        fps: 12.0,
-        sheet_views: 6,
-        tile_budget: runtime::DEFAULT_TILE_BUDGET_BYTES,
-        part: Default::default(),
-    };
+    let settings = stylize_settings(s, s.out_dir.join("stylized"));
     let inputs = record::Inputs::new(s, &bundle_dir, &settings)?;
     let stylize_record = record::path(&s.out_dir, "stylize");
     let stylized = match record::finished::<record::Stylized>(&stylize_record, &inputs) {
@@ -744,17 +799,7 @@ pub fn execute(s: &Plan, control: &Control) -> Result<RunReport> {
         }
         None => {
             record::forget(&eval_record)?;
-            let eval_settings = EvalSettings {
-                styles: s.styles.clone(),
-                weights: None,
-                alpha: settings.alpha,
-                preserve_colour: settings.preserve_colour,
-                style_side: settings.style_side,
-                warp: WarpOptions::default(),
-                tile_budget: settings.tile_budget,
-                baseline: false,
-                part: Default::default(),
-            };
+            let eval_settings = eval_settings(&settings);
             let (eval, t) = timed(|| {
                 crate::eval::evaluate_bundle(
                     &bundle,
@@ -782,6 +827,7 @@ pub fn execute(s: &Plan, control: &Control) -> Result<RunReport> {
         eval_json,
         bundle: bundle_dir,
         seconds,
+        estimated: Vec::new(),
     })
 }
 

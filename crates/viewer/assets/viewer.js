@@ -7,6 +7,9 @@ const FPS_MODE = params.get("fps") === "1";
 const BARE = params.get("ui") === "0";
 // ?size=native shows a scene camera at its own pixel size instead of fitted to the window.
 const NATIVE = params.get("size") === "native";
+// ?stylize=1 stylizes the first view with the first painting once the scene is shown (a link
+// that opens on a stylized view).
+const STYLIZE_AT_START = params.get("stylize") === "1";
 const PREVIEW_SIDE = 192;
 
 const $ = (id) => document.getElementById(id);
@@ -1169,6 +1172,10 @@ async function start() {
     fitWindow();
   }
   describeScene();
+  if (STYLIZE_AT_START) {
+    if (scene.info.stylize && styles.first !== null) stylizeView();
+    else showMessage("?stylize=1 needs a bundle and a painting given with --style.");
+  }
 }
 
 new ResizeObserver(() => {

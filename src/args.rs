@@ -448,6 +448,10 @@ pub struct EvalArgs {
     /// and style
     #[arg(long)]
     pub no_baseline: bool,
+    /// Also write every frame (colour, 2D baseline, dsgs) under this folder, and the sheet
+    /// `comparison.png` of them: colour | 2D per-frame | dsgs for each painting, the same views
+    #[arg(long)]
+    pub frames_out: Option<PathBuf>,
     #[command(flatten)]
     pub shard: ShardArgs,
     /// No progress bar (a plain progress line at least every minute instead)

@@ -338,6 +338,7 @@ pub fn eval(a: EvalArgs, part: Part) -> Result<()> {
             warp: a.warp,
             tile_budget: style.tile_budget << 20,
             baseline: !a.no_baseline,
+            frames_out: a.frames_out.clone(),
             part: part.clone(),
         };
         let name = dir.display().to_string();

@@ -30,6 +30,7 @@ fn eval_report_and_frames_agree() {
     let bundle = common::save_tiny_bundle(&dir);
     let style = shared_path("data/styles/mondrian.jpg");
     let report_path = dir.join("report.json");
+    let written = dir.join("written");
     let out = ok(dsgs()
         .arg("eval")
         .arg(&bundle)
@@ -42,8 +43,10 @@ fn eval_report_and_frames_agree() {
             "path",
             "--frames",
             "9",
-            "-o",
+            "--frames-out",
         ])
+        .arg(&written)
+        .arg("-o")
         .arg(&report_path));
     let table = String::from_utf8_lossy(&out.stdout);
     assert!(
@@ -107,6 +110,43 @@ fn eval_report_and_frames_agree() {
         .args(["--cameras", "path", "--frames", "9", "-o"])
         .arg(&report2));
     let r2: Value = serde_json::from_slice(&std::fs::read(&report2).unwrap()).unwrap();
+
+    // --frames-out: every output's frames, dsgs's the very frames `dsgs stylize` wrote, and the
+    // comparison sheet: a painting column and six evenly spaced views (0, 2, 3, 5, 6, 8), rows
+    // colour, 2D per-frame and dsgs, each cell the frame itself at this small size.
+    let rgb = |p: &std::path::Path| image::open(p).unwrap().to_rgb8();
+    for name in ["colour", "2d_mondrian", "mondrian"] {
+        for i in 0..9 {
+            assert!(written.join(format!("{name}/frame_{i:04}.png")).is_file());
+        }
+    }
+    for i in 0..9 {
+        let f = format!("frame_{i:04}.png");
+        assert_eq!(
+            rgb(&written.join("mondrian").join(&f)),
+            rgb(&frames.join("mondrian").join(&f))
+        );
+    }
+    assert_ne!(
+        rgb(&written.join("2d_mondrian/frame_0004.png")),
+        rgb(&written.join("mondrian/frame_0004.png"))
+    );
+    assert_eq!(
+        r["comparison"].as_str().map(std::path::PathBuf::from),
+        Some(written.join("comparison.png"))
+    );
+    let sheet = rgb(&written.join("comparison.png"));
+    let (w, h) = rgb(&written.join("colour/frame_0000.png")).dimensions();
+    assert_eq!(sheet.dimensions(), (7 * w, 3 * h));
+    for (row, name) in ["colour", "2d_mondrian", "mondrian"].iter().enumerate() {
+        for (col, view) in [0, 2, 3, 5, 6, 8].iter().enumerate() {
+            let cell =
+                image::imageops::crop_imm(&sheet, (col as u32 + 1) * w, row as u32 * h, w, h)
+                    .to_image();
+            let frame = rgb(&written.join(format!("{name}/frame_{view:04}.png")));
+            assert_eq!(cell, frame, "{name} view {view}");
+        }
+    }
     let o2 = &r2["outputs"][0];
     for range in ["short_range", "long_range"] {
         let a = num(&outputs[2], &[range, "rmse"]);
@@ -190,6 +230,7 @@ fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
         // Small enough for several tiles per frame.
         tile_budget: 1 << 20,
         baseline: false,
+        frames_out: None,
         part: Default::default(),
     };
     let report = evaluate_bundle(&bundle, "tiny", &cams, &settings, &pipeline::Quiet).unwrap();

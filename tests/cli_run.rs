@@ -89,12 +89,27 @@ fn a_toy_run_writes_everything_and_continues_after_a_stop() {
         "{text}"
     );
     // The estimate is logged before the stages and set beside each stage's time; the geometry
-    // stage resumed half-way, so its estimate counts the iterations left.
+    // stage resumes from its checkpoint (half-way or a little after), so its estimate counts
+    // the iterations left.
     let log = String::from_utf8_lossy(&first.stderr);
+    assert!(log.contains("estimate on this machine"), "{log}");
+    let left: u64 = log
+        .lines()
+        .find_map(|l| {
+            l.split_once("geometry: ~")?
+                .1
+                .split_once(" (")?
+                .1
+                .split_once(' ')
+        })
+        .and_then(|(n, rest)| {
+            rest.starts_with("iterations from")
+                .then(|| n.parse().ok())?
+        })
+        .unwrap_or_else(|| panic!("no geometry estimate: {log}"));
     assert!(
-        log.contains("estimate on this machine")
-            && log.contains(&format!("{} iterations from", geometry / 2)),
-        "{log}"
+        left > 0 && left <= geometry / 2,
+        "{left} iterations left: {log}"
     );
     for stage in ["geometry", "features", "stylize", "eval"] {
         let timed = |l: &&str| {
@@ -126,7 +141,23 @@ fn a_toy_run_writes_everything_and_continues_after_a_stop() {
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("eval.json")).unwrap()).unwrap();
     let outputs = report["outputs"].as_array().unwrap();
-    assert_eq!(outputs.len(), 3, "{report}");
+    // The colour render, then per painting its per-frame 2D baseline and dsgs.
+    let names: Vec<&str> = outputs
+        .iter()
+        .map(|o| o["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        names,
+        ["colour", "2d:mondrian", "mondrian", "2d:sketch", "sketch"],
+        "{report}"
+    );
+    // Their frames, and the comparison sheet of four views: a painting column and a row each.
+    assert!(out.join("eval/2d_sketch/frame_0003.png").is_file());
+    assert_eq!(size_of(&out.join("eval/comparison.png")), (5 * 32, 5 * 32));
+    assert!(
+        text.contains("comparison.png (colour | 2D per-frame | dsgs)"),
+        "{text}"
+    );
     for o in &outputs[1..] {
         for key in ["style_loss", "texture_distance", "content_loss"] {
             let x = o[key].as_f64().unwrap_or(f64::NAN);

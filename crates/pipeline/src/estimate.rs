@@ -21,7 +21,9 @@
 //!   expected final number.
 //! - **Stylize and evaluate.** The two stages on the copied scene's bundle, for a painting and
 //!   three training cameras: the cost per frame and output, times the plan's frames and outputs
-//!   (the evaluation measures the colour frames too).
+//!   (stylize: one camera, then three, for a painting's fixed cost apart from its frames';
+//!   eval: three cameras, then eight, for a cost per frame apart from one per compared pair,
+//!   per row: the colour frames and each painting's 2D baseline and dsgs frames).
 //!
 //! Stages whose results are already there are not estimated; a finished geometry gives the
 //! features and later stages its exact number of Gaussians. Nothing is written outside a
@@ -364,6 +366,8 @@ struct FeatureProbe {
     /// The copied scene's trainer, for the stylize and eval probes.
     trainer: FeatureTrainer,
     cameras: Vec<Camera>,
+    /// Up to eight training cameras, for the eval probe.
+    eval_cameras: Vec<Camera>,
 }
 
 /// Runs the feature probe on `scene` and its copies at about `expected` Gaussians.
@@ -423,6 +427,12 @@ fn probe_features(
         full: LinearCost::through((a.0, a.3), (b.0, b.3)),
         trainer: last.expect("two probes ran"),
         cameras,
+        eval_cameras: split
+            .train
+            .iter()
+            .take(8)
+            .map(|&i| dataset.cameras[i])
+            .collect(),
     })
 }
 
@@ -529,16 +539,38 @@ fn probe_outputs(s: &Plan, probe: &FeatureProbe) -> Result<Vec<StageEstimate>> {
         } else {
             (one, 0.0)
         };
-        let t = Instant::now();
-        crate::eval::evaluate_bundle(
-            &bundle,
-            "estimate",
-            &probe.cameras,
-            &eval_settings(&st),
-            &Quiet,
-        )?;
-        // The evaluation measures the colour frames and one painting's.
-        let per_eval_frame = t.elapsed().as_secs_f64() / (2.0 * frames);
+        // Three cameras (2 short-range pairs, no long-range one), then eight (7 and 1): per
+        // row (colour, the painting's 2D baseline, dsgs), a cost per frame and one per pair.
+        let eval_time = |cameras: &[Camera]| -> Result<f64> {
+            let t = Instant::now();
+            crate::eval::evaluate_bundle(
+                &bundle,
+                "estimate",
+                cameras,
+                &eval_settings(&st, scratch.join("eval")),
+                &Quiet,
+            )?;
+            Ok(t.elapsed().as_secs_f64() / 3.0)
+        };
+        let few = eval_time(&probe.eval_cameras[..3.min(probe.eval_cameras.len())])?;
+        let many = eval_time(&probe.eval_cameras)?;
+        let (per_frame_row, per_pair_row) = if probe.eval_cameras.len() == 8 {
+            // few = 3 f + 2 p, many = 8 f + 8 p.
+            let f = few - many / 4.0;
+            let p = many / 8.0 - f;
+            match (f >= 0.0, p >= 0.0) {
+                (true, true) => (f, p),
+                (false, _) => (0.0, many / 8.0),
+                (_, false) => (many / 8.0, 0.0),
+            }
+        } else {
+            (many / probe.eval_cameras.len() as f64, 0.0)
+        };
+        let pairs = |frames: usize, gap: usize| frames.saturating_sub(gap) as f64;
+        let rows = 2.0 * outputs + 1.0;
+        let eval_seconds = rows
+            * (per_frame_row * s.frames as f64
+                + per_pair_row * (pairs(s.frames, 1) + pairs(s.frames, 7)));
         let n = s.frames as f64;
         Ok(vec![
             StageEstimate {
@@ -548,9 +580,9 @@ fn probe_outputs(s: &Plan, probe: &FeatureProbe) -> Result<Vec<StageEstimate>> {
             },
             StageEstimate {
                 stage: "eval",
-                seconds: per_eval_frame * n * (outputs + 1.0),
+                seconds: eval_seconds,
                 basis: format!(
-                    "{} frames x {} outputs and colour",
+                    "{} frames x colour, and 2D and dsgs for {} paintings",
                     s.frames,
                     s.styles.len()
                 ),

@@ -30,6 +30,10 @@
 //! perceptual distance whole when the budget allows, else tile by tile ([`FrameLosses`],
 //! [`crate::consistency::perceptual_distance`]).
 //!
+//! With [`EvalSettings::frames_out`] every evaluated frame is also written as a PNG, and the
+//! comparison sheet [`COMPARISON_SHEET`] (colour | 2D per-frame | dsgs for each painting, the
+//! same views) is made from them.
+//!
 //! Existing frames (e.g. baked renders) are evaluated the same way against the geometry of a
 //! `.ply` or a bundle ([`evaluate_frames`]); the perceptual distance then needs a bundle's
 //! encoder.
@@ -122,6 +126,9 @@ pub struct EvalReport {
     /// paintings' outputs are (absent from reports written before it was measured).
     #[serde(default)]
     pub texture_between: Vec<TexturePair>,
+    /// The comparison sheet written with the frames ([`EvalSettings::frames_out`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub comparison: Option<PathBuf>,
 }
 
 /// The texture distance between two outputs of an evaluation ([`EvalReport::texture_between`]).
@@ -156,6 +163,10 @@ pub struct EvalSettings {
     /// Also evaluate the per-frame 2D baseline of each style ([`baseline_view`]; on unless
     /// `--no-baseline`).
     pub baseline: bool,
+    /// Also write every evaluated frame as a PNG under this folder (`colour/`, and per style
+    /// `2d_NAME/` for its 2D baseline and `NAME/` for dsgs, each `frame_NNNN.png`), and, unless
+    /// this is a shard, the comparison sheet [`COMPARISON_SHEET`] made from them.
+    pub frames_out: Option<PathBuf>,
     /// The whole evaluation, one shard of it (`--shard K/N`: the losses of its block of views
     /// and the pairs that start in it, into a manifest), or the merge of the shards' partial
     /// results into the report (`dsgs assemble`).
@@ -386,6 +397,78 @@ impl<'e> FrameLosses<'e> {
         };
         Ok((loss, grams))
     }
+}
+
+/// The name of the plain colour render's output.
+pub const COLOUR_OUTPUT: &str = "colour";
+
+/// The name of output `o` of an evaluation: 0 the colour render, then the stylized outputs
+/// (`stylized`, as [`stylized_outputs`] gives them) of `targets`.
+fn output_name(targets: &[stylize::StyleTarget], stylized: &[(usize, bool)], o: usize) -> String {
+    match o.checked_sub(1).map(|k| stylized[k]) {
+        None => COLOUR_OUTPUT.into(),
+        Some((t, true)) => format!("{BASELINE_PREFIX}{}", targets[t].name),
+        Some((t, false)) => targets[t].name.clone(),
+    }
+}
+
+/// The comparison sheet of an evaluation with `frames_out`: columns of evenly spaced views
+/// (at most [`COMPARISON_VIEWS`]) after a first column of paintings; rows: the colour render,
+/// then per style its per-frame 2D baseline (with the baseline) and dsgs's output.
+pub const COMPARISON_SHEET: &str = "comparison.png";
+
+/// The most views in the comparison sheet.
+pub const COMPARISON_VIEWS: usize = 6;
+
+/// The folder name of an output's frames under `frames_out`: the output's name, with the
+/// baseline's `2d:` prefix written `2d_`.
+pub fn frames_folder(output: &str) -> String {
+    output.replace(':', "_")
+}
+
+/// Writes [`COMPARISON_SHEET`] under `dir` from the frames there: `names` are the outputs
+/// after the colour render, `thumbs` the first cell of each of their rows.
+fn write_comparison(
+    dir: &Path,
+    cameras: &[Camera],
+    names: &[String],
+    thumbs: &[Option<&RgbImage>],
+) -> Result<PathBuf> {
+    let views = evenly_spaced(cameras.len(), COMPARISON_VIEWS);
+    let (cw, ch) = image_io::sheet_cell_size(
+        cameras[0].intrinsics.width,
+        cameras[0].intrinsics.height,
+        1 + views.len(),
+        1 + names.len(),
+    );
+    let row = |name: &str, first: RgbImage| -> Result<Vec<RgbImage>> {
+        let mut row = vec![first];
+        for &i in &views {
+            let img = image_io::load_image(&stylize::frame_path(dir, &frames_folder(name), i))?;
+            row.push(gaussian::dataset::images::resize(
+                &image_io::clamped(&img),
+                cw,
+                ch,
+            ));
+        }
+        Ok(row)
+    };
+    let white = RgbImage {
+        width: cw,
+        height: ch,
+        data: vec![1.0; cw as usize * ch as usize * 3],
+    };
+    let mut rows = vec![row(COLOUR_OUTPUT, white)?];
+    for (name, thumb) in names.iter().zip(thumbs) {
+        let first = match thumb {
+            Some(t) => image_io::thumbnail(t, cw, ch),
+            None => image_io::blank(cw, ch),
+        };
+        rows.push(row(name, first)?);
+    }
+    let path = dir.join(COMPARISON_SHEET);
+    image_io::write_png(&path, &image_io::contact_sheet(&rows)?)?;
+    Ok(path)
 }
 
 /// The prefix of the name of a style's per-frame 2D baseline output (`2d:mondrian`).
@@ -667,11 +750,7 @@ fn evaluate(
             Some(sum)
         };
         reports.push(OutputReport {
-            name: match o.checked_sub(1).map(|k| stylized[k]) {
-                None => "colour".into(),
-                Some((t, true)) => format!("{BASELINE_PREFIX}{}", targets[t].name),
-                Some((t, false)) => targets[t].name.clone(),
-            },
+            name: output_name(&targets, &stylized, o),
             short_range: range(0, SHORT_RANGE),
             long_range: range(1, LONG_RANGE),
             style_loss: mean.map(|m| m.style / views),
@@ -695,6 +774,26 @@ fn evaluate(
     let decoded: usize = sums.iter().map(|s| s.decoded).sum();
     let d = decoded.max(1) as f64;
     let total = |f: fn(&StageSeconds) -> f64| sums.iter().map(|s| f(&s.seconds)).sum::<f64>() / d;
+    let comparison = match &settings.frames_out {
+        Some(dir) if !cameras.is_empty() => {
+            let names: Vec<String> = (1..=stylized.len())
+                .map(|o| output_name(&targets, &stylized, o))
+                .collect();
+            // A painting's thumbnail beside its rows; blank for a mixture.
+            let thumbs: Vec<Option<&RgbImage>> = stylized
+                .iter()
+                .map(|&(t, _)| {
+                    settings
+                        .weights
+                        .is_none()
+                        .then(|| styles.get(t).map(|s| &s.image))
+                        .flatten()
+                })
+                .collect();
+            Some(write_comparison(dir, cameras, &names, &thumbs)?)
+        }
+        _ => None,
+    };
     Ok(Some(EvalReport {
         scene: scene_name.to_string(),
         variant: Some(bundle.info.variant.as_str().to_string()),
@@ -711,6 +810,7 @@ fn evaluate(
             decode: total(|s| s.decode),
         }),
         texture_between,
+        comparison,
     }))
 }
 
@@ -775,6 +875,17 @@ fn evaluate_block(
             tally.advance(1, "decode");
         }
         images.insert(0, colour_image);
+        if let (Some(dir), true) = (&settings.frames_out, block.contains(&i)) {
+            for (o, img) in images.iter().enumerate() {
+                let name = frames_folder(&output_name(targets, &stylized, o));
+                let path = stylize::frame_path(dir, &name, i);
+                if let Some(parent) = path.parent() {
+                    std::fs::create_dir_all(parent)
+                        .with_context(|| format!("creating {}", parent.display()))?;
+                }
+                image_io::write_png(&path, img)?;
+            }
+        }
         if losses.is_some() {
             out.losses.push(view_losses);
             let between = output_pairs(&stylized)
@@ -893,6 +1004,7 @@ pub fn evaluate_frames(
         }],
         seconds_per_view: None,
         texture_between: Vec::new(),
+        comparison: None,
     })
 }
 

@@ -21,8 +21,10 @@
 //!    alignment-only warm-up, then the full loss (alignment, content and style).
 //! 4. `stylized/`: `dsgs stylize` along the plan's cameras with the paintings: PNG frames, a GIF
 //!    per painting and `contact_sheet.png` (paintings x views).
-//! 5. `eval.json`: `dsgs eval` of the same frames (short- and long-range consistency, style
-//!    loss, texture distance, content loss, seconds per view).
+//! 5. `eval.json`: `dsgs eval` of the same frames with the per-frame 2D baseline
+//!    (short- and long-range consistency, style loss, texture distance, content loss, seconds
+//!    per view), its frames under `eval/` and `eval/comparison.png`: colour | 2D per-frame |
+//!    dsgs for each painting, the same views.
 //!
 //! Stages 1 to 3 count as done when their final outputs are there (the geometry's scene and its
 //! last checkpoint, the feature stage's bundle); an unfinished training stage resumes from its
@@ -445,6 +447,9 @@ impl std::fmt::Display for RunReport {
             writeln!(f, "output {}", p.display())?;
         }
         writeln!(f, "output {}", self.eval_json.display())?;
+        if let Some(p) = &self.eval.comparison {
+            writeln!(f, "output {} (colour | 2D per-frame | dsgs)", p.display())?;
+        }
         writeln!(f, "scene bundle {}", self.bundle.display())?;
         writeln!(
             f,
@@ -654,8 +659,9 @@ pub fn stylize_settings(s: &Plan, out_dir: PathBuf) -> StylizeSettings {
     }
 }
 
-/// The settings of the eval stage of a run: those of its stylize stage, without the 2D baseline.
-pub fn eval_settings(st: &StylizeSettings) -> EvalSettings {
+/// The settings of the eval stage of a run: those of its stylize stage, with the per-frame 2D
+/// baseline, its frames written under `frames_out` with the comparison sheet.
+pub fn eval_settings(st: &StylizeSettings, frames_out: PathBuf) -> EvalSettings {
     EvalSettings {
         styles: st.styles.clone(),
         weights: None,
@@ -664,7 +670,8 @@ pub fn eval_settings(st: &StylizeSettings) -> EvalSettings {
         style_side: st.style_side,
         warp: WarpOptions::default(),
         tile_budget: st.tile_budget,
-        baseline: false,
+        baseline: true,
+        frames_out: Some(frames_out),
         part: Default::default(),
     }
 }
@@ -799,7 +806,7 @@ pub fn execute(s: &Plan, control: &Control) -> Result<RunReport> {
         }
         None => {
             record::forget(&eval_record)?;
-            let eval_settings = eval_settings(&settings);
+            let eval_settings = eval_settings(&settings, s.out_dir.join("eval"));
             let (eval, t) = timed(|| {
                 crate::eval::evaluate_bundle(
                     &bundle,
@@ -812,6 +819,7 @@ pub fn execute(s: &Plan, control: &Control) -> Result<RunReport> {
             crate::eval::write_report(&eval_json, &eval)?;
             let evaluated = record::Evaluated {
                 report: eval_json.clone(),
+                comparison: eval.comparison.clone(),
             };
             record::write(&eval_record, &inputs, &evaluated)?;
             seconds.push(("eval", Some(t)));
@@ -1030,15 +1038,20 @@ mod record {
         }
     }
 
-    /// What the eval stage wrote: its report.
+    /// What the eval stage wrote: its report and its comparison sheet.
     #[derive(Serialize, Deserialize)]
     pub struct Evaluated {
         pub report: PathBuf,
+        #[serde(default)]
+        pub comparison: Option<PathBuf>,
     }
 
     impl Outputs for Evaluated {
         fn files(&self) -> Vec<&Path> {
-            vec![&self.report]
+            std::iter::once(&self.report)
+                .chain(&self.comparison)
+                .map(PathBuf::as_path)
+                .collect()
         }
     }
 

@@ -168,6 +168,7 @@ fn eval_settings(styles: Vec<PathBuf>) -> EvalSettings {
         warp: WarpOptions::default(),
         tile_budget: runtime::DEFAULT_TILE_BUDGET_BYTES,
         baseline: false,
+        frames_out: None,
         part: Default::default(),
     }
 }

@@ -450,6 +450,7 @@ pub struct EvalArgs {
     pub no_baseline: bool,
     /// Also write every frame (colour, 2D baseline, dsgs) under this folder, and the sheet
     /// `comparison.png` of them: colour | 2D per-frame | dsgs for each painting, the same views
+    /// [default: none: no frames]
     #[arg(long)]
     pub frames_out: Option<PathBuf>,
     #[command(flatten)]

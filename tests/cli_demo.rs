@@ -66,11 +66,13 @@ fn a_toy_demo_runs_every_stage_and_a_rerun_skips_them() {
         assert!(out.join(f).is_file(), "{f}");
     }
 
-    // The report: five outputs (colour and four styles) with finite metrics in range.
+    // The report: nine outputs (colour, and per style of four its 2D per-frame baseline and
+    // dsgs) with finite metrics in range, and the comparison sheet.
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("eval.json")).unwrap()).unwrap();
     let outputs = report["outputs"].as_array().unwrap();
-    assert_eq!(outputs.len(), 5);
+    assert_eq!(outputs.len(), 9);
+    assert!(out.join("eval/comparison.png").is_file());
     let mut numbers = 0;
     fn walk(v: &serde_json::Value, n: &mut usize) {
         match v {
@@ -85,7 +87,7 @@ fn a_toy_demo_runs_every_stage_and_a_rerun_skips_them() {
         }
     }
     walk(&report["outputs"], &mut numbers);
-    assert!(numbers >= 5 * 4, "{report}");
+    assert!(numbers >= 9 * 4, "{report}");
 
     // A rerun finds every stage done and redoes none.
     every_stage_skipped(&ok(&mut run()));

@@ -19,11 +19,12 @@
 //!   paintings) gives the cost of encoding an image, their alignment-only and full steps the
 //!   costs of the two kinds of step, each linear in the number of Gaussians and evaluated at the
 //!   expected final number.
-//! - **Stylize and evaluate.** The two stages on the copied scene's bundle, for a painting and
-//!   three training cameras: the cost per frame and output, times the plan's frames and outputs
-//!   (stylize: one camera, then three, for a painting's fixed cost apart from its frames';
-//!   eval: three cameras, then eight, for a cost per frame apart from one per compared pair,
-//!   per row: the colour frames and each painting's 2D baseline and dsgs frames).
+//! - **Stylize and evaluate.** The two stages on the copied scene's bundle and training
+//!   cameras. Stylize with every painting, on one camera and then three: the stage's fixed
+//!   cost (the paintings' encoding, the animations, the contact sheet) apart from a frame's,
+//!   times the plan's frames. Evaluate with one painting, on three cameras and then eight: a
+//!   cost per frame apart from one per compared pair, per row (the colour frames and each
+//!   painting's 2D baseline and dsgs frames), times the plan's frames and rows.
 //!
 //! Stages whose results are already there are not estimated; a finished geometry gives the
 //! features and later stages its exact number of Gaussians. Nothing is written outside a
@@ -34,6 +35,7 @@ use std::time::Instant;
 use base::event::{Quiet, Stage};
 use gaussian::dataset::Dataset;
 use gaussian::{Camera, FeatureGaussians};
+use runtime::SceneBundle;
 use train::features::FeatureSetup;
 use train::geometry::load_views;
 use train::image_folder::collect_images;
@@ -43,7 +45,7 @@ use crate::error::{Context, Result};
 use crate::pretrain_decoder::NetworkFiles;
 use crate::run::{
     eval_settings, feature_config, features_done, geometry_config, geometry_dir, geometry_done,
-    human, stylize_settings, Networks, Plan, RunReport,
+    count, human, stylize_settings, Networks, Plan, RunReport,
 };
 use crate::Control;
 
@@ -363,8 +365,11 @@ struct FeatureProbe {
     encode_image: f64,
     align: LinearCost,
     full: LinearCost,
-    /// The copied scene's trainer, for the stylize and eval probes.
-    trainer: FeatureTrainer,
+    /// The bundles of the probe's scene and of the copied scene, for the stylize and eval
+    /// probes.
+    bundles: [SceneBundle; 2],
+    /// The expected final number of Gaussians.
+    expected: f64,
     cameras: Vec<Camera>,
     /// Up to eight training cameras, for the eval probe.
     eval_cameras: Vec<Camera>,
@@ -391,7 +396,7 @@ fn probe_features(
     config.checkpoint_interval = 0;
     let k = ((expected / scene.len().max(1) as f64).round() as usize).clamp(2, 16);
     let mut measured = Vec::new();
-    let mut last = None;
+    let mut bundles = Vec::new();
     for geometry in [scene.clone(), split_copies(scene, k)] {
         let n = geometry.len() as f64;
         let inputs = FeatureInputs {
@@ -418,14 +423,15 @@ fn probe_features(
             Ok(())
         })?;
         measured.push((n, setup, align, full));
-        last = Some(trainer);
+        bundles.push(trainer.bundle());
     }
     let (a, b) = (measured[0], measured[1]);
     Ok(FeatureProbe {
         encode_image: 0.5 * (a.1 + b.1),
         align: LinearCost::through((a.0, a.2), (b.0, b.2)),
         full: LinearCost::through((a.0, a.3), (b.0, b.3)),
-        trainer: last.expect("two probes ran"),
+        bundles: [bundles.remove(0), bundles.remove(0)],
+        expected,
         cameras,
         eval_cameras: split
             .train
@@ -483,8 +489,11 @@ pub fn estimate(s: &Plan) -> Result<Estimate> {
                 stage: "features",
                 seconds,
                 basis: format!(
-                    "{} views and {} paintings encoded, {} + {} iterations",
-                    views, paintings, warm, full
+                    "{} and {} encoded, {} + {} iterations",
+                    count(views, "view"),
+                    count(paintings, "painting"),
+                    warm,
+                    full
                 ),
             });
         }
@@ -518,21 +527,22 @@ pub fn execute_estimated(s: &Plan, control: &Control) -> Result<RunReport> {
 fn probe_outputs(s: &Plan, probe: &FeatureProbe) -> Result<Vec<StageEstimate>> {
     let scratch = s.out_dir.join(".estimate");
     let result = (|| -> Result<Vec<StageEstimate>> {
-        let bundle = probe.trainer.bundle();
-        let mut st = stylize_settings(s, scratch.clone());
-        st.styles.truncate(1);
+        let bundle = &probe.bundles[1];
+        // The stage as it runs, with every painting: a frame is rasterized once and decoded
+        // once per painting, and the paintings share the contact sheet's colour row.
+        let every = stylize_settings(s, scratch.clone());
         let frames = probe.cameras.len() as f64;
         let outputs = s.styles.len() as f64;
         // One camera, then all: the difference is the cost of the other frames, the rest the
-        // painting's fixed cost (encoding it, the animation, the contact sheet). Each the
-        // faster of two runs, after a first, untimed one (the first use of the buffers): the
-        // runs are short, and a busy machine's pauses would otherwise swamp them.
-        crate::stylize::run(&bundle, &probe.cameras[..1], &st, &Quiet)?;
+        // stage's fixed cost (encoding the paintings, the animations, the contact sheet). Each
+        // the faster of two runs, after a first, untimed one (the first use of the buffers):
+        // the runs are short, and a busy machine's pauses would otherwise swamp them.
+        crate::stylize::run(bundle, &probe.cameras[..1], &every, &Quiet)?;
         let stylize_time = |cameras: &[Camera]| -> Result<f64> {
             let mut best = f64::INFINITY;
             for _ in 0..2 {
                 let t = Instant::now();
-                crate::stylize::run(&bundle, cameras, &st, &Quiet)?;
+                crate::stylize::run(bundle, cameras, &every, &Quiet)?;
                 best = best.min(t.elapsed().as_secs_f64());
             }
             Ok(best)
@@ -545,15 +555,39 @@ fn probe_outputs(s: &Plan, probe: &FeatureProbe) -> Result<Vec<StageEstimate>> {
         } else {
             (one, 0.0)
         };
-        // Three cameras (2 short-range pairs, no long-range one), then eight (7 and 1): per
-        // row (colour, the painting's 2D baseline, dsgs), a cost per frame and one per pair.
+        // A frame's feature raster, measured on the copies, costs what it costs at the
+        // expected number of Gaussians: linear through the probe's scene and the copies.
+        let raster = |b: &SceneBundle| -> Result<f64> {
+            let mut best = f64::INFINITY;
+            for _ in 0..2 {
+                let mut sum = 0.0;
+                for c in &probe.cameras {
+                    sum += b.feature_view(c)?.raster_seconds;
+                }
+                best = best.min(sum / frames);
+            }
+            Ok(best)
+        };
+        let [scene, copies] = &probe.bundles;
+        let on_copies = raster(copies)?;
+        let expected = LinearCost::through(
+            (scene.scene.len() as f64, raster(scene)?),
+            (copies.scene.len() as f64, on_copies),
+        )
+        .at(probe.expected);
+        let per_frame = (per_frame - on_copies).max(0.0) + expected;
+        // Three cameras (2 short-range pairs, no long-range one), then eight (7 and 1), with
+        // one painting: per row (colour, the painting's 2D baseline, dsgs), a cost per frame
+        // and one per pair.
+        let mut one_painting = every.clone();
+        one_painting.styles.truncate(1);
         let eval_time = |cameras: &[Camera]| -> Result<f64> {
             let t = Instant::now();
             crate::eval::evaluate_bundle(
-                &bundle,
+                bundle,
                 "estimate",
                 cameras,
-                &eval_settings(&st, scratch.join("eval")),
+                &eval_settings(&one_painting, scratch.join("eval")),
                 &Quiet,
             )?;
             Ok(t.elapsed().as_secs_f64() / 3.0)
@@ -581,16 +615,20 @@ fn probe_outputs(s: &Plan, probe: &FeatureProbe) -> Result<Vec<StageEstimate>> {
         Ok(vec![
             StageEstimate {
                 stage: "stylize",
-                seconds: outputs * (fixed + per_frame * n),
-                basis: format!("{} frames x {} paintings", s.frames, s.styles.len()),
+                seconds: fixed + per_frame * n,
+                basis: format!(
+                    "{} x {}",
+                    count(s.frames, "frame"),
+                    count(s.styles.len(), "painting")
+                ),
             },
             StageEstimate {
                 stage: "eval",
                 seconds: eval_seconds,
                 basis: format!(
-                    "{} frames x colour, and 2D and dsgs for {} paintings",
-                    s.frames,
-                    s.styles.len()
+                    "{} x colour, and 2D and dsgs for {}",
+                    count(s.frames, "frame"),
+                    count(s.styles.len(), "painting")
                 ),
             },
         ])

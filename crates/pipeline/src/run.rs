@@ -373,14 +373,14 @@ pub fn describe(s: &Plan) -> String {
     );
     d += &format!(
         "  geometry: {} iterations\n  features: {} iterations ({} alignment-only), {} \
-         network\n  stylize and evaluate: {} frames along {}, {} painting(s)\n",
+         network\n  stylize and evaluate: {} frames along {}, {}\n",
         s.geometry_iterations,
         s.feature_iterations,
         s.align_warmup,
         s.variant.as_str(),
         s.frames,
         s.cameras.as_str(),
-        s.styles.len()
+        count(s.styles.len(), "painting")
     );
     d
 }
@@ -394,6 +394,15 @@ pub fn human(seconds: f64) -> String {
         format!("{seconds:.0} s")
     } else {
         format!("{:.1} min", seconds / 60.0)
+    }
+}
+
+/// `n` and the noun, plural unless `n` is one: `count(1, "painting")` is "1 painting".
+pub fn count(n: usize, noun: &str) -> String {
+    if n == 1 {
+        format!("1 {noun}")
+    } else {
+        format!("{n} {noun}s")
     }
 }
 
@@ -1066,6 +1075,13 @@ mod record {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn counts_take_the_plural_unless_one() {
+        assert_eq!(count(1, "painting"), "1 painting");
+        assert_eq!(count(0, "frame"), "0 frames");
+        assert_eq!(count(24, "frame"), "24 frames");
+    }
 
     #[test]
     fn latest_checkpoint_is_the_highest_iteration() {

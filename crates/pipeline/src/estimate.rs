@@ -44,8 +44,8 @@ use train::{FeatureInputs, FeatureTrainer, GeometryConfig, GeometryTrainer, Imag
 use crate::error::{Context, Result};
 use crate::pretrain_decoder::NetworkFiles;
 use crate::run::{
-    eval_settings, feature_config, features_done, geometry_config, geometry_dir, geometry_done,
-    count, human, stylize_settings, Networks, Plan, RunReport,
+    count, eval_settings, feature_config, features_done, geometry_config, geometry_dir,
+    geometry_done, human, stylize_settings, Networks, Plan, RunReport,
 };
 use crate::Control;
 

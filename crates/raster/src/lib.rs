@@ -11,6 +11,9 @@
 //!   scene parameter; [`render_backward_features`] gives the features' gradient alone, for
 //!   frozen geometry, and [`render_backward_before_sh`] stops at the colour cotangent for a
 //!   caller that runs the SH backward itself.
+//! * [`blend_weights`] and [`render_weights`] give an image's blend weights as a sparse matrix
+//!   ([`BlendWeights`]): for fixed geometry the image as a linear map of the channel values, for
+//!   solvers that apply it many times.
 //! * [`stats`] computes the densification statistics (screen radii, NDC gradient norms).
 //!
 //! Conventions are those of the oracle (`gen_fixtures.py`), documented in [`blend`] and [`tiles`].
@@ -85,6 +88,7 @@ pub mod rows;
 pub mod splats;
 pub mod stats;
 pub mod tiles;
+pub mod weights;
 
 pub use backward::{
     fold_normalized_depth_cotangent, rasterize_backward, rasterize_backward_with,
@@ -95,9 +99,10 @@ pub use forward::{rasterize, rasterize_binned, rasterize_binned_with, Rasterized
 pub use kernels::{Isa, Kernel};
 pub use render::{
     add_view_direction_term, render, render_backward, render_backward_before_sh,
-    render_backward_features, render_window, Channels, GradsBeforeSh, PixelWindow, Render,
-    RenderOptions, SceneGrads,
+    render_backward_features, render_weights, render_window, Channels, GradsBeforeSh, PixelWindow,
+    Render, RenderOptions, SceneGrads,
 };
 pub use splats::{Cotangents, Splats};
 pub use stats::{ndc_grad_norms, screen_radii, DensificationStats};
 pub use tiles::{tile_grid, tile_rect, TileBins, TileRect};
+pub use weights::{blend_weights, BlendWeights};

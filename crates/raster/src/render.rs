@@ -26,6 +26,7 @@ use crate::error::{check_len, RasterError};
 use crate::forward::{rasterize, Rasterized};
 use crate::splats::{Cotangents, Splats};
 use crate::stats::ndc_grad_norms;
+use crate::weights::{blend_weights, BlendWeights};
 
 /// Below this many Gaussians per task, rayon's splitting overhead dominates.
 const MIN_CHUNK: usize = 4096;
@@ -428,6 +429,33 @@ pub fn render_backward_features<T: Real>(
 ) -> Result<Vec<T>, RasterError> {
     let (g, d) = splat_grads(camera, scene, opts, render, v_image, None, None)?;
     Ok(feature_grads(scene, opts, &g.channels, d))
+}
+
+/// The blend weights ([`crate::weights`]) of `render` (made by [`render`] or [`render_window`]
+/// from the same camera, scene and options): for fixed geometry, its channel image is
+/// `W c + T b`, and `W^T v` is [`render_backward_features`]'s gradient up to the order of the
+/// sums.
+pub fn render_weights<T: Real>(
+    camera: &Camera,
+    scene: &FeatureGaussians<T>,
+    render: &Render<T>,
+) -> Result<BlendWeights<T>, RasterError> {
+    render.window.check(camera)?;
+    let n = scene.len();
+    check_len("render.opacities", render.opacities.len(), n)?;
+    check_len("render.projected", render.projected.means2d.len(), n)?;
+    let p = &render.projected;
+    let means2d = render.window.means2d(camera, &p.means2d);
+    let splats = Splats {
+        means2d: &means2d,
+        conics: &p.conics,
+        depths: &p.depths,
+        radii: &p.radii,
+        opacities: &render.opacities,
+        channels: &[],
+        channel_count: 0,
+    };
+    blend_weights(&splats, &render.raster.bins)
 }
 
 /// Gradients of the loss `sum v_image image + sum v_alpha alpha + sum v_depth depth` (the images

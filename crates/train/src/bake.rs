@@ -20,10 +20,11 @@
 //!    painted background would only bleed it into the Gaussians at the silhouette. Views are
 //!    decoded `render_batch` at a time in parallel (each view on its own, so the images do not
 //!    depend on the thread count).
-//! 3. Colour solve (fresh bakes, [`BakeConfig::solve_iterations`] > 0): the DC colours are
-//!    replaced by the non-negative least-squares colours for the training targets through the
-//!    frozen geometry ([`crate::colour_solve`], a majorize-minimize iteration with momentum on
-//!    the renderer's exact linear model), starting from the bundle's own DC colours.
+//! 3. Colour solve (fresh bakes, [`BakeConfig::solve_iterations`] > 0): the DC colours, and the
+//!    degree-1 coefficients when [`BakeConfig::sh_degree`] is at least 1, are replaced by the
+//!    least-squares colours (non-negative, with a ridge on degree 1) for the training targets
+//!    through the frozen geometry ([`crate::colour_solve`], a majorize-minimize iteration with
+//!    momentum on the renderer's exact linear model), starting from the bundle's own DC colours.
 //! 4. Optimisation ([`bake`], [`BakeConfig::iterations`], 0 for the solve alone): the geometry
 //!    stage's loss `0.8 L1 + 0.2 (1 - SSIM)`
 //!    ([`crate::loss`]) of the colour render ([`crate::render`]) against one target per
@@ -36,11 +37,11 @@
 //! dropped (`feature_dim = 0`). SH coefficients are always stored at degree 3, so the `.ply` has
 //! the official 62-property layout whatever degree is optimised: the coefficients above
 //! [`BakeConfig::sh_degree`] stay zero, which makes a degree-3 render identical to a render at
-//! the optimised degree. The DC term starts from the colour solve's colours (without a solve,
-//! the bundle scene's own DC, its diffuse colour);
-//! the higher bands start at zero, because the stylized targets are decoded from a view-consistent
-//! feature field and share no view-dependent effects with the photographs the geometry was fitted
-//! to; whatever view dependence the decoded views have is learnt from them.
+//! the optimised degree. The DC term and degree 1 start from the colour solve's values (without
+//! a solve, the bundle scene's own DC, its diffuse colour, and zero); the higher bands start at
+//! zero, because the stylized targets are decoded from a view-consistent feature field and share
+//! no view-dependent effects with the photographs the geometry was fitted to; whatever view
+//! dependence the decoded views have is fitted to them.
 //!
 //! # Adapting the geometry
 //! With [`BakeConfig::adapt_geometry`], opacity logits and log-scales are optimised too, at small
@@ -88,16 +89,22 @@ pub struct BakeConfig {
     /// SH degree that is optimised and rendered (0..=3). The scene always stores degree 3; the
     /// coefficients above this degree stay zero.
     pub sh_degree: usize,
-    /// Optimisation iterations after the solve, one target view each (0: the solve alone).
+    /// Optimisation iterations after the solve, one target view each (0, the default: the solve
+    /// alone; measured, the optimisation adds at most a few tenths of a dB to the degree-1
+    /// solve's held-out PSNR in ten times its time).
     pub iterations: u64,
     /// Most iterations of the closed-form colour solve that starts a fresh
     /// bake ([`crate::colour_solve`]; 0: no solve, the optimisation starts from the bundle's
     /// colours).
     pub solve_iterations: usize,
-    /// Training targets the colour solve fits, spread evenly over them (0: all). Each solve
-    /// iteration renders every one of them forward and backward, and a few dozen views
-    /// constrain the diffuse colours about as well as hundreds.
+    /// Training targets the colour solve fits, spread evenly over them (0: all of
+    /// [`BakeConfig::target_views`]). Each solve iteration applies every one of them forward
+    /// and backward.
     pub solve_views: usize,
+    /// The colour solve's ridge on the degree-1 SH coefficients, relative to each Gaussian's
+    /// total blend weight ([`crate::colour_solve::SolveSettings::ridge`]); the solve fits
+    /// degree 1 when [`BakeConfig::sh_degree`] is at least 1, else the DC colours alone.
+    pub solve_ridge: f64,
     /// Adam rate of the SH DC coefficients (3DGS: 0.0025).
     pub feature_lr: f64,
     /// The higher SH coefficients use `feature_lr / feature_rest_divisor` (3DGS: 20).
@@ -120,7 +127,9 @@ pub struct BakeConfig {
     /// Largest change of a log-scale from its initial value, per axis.
     pub log_scale_budget: f32,
     /// Number of training targets; the candidates (dataset, interpolated and orbit cameras, less
-    /// the held-out ones) are subsampled evenly to this many. 0 keeps them all.
+    /// the held-out ones) are subsampled evenly to this many. 0 keeps them all. The default, 64,
+    /// is where the degree-1 solve alone matches a 3,000-iteration optimisation on every
+    /// candidate (docs/results.md).
     pub target_views: usize,
     /// Interpolated cameras between each camera and its nearest neighbour.
     pub interpolated_per_pair: usize,
@@ -147,9 +156,10 @@ impl Default for BakeConfig {
     fn default() -> Self {
         BakeConfig {
             sh_degree: 3,
-            iterations: 3000,
-            solve_iterations: 10,
-            solve_views: 24,
+            iterations: 0,
+            solve_iterations: 8,
+            solve_views: 0,
+            solve_ridge: 0.001,
             feature_lr: 0.0025,
             feature_rest_divisor: 20.0,
             lambda_dssim: 0.2,
@@ -163,7 +173,7 @@ impl Default for BakeConfig {
             scaling_lr: 0.001,
             opacity_logit_budget: 0.5,
             log_scale_budget: 0.1,
-            target_views: 0,
+            target_views: 64,
             interpolated_per_pair: 2,
             orbit_views: 0,
             held_out: 4,
@@ -183,6 +193,12 @@ impl BakeConfig {
         let bad = |m: String| Err(TrainError::Config(m));
         if self.sh_degree > STORED_SH_DEGREE {
             return bad(format!("bake sh_degree {} is above 3", self.sh_degree));
+        }
+        if !(self.solve_ridge.is_finite() && self.solve_ridge > 0.0) {
+            return bad(format!(
+                "solve_ridge {} is not a positive number",
+                self.solve_ridge
+            ));
         }
         if !(0.0..=1.0).contains(&self.lambda_dssim) {
             return bad(format!(
@@ -553,6 +569,8 @@ pub struct BakeReport {
 /// What the closed-form colour solve of a bake did.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct BakeSolveReport {
+    /// SH degree solved for: 0 (DC colours) or 1 (and the degree-1 coefficients).
+    pub degree: usize,
     /// Iterations run.
     pub iterations: usize,
     /// The last step's size relative to the first's.
@@ -565,14 +583,14 @@ pub struct BakeSolveReport {
     pub held_out_psnr: Option<f64>,
 }
 
-/// Replaces the DC colours of `scene` (SH stored at degree 3, higher bands zero) by the
-/// non-negative least-squares colours for `targets` ([`crate::colour_solve`]), starting from
-/// its own.
-fn solve_dc(
+/// Replaces the DC colours of `scene` (SH stored at degree 3, higher bands zero), and at
+/// `degree` 1 its degree-1 coefficients, by the non-negative least-squares colours for
+/// `targets` ([`crate::colour_solve`]), starting from its own DC colours.
+fn solve_colours_of(
     scene: &mut FeatureGaussians<f32>,
     targets: &[View],
     background: [f32; 3],
-    iterations: usize,
+    settings: SolveSettings,
 ) -> Result<BakeSolveReport, TrainError> {
     let start = std::time::Instant::now();
     let k = scene.sh_coeffs_per_gaussian();
@@ -587,15 +605,15 @@ fn solve_dc(
             image: &v.image,
         })
         .collect();
-    let settings = SolveSettings {
-        iterations,
-        ..SolveSettings::default()
-    };
     let out = solve_colours(scene, &solve_targets, background, &initial, settings)?;
     for (i, c) in out.colours.iter().enumerate() {
         scene.sh[i * k] = c.map(|v| rgb_to_sh_dc(v as f64) as f32);
     }
+    for (i, rest) in out.degree_one.iter().enumerate() {
+        scene.sh[i * k + 1..i * k + 4].copy_from_slice(rest);
+    }
     Ok(BakeSolveReport {
+        degree: settings.degree,
         iterations: out.iterations,
         residual: out.residuals.last().copied().unwrap_or(1.0),
         unseen: out.unseen,
@@ -730,7 +748,13 @@ pub fn bake_targets(
                     .map(|i| train[i].clone())
                     .collect(),
             };
-            let report = solve_dc(&mut initial, &chosen, background, iterations)?;
+            let settings = SolveSettings {
+                iterations,
+                degree: config.sh_degree.min(1),
+                ridge: config.solve_ridge,
+                ..SolveSettings::default()
+            };
+            let report = solve_colours_of(&mut initial, &chosen, background, settings)?;
             let held_out_psnr = mean_psnr(&initial, config.sh_degree, background, &held_out)?;
             Some(BakeSolveReport {
                 held_out_psnr,

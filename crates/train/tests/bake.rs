@@ -336,8 +336,9 @@ fn baked_colours_reproduce_held_out_stylized_views() {
 }
 
 /// The closed-form colour solve alone (`iterations = 0`) already reproduces held-out stylized
-/// views far better than the bundle's colours, and changes only the DC colours; without it
-/// (`solve_iterations = 0` too) the colours are the bundle's DC.
+/// views far better than the bundle's colours, and changes only the DC colours and degree 1
+/// (only the DC at `sh_degree` 0); without it (`solve_iterations = 0` too) the colours are the
+/// bundle's DC.
 #[test]
 #[cfg_attr(
     debug_assertions,
@@ -369,10 +370,30 @@ fn the_colour_solve_alone_bakes_the_style() {
     assert!(same_geometry(s, &bundle.scene));
     assert_eq!(s.opacity_logits, bundle.scene.opacity_logits);
     let k = s.sh_coeffs_per_gaussian();
-    assert!((0..s.len()).all(|i| s.sh[i * k + 1..(i + 1) * k]
-        .iter()
-        .flatten()
-        .all(|&v| v == 0.0)));
+    let zero_from = |s: &FeatureGaussians<f32>, from: usize| {
+        (0..s.len()).all(|i| {
+            s.sh[i * k + from..(i + 1) * k]
+                .iter()
+                .flatten()
+                .all(|&v| v == 0.0)
+        })
+    };
+    assert_eq!(solve.degree, 1);
+    assert!(zero_from(s, 4));
+    assert!(!zero_from(s, 1), "the degree-1 solve left degree 1 at zero");
+    let dc_only = bake(
+        bundle,
+        stats,
+        &BakeConfig {
+            sh_degree: 0,
+            ..cfg.clone()
+        },
+        None,
+        &Run::in_memory(),
+    )
+    .unwrap();
+    assert_eq!(dc_only.solve.as_ref().map(|s| s.degree), Some(0));
+    assert!(zero_from(&dc_only.scene, 1));
     // No solve and no optimisation: the bundle's own colours.
     let none = BakeConfig {
         solve_iterations: 0,

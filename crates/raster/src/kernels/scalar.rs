@@ -156,6 +156,39 @@ pub(crate) fn forward_tile<T: Real>(
     }
 }
 
+/// One tile's blend weights ([`crate::weights`]): for each of its pixels in tile raster order,
+/// the number of Gaussians it blends into `counts`, their ids and weights `alpha_i T_i`
+/// (front to back) into `ids_out` and `weights`, and its final transmittance into `trans_out`.
+pub(crate) fn weights_tile<T: Real>(
+    all: &[Splat<T>],
+    tile: Tile<'_>,
+    scratch: &mut Scratch<T>,
+    counts: &mut Vec<u32>,
+    ids_out: &mut Vec<u32>,
+    weights: &mut Vec<T>,
+    trans_out: &mut Vec<T>,
+) {
+    let Scratch { packed, rows, .. } = scratch;
+    let (ids, rows) = prepare(all, tile, None, packed, rows);
+    let (x0, y0, x1, y1) = tile.pixel_rect;
+    for py in y0..y1 {
+        let cy = pixel_centre::<T>(py);
+        for px in x0..x1 {
+            let cx = pixel_centre::<T>(px);
+            let lx = (px - x0) as u8;
+            let row = rows.list(py - y0, lx as usize / SPAN);
+            let mut n = 0u32;
+            let trans = walk_pixel(row, packed, lx, cx, cy, |k, hit, trans| {
+                ids_out.push(ids[k]);
+                weights.push(hit.alpha * trans);
+                n += 1;
+            });
+            counts.push(n);
+            trans_out.push(trans);
+        }
+    }
+}
+
 /// Accumulates the tile's gradient records (`GEOMETRY + D` reals per tile intersection, in tile
 /// order) into `rec` and its background gradient into `bg_grad`; `kept`: the tile's row lists
 /// kept by the forward pass of these Gaussians, if any.

@@ -479,13 +479,27 @@ pub const BASELINE_PREFIX: &str = "2d:";
 /// (`style::stylize` at strength `alpha`), and decoded whole by the bundle's decoder; clamped.
 /// What a 2D method that sees each frame alone does, against which the view-consistent design
 /// of the features is measured.
+///
+/// A standard encoder that pools with floor rounding (the compressed relu4_1 pair) drops the
+/// last rows and columns of a side that is not a multiple of its total pooling `f`, and its
+/// decoder would give back less than the frame: such a frame is extended to the next
+/// multiple of `f` by repeating its last row and column ([`pad_to_multiple`]) before it is
+/// encoded, and the decoded image cropped back to the frame.
 pub fn baseline_view(
     bundle: &SceneBundle,
     colour: &RgbImage,
     target: &stylize::StyleTarget,
     alpha: f64,
 ) -> Result<RgbImage> {
-    let x = nchw_from_rgb(colour);
+    let (h, w) = (colour.height as usize, colour.width as usize);
+    let floor = bundle.info.variant == runtime::Variant::Standard
+        && bundle.encoder.pool_rounding() == nets::PoolRounding::Floor;
+    let multiple = if floor {
+        1usize << (bundle.encoder.depth().max(1) - 1)
+    } else {
+        1
+    };
+    let x = pad_to_multiple(nchw_from_rgb(colour), multiple);
     let y = style::stylize::stylize(
         &bundle.encoder,
         &bundle.decoder,
@@ -493,9 +507,23 @@ pub fn baseline_view(
         target.stats.deepest(),
         alpha,
     )?;
-    let (h, w) = (x.dim().2, x.dim().3);
     let y = runtime::frame::crop(y, w as u32, h as u32)?;
     Ok(image_io::clamped(&image_io::rgb_from_nchw(&y)?))
+}
+
+/// `x` (`[N, C, H, W]`) extended at the bottom and right to sides that are multiples of
+/// `multiple`, the new rows and columns repeating the last ones; `x` itself when they already
+/// are.
+pub fn pad_to_multiple(x: Array4<f32>, multiple: usize) -> Array4<f32> {
+    let (n, c, h, w) = x.dim();
+    let m = multiple.max(1);
+    let (ph, pw) = (h.div_ceil(m) * m, w.div_ceil(m) * m);
+    if (ph, pw) == (h, w) || h == 0 || w == 0 {
+        return x;
+    }
+    Array4::from_shape_fn((n, c, ph, pw), |(b, k, y, xx)| {
+        x[[b, k, y.min(h - 1), xx.min(w - 1)]]
+    })
 }
 
 /// The texture targets, one per style target of [`stylize::style_targets`]: the normalised Gram

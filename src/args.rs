@@ -453,6 +453,11 @@ pub struct EvalArgs {
     /// [default: none: no frames]
     #[arg(long)]
     pub frames_out: Option<PathBuf>,
+    /// Measure the losses and perceptual distances with this encoder (weights .safetensors or
+    /// PyTorch checkpoint; at standard resolution) instead of the bundle's, so that bundles of
+    /// different networks compare [default: the bundle's encoder]
+    #[arg(long, value_name = "ENCODER")]
+    pub measure_with: Option<PathBuf>,
     #[command(flatten)]
     pub shard: ShardArgs,
     /// No progress bar (a plain progress line at least every minute instead)

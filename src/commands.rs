@@ -318,7 +318,14 @@ pub fn eval(a: EvalArgs, part: Part) -> Result<()> {
         let cams = a
             .cameras
             .select(default_source("eval"), known, scene.gaussians())?;
-        pipeline::eval::evaluate_frames(&scene, &cams, frames_dir, &a.warp, &terminal)?
+        pipeline::eval::evaluate_frames(
+            &scene,
+            &cams,
+            frames_dir,
+            &a.warp,
+            a.measure_with.as_deref(),
+            &terminal,
+        )?
     } else {
         let Some(dir) = &a.bundle else {
             bail!("give a scene bundle to evaluate (or --frames-dir DIR --scene SCENE)");
@@ -339,6 +346,7 @@ pub fn eval(a: EvalArgs, part: Part) -> Result<()> {
             tile_budget: style.tile_budget << 20,
             baseline: !a.no_baseline,
             frames_out: a.frames_out.clone(),
+            measure_with: a.measure_with.clone(),
             part: part.clone(),
         };
         let name = dir.display().to_string();

@@ -201,7 +201,97 @@ fn bad_eval_input_is_refused_with_a_message() {
             .args(["--frames", "3"]),
     );
     assert!(err.contains("no .png frames"), "{err}");
+    // A measuring encoder that is not there, or a file without an encoder, is named.
+    let bundle = common::save_tiny_bundle(&dir);
+    let missing = dir.join("no-encoder.safetensors");
+    let err = fails(
+        dsgs()
+            .arg("eval")
+            .arg(&bundle)
+            .args(["--frames", "2", "--no-progress", "--measure-with"])
+            .arg(&missing),
+    );
+    assert!(err.contains("no-encoder.safetensors"), "{err}");
+    let decoder_only = shared_path("weights/wct-relu1_1-3_1/feature_invertor_conv3_1.pth");
+    let err = fails(
+        dsgs()
+            .arg("eval")
+            .arg(&bundle)
+            .args(["--frames", "2", "--no-progress", "--measure-with"])
+            .arg(&decoder_only),
+    );
+    assert!(
+        err.contains("feature_invertor_conv3_1.pth holds no encoder"),
+        "{err}"
+    );
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `measure_with` the bundle's own encoder (the tiny bundle's is the WCT relu3_1 encoder, read
+/// here again from its PyTorch checkpoint) measures every output exactly as the bundle's
+/// encoder does; another encoder (relu2_1, two levels) measures other losses and perceptual
+/// distances, leaves the stylized frames (hence the RMSE) alone, and the report names it.
+#[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
+fn measuring_with_another_encoder_changes_the_measures_not_the_frames() {
+    let bundle = common::tiny_bundle();
+    let mut req = CameraRequest::new(CameraSource::Orbit);
+    req.frames = Some(9);
+    req.width = Some(40);
+    req.height = Some(32);
+    let cams = select(&req, &KnownCameras::default(), &bundle.scene).unwrap();
+    let settings = EvalSettings {
+        styles: vec![
+            shared_path("data/styles/mondrian.jpg"),
+            shared_path("data/styles/sketch.png"),
+        ],
+        weights: None,
+        alpha: 1.0,
+        preserve_colour: false,
+        style_side: 48,
+        warp: WarpOptions::default(),
+        tile_budget: runtime::DEFAULT_TILE_BUDGET_BYTES,
+        baseline: true,
+        frames_out: None,
+        measure_with: None,
+        part: Default::default(),
+    };
+    let own = evaluate_bundle(&bundle, "tiny", &cams, &settings, &pipeline::Quiet).unwrap();
+    let measured = |file: &str| {
+        let s = EvalSettings {
+            measure_with: Some(shared_path(file)),
+            ..settings.clone()
+        };
+        evaluate_bundle(&bundle, "tiny", &cams, &s, &pipeline::Quiet).unwrap()
+    };
+    let same = measured("weights/wct-relu1_1-3_1/vgg_normalised_conv3_1.pth");
+    let other = measured("weights/wct-relu1_1-3_1/vgg_normalised_conv2_1.pth");
+    assert!(own.measured_with.is_none());
+    assert!(same
+        .measured_with
+        .as_deref()
+        .is_some_and(|m| m.ends_with("vgg_normalised_conv3_1.pth")));
+    assert_eq!(own.outputs.len(), 5);
+    for ((a, b), c) in own.outputs.iter().zip(&same.outputs).zip(&other.outputs) {
+        assert_eq!(a.name, b.name);
+        assert_eq!(a.style_loss, b.style_loss, "{}", a.name);
+        assert_eq!(a.texture_distance, b.texture_distance, "{}", a.name);
+        assert_eq!(a.content_loss, b.content_loss, "{}", a.name);
+        assert_eq!(a.short_range.perceptual, b.short_range.perceptual);
+        assert_eq!(a.long_range.perceptual, b.long_range.perceptual);
+        // The frames are the bundle's whatever measures them.
+        assert_eq!(a.short_range.rmse, c.short_range.rmse, "{}", a.name);
+        assert_eq!(a.long_range.rmse, c.long_range.rmse, "{}", a.name);
+        assert_ne!(a.short_range.perceptual, c.short_range.perceptual, "{}", a.name);
+        if a.style_loss.is_some() {
+            let (x, y) = (a.style_loss.unwrap(), c.style_loss.unwrap());
+            assert!(y.is_finite() && y > 0.0 && x != y, "{}: {x} {y}", a.name);
+            assert_ne!(a.texture_distance, c.texture_distance, "{}", a.name);
+            assert_ne!(a.content_loss, c.content_loss, "{}", a.name);
+        }
+    }
+    assert_eq!(own.texture_between, same.texture_between);
+    assert_ne!(own.texture_between, other.texture_between);
 }
 
 /// `evaluate_bundle` streams the sequence; the reference here renders and stylizes every view
@@ -231,6 +321,7 @@ fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
         tile_budget: 1 << 20,
         baseline: false,
         frames_out: None,
+        measure_with: None,
         part: Default::default(),
     };
     let report = evaluate_bundle(&bundle, "tiny", &cams, &settings, &pipeline::Quiet).unwrap();

@@ -30,6 +30,10 @@
 //! perceptual distance whole when the budget allows, else tile by tile ([`FrameLosses`],
 //! [`crate::consistency::perceptual_distance`]).
 //!
+//! With [`EvalSettings::measure_with`] another encoder measures all of them (the targets'
+//! statistics and Gram matrices too): the measures of bundles with different networks compare
+//! only when one encoder measured them all.
+//!
 //! With [`EvalSettings::frames_out`] every evaluated frame is also written as a PNG, and the
 //! comparison sheet [`COMPARISON_SHEET`] (colour | 2D per-frame | dsgs for each painting, the
 //! same views) is made from them.
@@ -64,6 +68,7 @@ use crate::image_io::{self, nchw_from_rgb, RgbImage};
 use crate::render::{render_colour, SceneInput};
 use crate::shard::{Part, Shard};
 use crate::stylize::{self, COLOUR_VIEWS};
+use crate::weights::MeasuringEncoder;
 use crate::{Sink, Stage, Tally};
 use runtime::StageSeconds;
 
@@ -129,6 +134,10 @@ pub struct EvalReport {
     /// The comparison sheet written with the frames ([`EvalSettings::frames_out`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub comparison: Option<PathBuf>,
+    /// The file of the encoder that measured the outputs ([`EvalSettings::measure_with`]);
+    /// `None`: the bundle's own encoder.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub measured_with: Option<String>,
 }
 
 /// The texture distance between two outputs of an evaluation ([`EvalReport::texture_between`]).
@@ -167,6 +176,12 @@ pub struct EvalSettings {
     /// `2d_NAME/` for its 2D baseline and `NAME/` for dsgs, each `frame_NNNN.png`), and, unless
     /// this is a shard, the comparison sheet [`COMPARISON_SHEET`] made from them.
     pub frames_out: Option<PathBuf>,
+    /// The encoder that measures the style, texture and content losses and the perceptual
+    /// distance (`--measure-with`, weights or a PyTorch checkpoint, at standard resolution)
+    /// instead of the bundle's own: each encoder's levels have their own widths and scales, so
+    /// the measures of bundles with different networks compare only when one encoder measured
+    /// them all. The stylization itself always uses the bundle's networks.
+    pub measure_with: Option<PathBuf>,
     /// The whole evaluation, one shard of it (`--shard K/N`: the losses of its block of views
     /// and the pairs that start in it, into a manifest), or the merge of the shards' partial
     /// results into the report (`dsgs assemble`).
@@ -530,7 +545,7 @@ pub fn pad_to_multiple(x: Array4<f32>, multiple: usize) -> Array4<f32> {
 /// matrices of each style image's encoding at every level (after the same colour matching), or
 /// for a mixture the styles' matrices mixed with its normalised weights.
 fn target_grams(
-    bundle: &SceneBundle,
+    encoder: &Encoder<f32>,
     styles: &[stylize::StyleImage],
     weights: Option<&[f64]>,
     colour: Option<&Array4<f32>>,
@@ -538,8 +553,7 @@ fn target_grams(
     let mut each = Vec::with_capacity(styles.len());
     for s in styles {
         let img = stylize::style_input(s, colour)?;
-        let f = bundle
-            .encoder
+        let f = encoder
             .forward(img.view())
             .with_context(|| format!("encoding the style {}", s.path.display()))?;
         each.push(
@@ -596,6 +610,7 @@ fn fingerprint(
     cameras: &[Camera],
     targets: &[stylize::StyleTarget],
     settings: &EvalSettings,
+    measurer: Option<&MeasuringEncoder>,
 ) -> String {
     let mut h = base::Fnv1a::new();
     h.eat_str(SHARD_COMMAND);
@@ -608,6 +623,9 @@ fn fingerprint(
     h.eat_f64(settings.warp.depth_tolerance);
     h.eat_u64(settings.tile_budget);
     h.eat_u64(settings.baseline as u64);
+    if let Some(m) = measurer {
+        h.eat_str(&m.fingerprint);
+    }
     h.hex()
 }
 
@@ -691,13 +709,33 @@ fn evaluate(
         settings.weights.as_deref(),
         content.as_ref(),
     )?;
+    let measuring = settings
+        .measure_with
+        .as_deref()
+        .map(crate::weights::load_measuring_encoder)
+        .transpose()?;
+    let encoder = measuring.as_ref().map_or(&bundle.encoder, |m| &m.encoder);
+    // The targets' statistics as the measuring encoder sees them (the stylizing targets' own
+    // when it is the bundle's).
+    let measured_targets = match &measuring {
+        Some(m) => stylize::mix_targets(
+            stylize::encode_styles(&m.encoder, &styles, content.as_ref())?,
+            settings.weights.as_deref(),
+        )?,
+        None => targets.clone(),
+    };
     let grams = target_grams(
-        bundle,
+        encoder,
         &styles,
         settings.weights.as_deref(),
         content.as_ref(),
     )?;
-    let fingerprint = fingerprint(bundle, cameras, &targets, settings);
+    let measures = Measures {
+        encoder,
+        targets: &measured_targets,
+        grams: &grams,
+    };
+    let fingerprint = fingerprint(bundle, cameras, &targets, settings, measuring.as_ref());
     let n = cameras.len();
     let sums: Vec<ShardSums> = match (&settings.part, shard_dir) {
         (Part::Assemble, Some(dir)) => {
@@ -730,7 +768,8 @@ fn evaluate(
             let part = evaluate_block(
                 bundle,
                 cameras,
-                (&targets, &grams),
+                &targets,
+                &measures,
                 settings,
                 block.clone(),
                 views,
@@ -839,21 +878,32 @@ fn evaluate(
         }),
         texture_between,
         comparison,
+        measured_with: measuring.map(|m| m.path),
     }))
+}
+
+/// What the outputs are measured with: the measuring encoder and, per target, its statistics
+/// and Gram matrices at every level of that encoder.
+struct Measures<'a> {
+    encoder: &'a Encoder<f32>,
+    targets: &'a [stylize::StyleTarget],
+    grams: &'a [Vec<Array2<f64>>],
 }
 
 /// Renders, stylizes and compares the views `views` of the sequence: the losses of the views
 /// in `block` and the pairs that start in it.
+#[allow(clippy::too_many_arguments)]
 fn evaluate_block(
     bundle: &SceneBundle,
     cameras: &[Camera],
-    (targets, grams): (&[stylize::StyleTarget], &[Vec<Array2<f64>>]),
+    targets: &[stylize::StyleTarget],
+    measures: &Measures,
     settings: &EvalSettings,
     block: std::ops::Range<usize>,
     views: std::ops::Range<usize>,
     sink: &dyn Sink,
 ) -> Result<ShardSums> {
-    let encoder = &bundle.encoder;
+    let encoder = measures.encoder;
     let stylized = stylized_outputs(targets.len(), settings.baseline);
     let mut tally = Tally::start(Stage::Evaluate, views.len() * (1 + stylized.len()), sink);
     let mut stream = stream(1 + stylized.len(), &settings.warp, Some(encoder))?
@@ -891,11 +941,11 @@ fn evaluate_block(
                 img
             };
             if let Some(l) = &losses {
-                let measures = StyleMeasures {
-                    stats: &target.stats.levels,
-                    grams: &grams[t],
+                let against = StyleMeasures {
+                    stats: &measures.targets[t].stats.levels,
+                    grams: &measures.grams[t],
                 };
-                let (loss, grams) = l.measure(&img, measures)?;
+                let (loss, grams) = l.measure(&img, against)?;
                 view_losses.push(loss);
                 view_grams.push(grams);
             }
@@ -956,11 +1006,14 @@ pub fn frame_files(dir: &Path) -> Result<Vec<PathBuf>> {
 /// Evaluates existing frames (`*.png` of `frames_dir`, in name order, one per camera) against
 /// the geometry of `scene`. Every frame's size is read from its header before the first is
 /// evaluated, so a frame of the wrong size or a file that is not an image is reported at once.
+/// The perceptual distance uses the encoder of `measure_with` when given, else the bundle's
+/// (none for a `.ply`).
 pub fn evaluate_frames(
     scene: &SceneInput,
     cameras: &[Camera],
     frames_dir: &Path,
     warp: &WarpOptions,
+    measure_with: Option<&Path>,
     sink: &dyn Sink,
 ) -> Result<EvalReport> {
     let (width, height) = check_same_size(cameras)?;
@@ -982,9 +1035,13 @@ pub fn evaluate_frames(
             );
         }
     }
-    let encoder = match scene {
-        SceneInput::Bundle { bundle, .. } => Some(&bundle.encoder),
-        SceneInput::Ply { .. } => None,
+    let measuring = measure_with
+        .map(crate::weights::load_measuring_encoder)
+        .transpose()?;
+    let encoder = match (&measuring, scene) {
+        (Some(m), _) => Some(&m.encoder),
+        (None, SceneInput::Bundle { bundle, .. }) => Some(&bundle.encoder),
+        (None, SceneInput::Ply { .. }) => None,
     };
     let mut tally = Tally::start(Stage::Evaluate, files.len(), sink);
     let mut stream = stream(1, warp, encoder)?;
@@ -1033,6 +1090,7 @@ pub fn evaluate_frames(
         seconds_per_view: None,
         texture_between: Vec::new(),
         comparison: None,
+        measured_with: measuring.map(|m| m.path),
     })
 }
 
@@ -1090,6 +1148,9 @@ pub fn table(r: &EvalReport) -> String {
             "texture distance between {} and {}: {:.4}\n",
             p.a, p.b, p.distance
         );
+    }
+    if let Some(m) = &r.measured_with {
+        s += &format!("losses and perceptual distances measured with the encoder of {m}\n");
     }
     if let Some(t) = &r.seconds_per_view {
         s += &format!(

@@ -681,6 +681,7 @@ pub fn eval_settings(st: &StylizeSettings, frames_out: PathBuf) -> EvalSettings 
         tile_budget: st.tile_budget,
         baseline: true,
         frames_out: Some(frames_out),
+        measure_with: None,
         part: Default::default(),
     }
 }

@@ -210,7 +210,7 @@ pub fn style_targets(
     weights: Option<&[f64]>,
     colour: Option<&Array4<f32>>,
 ) -> Result<Vec<StyleTarget>> {
-    let encoded = encode_styles(bundle, styles, colour)?;
+    let encoded = encode_styles(&bundle.encoder, styles, colour)?;
     mix_targets(encoded, weights)
 }
 
@@ -225,17 +225,17 @@ pub fn style_input(s: &StyleImage, colour: Option<&Array4<f32>>) -> Result<Array
     }
 }
 
-/// One target per style: its statistics at every level of the bundle's encoder, its colours
-/// first matched to `colour` when given ([`style::preserve_colour`]).
+/// One target per style: its statistics at every level of `encoder` (a bundle's, or one that
+/// measures), its colours first matched to `colour` when given ([`style::preserve_colour`]).
 pub fn encode_styles(
-    bundle: &SceneBundle,
+    encoder: &nets::Encoder<f32>,
     styles: &[StyleImage],
     colour: Option<&Array4<f32>>,
 ) -> Result<Vec<StyleTarget>> {
     let mut encoded = Vec::new();
     for s in styles {
         let img = style_input(s, colour)?;
-        let stats = style::encode_style(&bundle.encoder, &img)
+        let stats = style::encode_style(encoder, &img)
             .with_context(|| format!("encoding the style {}", s.path.display()))?;
         encoded.push(StyleTarget {
             name: s.name.clone(),

@@ -252,13 +252,7 @@ pub fn run(settings: &StylizeImageSettings, control: &Control) -> Result<Stylize
     let encoder = settings.networks.load_encoder()?.with_resolution(res);
     let decoder = settings.networks.load_decoder()?.with_resolution(res);
     let measurer = match &settings.measure_with {
-        Some(path) => Some(
-            crate::weights::load_any(path)
-                .with_context(|| format!("reading the measuring encoder {}", path.display()))?
-                .encoder
-                .with_context(|| format!("{} holds no encoder", path.display()))?
-                .with_resolution(nets::Resolution::Standard),
-        ),
+        Some(path) => Some(crate::weights::load_measuring_encoder(path)?.encoder),
         None => None,
     };
     let measurer = measurer.as_ref().unwrap_or(&encoder);

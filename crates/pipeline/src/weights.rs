@@ -147,3 +147,31 @@ fn describe_lifter(s: &mut String, l: &Lifter) -> std::fmt::Result {
         l.out_channels()
     )
 }
+
+/// An encoder that measures outputs in place of the stylizing one (`--measure-with` of
+/// `dsgs eval` and `dsgs stylize-image`), and a fingerprint of its file's bytes.
+pub struct MeasuringEncoder {
+    /// The encoder, at standard resolution.
+    pub encoder: Encoder<f32>,
+    /// The file it was read from, as given.
+    pub path: String,
+    /// FNV-1a of the file's bytes, so that a sharded evaluation's parts agree on it.
+    pub fingerprint: String,
+}
+
+/// Reads the encoder of `path` (canonical weights or a PyTorch checkpoint) for measuring.
+pub fn load_measuring_encoder(path: &Path) -> Result<MeasuringEncoder> {
+    let encoder = load_any(path)
+        .with_context(|| format!("reading the measuring encoder {}", path.display()))?
+        .encoder
+        .with_context(|| format!("{} holds no encoder", path.display()))?
+        .with_resolution(nets::Resolution::Standard);
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let mut h = base::Fnv1a::new();
+    h.eat(&bytes);
+    Ok(MeasuringEncoder {
+        encoder,
+        path: path.display().to_string(),
+        fingerprint: h.hex(),
+    })
+}

@@ -169,6 +169,7 @@ fn eval_settings(styles: Vec<PathBuf>) -> EvalSettings {
         tile_budget: runtime::DEFAULT_TILE_BUDGET_BYTES,
         baseline: false,
         frames_out: None,
+        measure_with: None,
         part: Default::default(),
     }
 }

@@ -401,7 +401,7 @@ impl State {
         let encoded = if colour.is_some() {
             // At most MAX_REQUEST_STYLES images, each at most the style side.
             let images: Vec<StyleImage> = chosen.iter().map(|(_, i)| (**i).clone()).collect();
-            stylize::encode_styles(bundle, &images, colour).map_err(ApiError::internal)?
+            stylize::encode_styles(&bundle.encoder, &images, colour).map_err(ApiError::internal)?
         } else {
             let mut out = Vec::with_capacity(chosen.len());
             for (c, img) in &chosen {
@@ -412,7 +412,7 @@ impl State {
                 let t = match cached {
                     Some(t) => t,
                     None => {
-                        let t = stylize::encode_styles(bundle, std::slice::from_ref(&**img), None)
+                        let t = stylize::encode_styles(&bundle.encoder, std::slice::from_ref(&**img), None)
                             .map_err(ApiError::internal)?
                             .remove(0);
                         if let Some(s) = lock(&self.styles).iter_mut().find(|s| s.info.id == c.id) {

@@ -339,6 +339,20 @@ pub fn render_window<T: Real>(
     })
 }
 
+/// Checks that `render` was made from `camera` for a scene of `scene`'s size: its window fits
+/// the camera and it has a projection and an opacity per Gaussian.
+fn check_render<T: Real>(
+    camera: &Camera,
+    scene: &FeatureGaussians<T>,
+    render: &Render<T>,
+) -> Result<(), RasterError> {
+    render.window.check(camera)?;
+    let n = scene.len();
+    check_len("render.opacities", render.opacities.len(), n)?;
+    check_len("render.projected", render.projected.means2d.len(), n)?;
+    Ok(())
+}
+
 /// Validates a backward pass's inputs and runs the rasterizer's backward pass on the render's
 /// splats: the gradients with respect to the splats, and the channel count.
 fn splat_grads<T: Real>(
@@ -351,10 +365,8 @@ fn splat_grads<T: Real>(
     v_depth: Option<&[T]>,
 ) -> Result<(SplatGrads<T>, usize), RasterError> {
     let d = validate(scene, opts)?;
-    render.window.check(camera)?;
+    check_render(camera, scene, render)?;
     let n = scene.len();
-    check_len("render.opacities", render.opacities.len(), n)?;
-    check_len("render.projected", render.projected.means2d.len(), n)?;
     if opts.channels.sh_degree().is_some() != render.colors.is_some() {
         return Err(scene_err(
             "the render was made with other channel options".to_string(),
@@ -440,10 +452,7 @@ pub fn render_weights<T: Real>(
     scene: &FeatureGaussians<T>,
     render: &Render<T>,
 ) -> Result<BlendWeights<T>, RasterError> {
-    render.window.check(camera)?;
-    let n = scene.len();
-    check_len("render.opacities", render.opacities.len(), n)?;
-    check_len("render.projected", render.projected.means2d.len(), n)?;
+    check_render(camera, scene, render)?;
     let p = &render.projected;
     let means2d = render.window.means2d(camera, &p.means2d);
     let splats = Splats {

@@ -31,6 +31,27 @@
 #                                           On a machine whose speed drifts (a shared host), a
 #                                           single run's two kernels can meet different
 #                                           speeds; the median round's ratio is the steadier.
+#   benches/side_by_side.sh train OLD_BINARY [--rounds N] [--quick]
+#                                           the training loops of an earlier dsgs binary and of
+#                                           this tree's (built here), alternating old and new in
+#                                           every round (default 3 rounds), on the shared data:
+#                                           pretrain-standard and pretrain-fullres (the WCT
+#                                           relu3_1 pair, batch 8, 128-pixel crops),
+#                                           features-fullres (lego 400x400, content and style
+#                                           losses from the first iteration) and geometry (lego
+#                                           200x200, resumed from one checkpoint of about 100k
+#                                           Gaussians). Seconds per iteration are the difference
+#                                           of two runs of K and 3K iterations divided by 2K, so
+#                                           start-up (reading images, encoding views) cancels.
+#                                           Each round prints
+#   train <loop> round=<r> old=<s> new=<s> ratio=<old/new>
+#                                           and at the end, per loop, the median round:
+#   train <loop> old=<s> new=<s> ratio=<r> median of <n> rounds (<lowest> to <highest>)
+#                                           --quick: one round with fewer iterations (a smoke
+#                                           test of the script, not a figure). Inputs are made
+#                                           once with the new binary under $DSGS_BENCH_DIR
+#                                           (default ~/.cache/dsgs-bench): the imported networks
+#                                           and the 7,000-iteration lego geometry (a few minutes).
 #
 # Pairs/s are blended Gaussian-pixel pairs per second at criterion's point estimate. PyTorch is
 # optional; without it only the dsgs network figures are printed.
@@ -220,8 +241,171 @@ raster)
       }' "$lines"
   fi
   ;;
+train)
+  if [ $# -lt 1 ]; then
+    echo "usage: benches/side_by_side.sh train OLD_BINARY [--rounds N] [--quick]" >&2
+    exit 2
+  fi
+  old="$1"
+  shift
+  if [ ! -x "$old" ]; then
+    echo "OLD_BINARY '$old' is not an executable file" >&2
+    exit 2
+  fi
+  old="$(cd "$(dirname "$old")" && pwd)/$(basename "$old")"
+  quick=
+  rounds=3
+  while [ $# -gt 0 ]; do
+    case "$1" in
+    --quick) quick=yes ;;
+    --rounds)
+      if [ $# -lt 2 ]; then
+        echo "--rounds needs a positive integer" >&2
+        exit 2
+      fi
+      rounds="$2"
+      shift
+      ;;
+    *)
+      echo "unknown train option '$1' (expected --rounds N, --quick)" >&2
+      exit 2
+      ;;
+    esac
+    shift
+  done
+  case "$rounds" in
+  '' | *[!0-9]* | 0)
+    echo "--rounds needs a positive integer, got '$rounds'" >&2
+    exit 2
+    ;;
+  esac
+  [ -n "$quick" ] && rounds=1
+  shared="${DSGS_SHARED:-../shared}"
+  if [ ! -d "$shared/data/scenes/lego" ]; then
+    echo "the shared data is not at '$shared' (set DSGS_SHARED)" >&2
+    exit 2
+  fi
+  shared="$(cd "$shared" && pwd)"
+  cargo build --release -q --bin dsgs
+  new="$PWD/target/release/dsgs"
+  work="${DSGS_BENCH_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/dsgs-bench}"
+  mkdir -p "$work"
+  work="$(cd "$work" && pwd)"
+  runs="$(mktemp -d)"
+  lines="$(mktemp)"
+  trap 'rm -rf "$runs" "$lines"' EXIT
+  wct="$shared/weights/wct-relu1_1-3_1"
+  nets="$work/wct-relu3_1.safetensors"
+  if [ ! -f "$nets" ]; then
+    "$new" weights import --encoder "$wct/vgg_normalised_conv3_1.pth" \
+      --decoder "$wct/feature_invertor_conv3_1.pth" -o "$nets" >/dev/null
+  fi
+  lego="$shared/data/scenes/lego"
+  geo_iters=7000
+  geo="$work/lego-200-geometry"
+  if [ ! -f "$geo/chkpnt_$geo_iters.safetensors" ]; then
+    echo "making the lego 200x200 geometry once ($geo_iters iterations, a few minutes)" >&2
+    rm -rf "$geo"
+    "$new" fit-geometry "$lego" --white --downscale 4 --iterations "$geo_iters" \
+      --checkpoint-iterations "$geo_iters" --no-progress -o "$geo" >/dev/null
+  fi
+  if [ -n "$quick" ]; then
+    k_pretrain=2 k_fullres=1 k_features=2 k_geometry=20
+  else
+    k_pretrain=10 k_fullres=4 k_features=10 k_geometry=200
+  fi
+  # One run of loop $1 with binary $2 for $3 iterations into $4.
+  run_loop() {
+    local loop="$1" bin="$2" k="$3" out="$4"
+    case "$loop" in
+    pretrain-standard | pretrain-fullres)
+      "$bin" pretrain-decoder --weights "$nets" --content "$shared/data/pretrain/content" \
+        --style "$shared/data/pretrain/styles" --recursive --variant "${loop#pretrain-}" \
+        --iterations "$k" --batch-size 8 --crop 128 --checkpoint-every 0 --no-progress -o "$out"
+      ;;
+    features-fullres)
+      # Earlier binaries name the dataset with --dataset rather than as an argument.
+      local dataset=("$lego")
+      if "$bin" fit-features --help | grep -q -- '--dataset <'; then
+        dataset=(--dataset "$lego")
+      fi
+      "$bin" fit-features "${dataset[@]}" --white --downscale 2 --geometry "$geo/point_cloud.ply" \
+        --style "$shared/data/styles/small-set" --weights "$nets" --variant fullres \
+        --iterations "$k" --eval-every 0 --checkpoint-every 0 --no-encoding-cache \
+        --no-progress -o "$out"
+      ;;
+    geometry)
+      # $out is a fresh copy of the checkpoint's run (made before the clock starts).
+      "$bin" fit-geometry "$lego" --white --downscale 4 --iterations "$((geo_iters + k))" \
+        --resume "$out/chkpnt_$geo_iters.safetensors" --no-progress -o "$out"
+      ;;
+    esac
+  }
+  # Seconds per iteration of loop $1 with binary $2: runs of K and 3K iterations, timed.
+  per_iteration() {
+    local loop="$1" bin="$2" k="$3" t=() n
+    for n in "$k" "$((3 * k))"; do
+      local out="$runs/$loop-$n"
+      rm -rf "$out"
+      if [ "$loop" = geometry ]; then
+        cp -r "$geo" "$out"
+      fi
+      local start end
+      start="$(date +%s%N)"
+      if ! run_loop "$loop" "$bin" "$n" "$out" >"$runs/log" 2>&1; then
+        echo "train $loop: $bin failed:" >&2
+        tail -5 "$runs/log" >&2
+        exit 1
+      fi
+      end="$(date +%s%N)"
+      t+=("$((end - start))")
+      rm -rf "$out"
+    done
+    awk -v a="${t[0]}" -v b="${t[1]}" -v k="$k" 'BEGIN { printf "%.4f", (b - a) / 1e9 / (2 * k) }'
+  }
+  for r in $(seq 1 "$rounds"); do
+    for loop in pretrain-standard pretrain-fullres features-fullres geometry; do
+      case "$loop" in
+      pretrain-standard) k="$k_pretrain" ;;
+      pretrain-fullres) k="$k_fullres" ;;
+      features-fullres) k="$k_features" ;;
+      geometry) k="$k_geometry" ;;
+      esac
+      # Old first in odd rounds, new first in even ones.
+      if [ $((r % 2)) -eq 1 ]; then
+        o="$(per_iteration "$loop" "$old" "$k")"
+        n="$(per_iteration "$loop" "$new" "$k")"
+      else
+        n="$(per_iteration "$loop" "$new" "$k")"
+        o="$(per_iteration "$loop" "$old" "$k")"
+      fi
+      awk -v l="$loop" -v r="$r" -v o="$o" -v n="$n" \
+        'BEGIN { printf "train %s round=%d old=%s new=%s ratio=%.2f\n", l, r, o, n, o / n }' |
+        tee -a "$lines"
+    done
+  done
+  if [ "$rounds" -gt 1 ]; then
+    for loop in pretrain-standard pretrain-fullres features-fullres geometry; do
+      grep "^train $loop " "$lines" | awk -v l="$loop" '
+        {
+          for (i = 3; i <= NF; i++) { split($i, kv, "="); f[kv[1]] = kv[2] }
+          ratio[NR] = f["ratio"] + 0; line[NR] = sprintf("old=%s new=%s ratio=%s", f["old"], f["new"], f["ratio"])
+          idx[NR] = NR
+        }
+        END {
+          for (a = 2; a <= NR; a++) {
+            x = idx[a]
+            for (b = a - 1; b >= 1 && ratio[idx[b]] > ratio[x]; b--) idx[b + 1] = idx[b]
+            idx[b + 1] = x
+          }
+          printf "train %s %s median of %d rounds (%.2f to %.2f)\n", l, line[idx[int((NR + 1) / 2)]],
+            NR, ratio[idx[1]], ratio[idx[NR]]
+        }'
+    done
+  fi
+  ;;
 *)
-  echo "usage: benches/side_by_side.sh nets [PYTHON] [ROUNDS] | raster [--quick] [--rounds N]" >&2
+  echo "usage: benches/side_by_side.sh nets [PYTHON] [ROUNDS] | raster [--quick] [--rounds N] | train OLD_BINARY [--rounds N] [--quick]" >&2
   exit 2
   ;;
 esac

@@ -282,7 +282,11 @@ fn measuring_with_another_encoder_changes_the_measures_not_the_frames() {
         // The frames are the bundle's whatever measures them.
         assert_eq!(a.short_range.rmse, c.short_range.rmse, "{}", a.name);
         assert_eq!(a.long_range.rmse, c.long_range.rmse, "{}", a.name);
-        assert_ne!(a.short_range.perceptual, c.short_range.perceptual, "{}", a.name);
+        assert_ne!(
+            a.short_range.perceptual, c.short_range.perceptual,
+            "{}",
+            a.name
+        );
         if a.style_loss.is_some() {
             let (x, y) = (a.style_loss.unwrap(), c.style_loss.unwrap());
             assert!(y.is_finite() && y > 0.0 && x != y, "{}: {x} {y}", a.name);

@@ -120,6 +120,14 @@ pub struct FeatureOverrides {
     /// key `crop`).
     #[arg(long, value_parser = at_least_one::<u32>(), help = feature_crop_help())]
     pub crop: Option<u32>,
+    /// Side of the block of rendered pixels averaged into each feature pixel (`--supersample`;
+    /// key `supersample`).
+    #[arg(long, value_parser = at_least_one::<u32>(), help = with_default(
+        "Render the feature map N times finer and average each NxN block into one feature \
+         pixel (1: one sample per feature pixel); the bundle keeps it for stylization (1 to 16)",
+        FitFeaturesConfig::default().features.supersample,
+    ))]
+    pub supersample: Option<u32>,
     /// White background, for NeRF-synthetic scenes (`--white`; key `background`). `false`
     /// leaves the configuration's background.
     #[arg(long, help = "White background (NeRF-synthetic scenes)")]
@@ -173,6 +181,9 @@ impl FeatureOverrides {
         }
         if let Some(v) = self.crop {
             f.crop = Some(v);
+        }
+        if let Some(v) = self.supersample {
+            f.supersample = v;
         }
         if let Some(v) = self.variant {
             f.variant = v;

@@ -38,6 +38,9 @@ pub enum RasterError {
     /// The requested tile kernel cannot run (see [`crate::Kernel::auto`]).
     #[error("{0}")]
     Kernel(String),
+    /// A supersampling factor below 1 ([`crate::supersample`]).
+    #[error("supersampling factor {0}: it must be at least 1")]
+    Supersample(usize),
     /// A problem in the scene or projection given to the camera-level renderer.
     #[error("{0}")]
     Scene(String),

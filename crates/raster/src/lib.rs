@@ -15,6 +15,7 @@
 //!   ([`BlendWeights`]): for fixed geometry the image as a linear map of the channel values, for
 //!   solvers that apply it many times.
 //! * [`stats`] computes the densification statistics (screen radii, NDC gradient norms).
+//! * [`supersample`] averages a finer render over each coarse pixel's footprint, and back.
 //!
 //! Conventions are those of the oracle (`gen_fixtures.py`), documented in [`blend`] and [`tiles`].
 //! Both passes run tiles in parallel with rayon and give bit-identical results for any number of
@@ -87,6 +88,7 @@ pub mod render;
 pub mod rows;
 pub mod splats;
 pub mod stats;
+pub mod supersample;
 pub mod tiles;
 pub mod weights;
 

@@ -258,7 +258,18 @@ pub struct BundleInfo {
     /// paper's design); see step 3 of [`crate::frame`].
     #[serde(default)]
     pub normalize: FeatureNorm,
+    /// Side of the block of rendered pixels averaged into each feature pixel (absent in older
+    /// bundles: 1, one sample per feature pixel); see [`raster::supersample`].
+    #[serde(default = "one")]
+    pub supersample: u32,
 }
+
+fn one() -> u32 {
+    1
+}
+
+/// The largest supersampling factor of a bundle's feature render ([`BundleInfo::supersample`]).
+pub const MAX_SUPERSAMPLE: u32 = 16;
 
 impl BundleInfo {
     /// The description of a bundle of `feature_dim`-wide features aligned to `encoder` at
@@ -287,6 +298,7 @@ impl BundleInfo {
             provenance: Vec::new(),
             decoder_mode: DecoderMode::Pretrained,
             normalize: FeatureNorm::BeforeRaster,
+            supersample: 1,
         }
     }
 
@@ -317,6 +329,15 @@ impl BundleInfo {
             return Err(bundle_err(
                 &info_path,
                 format!("format `{}`, expected `{BUNDLE_FORMAT}`", info.format),
+            ));
+        }
+        if !(1..=MAX_SUPERSAMPLE).contains(&info.supersample) {
+            return Err(bundle_err(
+                &info_path,
+                format!(
+                    "supersample is {}; it must be 1 to {MAX_SUPERSAMPLE}",
+                    info.supersample
+                ),
             ));
         }
         for (i, camera) in info.cameras.iter().enumerate() {
@@ -456,6 +477,11 @@ impl SceneBundle {
         // Only the ablation is hashed, so bundles of the paper's design keep their fingerprints.
         if info.normalize != FeatureNorm::BeforeRaster {
             h.eat_str(info.normalize.as_str());
+        }
+        // Likewise only a supersampled render, so older bundles keep theirs.
+        if info.supersample != 1 {
+            h.eat_str("supersample");
+            h.eat_u64(info.supersample as u64);
         }
         h.hex()
     }

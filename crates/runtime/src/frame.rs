@@ -137,6 +137,7 @@ impl SceneBundle {
             &feature_camera,
             (k.width, k.height),
             &self.info.feature_background,
+            self.info.supersample,
         )
     }
 
@@ -308,20 +309,24 @@ pub fn crop(image: Array4<f32>, width: u32, height: u32) -> Result<Array4<f32>, 
     Ok(image.slice(s![.., .., ..th, ..tw]).to_owned())
 }
 
-/// Rasterizes `scene`'s features from `camera`, with the intrinsics rescaled to `size`.
+/// Rasterizes `scene`'s features from `camera`, with the intrinsics rescaled to `size`: each
+/// pixel the mean of a `supersample x supersample` block of a render that much finer
+/// ([`raster::supersample`]; 1: one sample per pixel).
 pub fn render_feature_map(
     scene: &FeatureGaussians<f32>,
     camera: &Camera,
     size: (u32, u32),
     background: &[f32],
+    supersample: u32,
 ) -> Result<Array4<f32>, RuntimeError> {
-    let cam = camera.resized(size.0, size.1);
+    let s = supersample;
+    let cam = camera.resized(size.0 * s, size.1 * s);
     let opts = RenderOptions::new(Channels::Features, background.to_vec());
     let out = render(&cam, scene, &opts)?;
     let f = scene.feature_dim;
     let (w, h) = (size.0 as usize, size.1 as usize);
+    let img = raster::supersample::box_mean(&out.raster.image, w, h, f, s as usize)?;
     // The rasterizer's image is HWC; the networks take NCHW.
-    let img = &out.raster.image;
     Ok(Array4::from_shape_fn((1, f, h, w), |(_, c, y, x)| {
         img[(y * w + x) * f + c]
     }))

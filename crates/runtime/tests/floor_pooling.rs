@@ -1,7 +1,9 @@
 //! Frames of the standard variant with an encoder that pools with floor rounding (the real
 //! 16x-compressed relu4_1 pair): every frame size decodes to the whole frame, and the feature
 //! map's camera is the frame's scaled by exactly `1 / 8`, so its pixel grid is the encoder's
-//! pooling grid.
+//! pooling grid. A bundle that supersamples its feature render renders each feature pixel as
+//! the mean of its block of a finer render, keeps the factor through saving and loading, and
+//! refuses a factor out of range.
 
 use dsgs_testkit::shared_path;
 use gaussian::camera_path::look_at;
@@ -113,4 +115,66 @@ fn the_feature_camera_is_the_frame_scaled_by_the_pooling_factor() {
             assert_eq!(b * 8.0, a);
         }
     }
+}
+
+/// A bundle with `supersample` 4 renders the mean of each 4x4 block of the render 4 times finer
+/// (the feature camera scaled by exactly 4); its fingerprint differs from the plain bundle's; it
+/// saves and loads with the factor; a `bundle.json` with a factor of 0 or 17 is refused.
+#[test]
+fn a_supersampled_bundle_renders_block_means_and_keeps_its_factor() {
+    let plain = compressed_bundle();
+    let mut bundle = compressed_bundle();
+    bundle.info.supersample = 4;
+    let cam = camera(37, 29);
+    let fc = bundle.feature_camera(&cam);
+    let (w, h) = (fc.intrinsics.width, fc.intrinsics.height);
+    let map = bundle.render_features(&cam).unwrap();
+    assert_eq!(map.dim(), (1, F, h as usize, w as usize));
+    let fine = runtime::frame::render_feature_map(
+        &bundle.scene,
+        &fc.resized(4 * w, 4 * h),
+        (4 * w, 4 * h),
+        &bundle.info.feature_background,
+        1,
+    )
+    .unwrap();
+    for ((_, c, y, x), &v) in map.indexed_iter() {
+        let mut sum = 0.0f32;
+        for j in 0..4 {
+            for i in 0..4 {
+                sum += fine[[0, c, 4 * y + j, 4 * x + i]];
+            }
+        }
+        // 16 additions in f32 in another order than the block mean's.
+        assert!(
+            (v - sum / 16.0).abs() <= 1e-5 * (1.0 + v.abs()),
+            "({x}, {y}, {c})"
+        );
+    }
+    assert_ne!(map, plain.render_features(&cam).unwrap());
+    assert_ne!(bundle.fingerprint(), plain.fingerprint());
+
+    let dir = dsgs_testkit::scratch_dir("runtime-supersample", "bundle");
+    bundle.save(&dir).unwrap();
+    let loaded = SceneBundle::load(&dir).unwrap();
+    assert_eq!(loaded.info.supersample, 4);
+    assert_eq!(loaded.fingerprint(), bundle.fingerprint());
+    let json = dir.join("bundle.json");
+    let text = std::fs::read_to_string(&json).unwrap();
+    for bad in [0, 17] {
+        std::fs::write(
+            &json,
+            text.replace("\"supersample\": 4", &format!("\"supersample\": {bad}")),
+        )
+        .unwrap();
+        let err = SceneBundle::load(&dir).unwrap_err().to_string();
+        assert!(
+            err.contains("bundle.json") && err.contains(&format!("supersample is {bad}")),
+            "{err}"
+        );
+    }
+    // Older bundles have no factor: one sample per feature pixel.
+    std::fs::write(&json, text.replace(",\n  \"supersample\": 4", "")).unwrap();
+    assert_eq!(SceneBundle::load(&dir).unwrap().info.supersample, 1);
+    std::fs::remove_dir_all(&dir).ok();
 }

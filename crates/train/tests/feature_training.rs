@@ -208,7 +208,7 @@ fn a_few_steps_lower_the_loss_and_change_only_features_and_lifter() {
         let mut b = [0.0f64; 3];
         let mut scene = geometry.clone().with_features(F, 0.0);
         scene.features = features.clone();
-        let r = render_feature_map(&scene, &camera, (SIDE, SIDE), &[0.0; F]).unwrap();
+        let r = render_feature_map(&scene, &camera, (SIDE, SIDE), &[0.0; F], 1).unwrap();
         let r: Vec<[f64; F]> = (0..pixels)
             .map(|p| {
                 let (y, x) = (p / SIDE as usize, p % SIDE as usize);
@@ -523,7 +523,7 @@ fn the_bundle_saves_loads_and_renders() {
     assert_eq!(feats.shape(), [1, 8, 32, 32]);
     assert_eq!(
         feats,
-        render_feature_map(t.scene(), &cam, (32, 32), &[0.0; 8]).unwrap()
+        render_feature_map(t.scene(), &cam, (32, 32), &[0.0; 8], 1).unwrap()
     );
     let style_img = to_tensor(&styles().load(1).unwrap());
     let stats = style::encode_style(&b.encoder, &style_img).unwrap();

@@ -4,7 +4,8 @@
 //! through the rasterizer's backward pass), against central differences of the same loss, all
 //! in `f64`.
 //!
-//! Setup: 200 Gaussians seen by a 16 x 16 camera, 4-channel features, a random lifter to 64
+//! Setup: 200 Gaussians seen by a 16 x 16 camera (its feature map rendered directly, or
+//! averaged from a render 3 times finer), 4-channel features, a random lifter to 64
 //! channels, and the oracle's fullres encoder (to relu4_1) and decoder at 1/8 of the VGG
 //! widths. The loss is taken on an 11 x 12 window of the feature map, so the scatter of the
 //! window's gradient into the full map is part of the chain.
@@ -38,6 +39,7 @@ use nets::{Decoder, Encoder, Lifter, Resolution};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
+use raster::supersample::box_mean;
 use raster::{render, Channels, RenderOptions};
 use style::{align_target, encode_style, style_transform, Stage3Weights, StyleFeatureStats};
 use train::features::{stage3_gradients, CropWindow, Stage3Gradients, Stage3Sample, Stage3Setup};
@@ -68,9 +70,11 @@ struct Problem {
     target: Array4<f64>,
     style: StyleFeatureStats<f64>,
     background: Vec<f64>,
+    /// The supersampling factor of the feature render.
+    supersample: usize,
 }
 
-fn problem() -> Problem {
+fn problem(supersample: usize) -> Problem {
     let mut rng = StdRng::seed_from_u64(17);
     let (encoder, decoder) = fullres_networks();
     let mut scene = synthetic_scene(200, 3).cast::<f64>().with_features(F, 0.0);
@@ -105,6 +109,7 @@ fn problem() -> Problem {
         target,
         style,
         background: vec![0.1, -0.2, 0.0, 0.3],
+        supersample,
     }
 }
 
@@ -120,6 +125,7 @@ fn gradients(
         feature_background: &p.background,
         weights,
         normalize: style::FeatureNorm::BeforeRaster,
+        supersample: p.supersample,
     };
     let sample = Stage3Sample {
         camera: &p.camera,
@@ -131,14 +137,15 @@ fn gradients(
     stage3_gradients(scene, &setup, &sample).unwrap()
 }
 
-/// The window of the rasterized feature map, `[1, F, h, w]`.
+/// The window of the rasterized feature map, `[1, F, h, w]` (each pixel the mean of its block
+/// of a render `supersample` times finer).
 fn window_map(p: &Problem, scene: &FeatureGaussians<f64>) -> Array4<f64> {
     let opts = RenderOptions::new(Channels::Features, p.background.clone());
-    let out = render(&p.camera, scene, &opts).unwrap();
+    let ss = p.supersample as u32;
+    let out = render(&p.camera.resized(SIZE * ss, SIZE * ss), scene, &opts).unwrap();
     let s = SIZE as usize;
-    let full = Array4::from_shape_fn((1, F, s, s), |(_, c, y, x)| {
-        out.raster.image[(y * s + x) * F + c]
-    });
+    let map = box_mean(&out.raster.image, s, s, F, p.supersample).unwrap();
+    let full = Array4::from_shape_fn((1, F, s, s), |(_, c, y, x)| map[(y * s + x) * F + c]);
     full.slice(s![
         ..,
         ..,
@@ -210,8 +217,8 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
-fn check(weights: Stage3Weights, label: &str) {
-    let p = problem();
+fn check(weights: Stage3Weights, supersample: usize, label: &str) {
+    let p = problem(supersample);
     let g = gradients(&p, &p.scene, weights);
     let (_, smallest) = relu_pattern(&p, &window_map(&p, &p.scene));
     let scale = g.features.iter().fold(0.0f64, |m, v| m.max(v.abs()));
@@ -287,7 +294,14 @@ fn check(weights: Stage3Weights, label: &str) {
 
 #[test]
 fn feature_gradients_match_central_differences_through_the_whole_chain() {
-    check(Stage3Weights::default(), "full loss");
+    check(Stage3Weights::default(), 1, "full loss");
+}
+
+/// The same with the feature map averaged from a render 3 times finer: the chain then also
+/// runs through the box mean and its adjoint.
+#[test]
+fn supersampled_feature_gradients_match_central_differences() {
+    check(Stage3Weights::default(), 3, "full loss, supersampled 3x3");
 }
 
 #[test]
@@ -298,6 +312,7 @@ fn alignment_only_feature_gradients_match_central_differences() {
             lambda_style: 0.0,
             ..Stage3Weights::default()
         },
+        1,
         "align only",
     );
 }

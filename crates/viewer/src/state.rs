@@ -412,9 +412,13 @@ impl State {
                 let t = match cached {
                     Some(t) => t,
                     None => {
-                        let t = stylize::encode_styles(&bundle.encoder, std::slice::from_ref(&**img), None)
-                            .map_err(ApiError::internal)?
-                            .remove(0);
+                        let t = stylize::encode_styles(
+                            &bundle.encoder,
+                            std::slice::from_ref(&**img),
+                            None,
+                        )
+                        .map_err(ApiError::internal)?
+                        .remove(0);
                         if let Some(s) = lock(&self.styles).iter_mut().find(|s| s.info.id == c.id) {
                             s.encoded = Some(t.clone());
                         }

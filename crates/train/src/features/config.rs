@@ -6,7 +6,7 @@ use style::{FeatureNorm, Stage3Weights};
 
 use crate::adam::AdamConfig;
 use crate::error::TrainError;
-use runtime::bundle::{DecoderMode, Variant};
+use runtime::bundle::{DecoderMode, Variant, MAX_SUPERSAMPLE};
 
 /// Settings of a feature training run.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -47,6 +47,14 @@ pub struct FeatureTrainConfig {
     pub crop: Option<u32>,
     /// The short side style images are resized to before they are encoded.
     pub style_size: u32,
+    /// Side of the block of rendered pixels averaged into each feature pixel
+    /// ([`raster::supersample`]): 1 renders the feature map at its own resolution, one sample
+    /// per feature pixel; `s` renders it `s` times finer and averages each `s x s` block, so a
+    /// feature pixel is the features averaged over its footprint, as the encoder's pooled
+    /// target summarises its image block. The bundle records it and stylization renders the
+    /// same way. At most [`MAX_SUPERSAMPLE`] (16: a feature pixel of the standard relu4_1
+    /// networks covers `8 x 8` image pixels).
+    pub supersample: u32,
     /// Seed of every random choice (initialisation, views, styles, windows).
     pub seed: u64,
     /// Iterations between checkpoints (0: none).
@@ -86,6 +94,7 @@ impl Default for FeatureTrainConfig {
             variant: Variant::Standard,
             crop: None,
             style_size: 256,
+            supersample: 1,
             seed: 0,
             checkpoint_interval: 500,
             log_interval: 0,
@@ -111,6 +120,12 @@ impl FeatureTrainConfig {
         }
         if self.crop == Some(0) {
             return bad("crop is 0".into());
+        }
+        if !(1..=MAX_SUPERSAMPLE).contains(&self.supersample) {
+            return bad(format!(
+                "supersample is {}; it must be 1 to {MAX_SUPERSAMPLE}",
+                self.supersample
+            ));
         }
         if self.decoder_mode == DecoderMode::Mlp && self.variant != Variant::Fullres {
             return bad(
@@ -172,6 +187,30 @@ impl FeatureTrainConfig {
             }
         } else {
             self.weights()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_supersampling_factor_out_of_range_is_refused_by_name() {
+        for s in [1, 8, MAX_SUPERSAMPLE] {
+            let c = FeatureTrainConfig {
+                supersample: s,
+                ..Default::default()
+            };
+            assert!(c.validate().is_ok(), "{s}");
+        }
+        for s in [0, MAX_SUPERSAMPLE + 1] {
+            let c = FeatureTrainConfig {
+                supersample: s,
+                ..Default::default()
+            };
+            let err = c.validate().unwrap_err().to_string();
+            assert!(err.contains(&format!("supersample is {s}")), "{err}");
         }
     }
 }

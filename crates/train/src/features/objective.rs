@@ -6,7 +6,10 @@
 use gaussian::{Camera, FeatureGaussians, Real};
 use ndarray::{s, Array4};
 use nets::{ConvGrad, Decoder, Encoder, Lifter};
-use raster::{render_backward_features, render_window, Channels, PixelWindow, RenderOptions};
+use raster::supersample::{box_mean, box_mean_backward};
+use raster::{
+    render_backward_features, render_window, Channels, PixelWindow, RasterError, RenderOptions,
+};
 use style::{
     align_loss, align_loss_backward, stage3_loss, FeatureNorm, Stage3Weights, StyleFeatureStats,
 };
@@ -53,6 +56,9 @@ pub struct Stage3Setup<'a, T: Real> {
     pub weights: Stage3Weights,
     /// Where the features are normalised ([`FeatureNorm`]); the alignment target must match.
     pub normalize: FeatureNorm,
+    /// Side of the block of rendered pixels averaged into each feature pixel (1: one sample
+    /// per feature pixel; [`raster::supersample`]).
+    pub supersample: usize,
 }
 
 /// One sample of the loss: a view, its alignment target, a style and a window.
@@ -139,19 +145,26 @@ pub fn stage3_gradients<T: Real>(
             win.width
         )));
     };
-    let cam = sample
-        .camera
-        .resized(sample.feature_size.0, sample.feature_size.1);
+    let ss = setup.supersample;
+    if ss == 0 {
+        return Err(RasterError::Supersample(0).into());
+    }
+    // The feature map's camera scaled by the supersampling factor: fine pixel
+    // `(ss x + i, ss y + j)` covers part `(i, j)` of feature pixel `(x, y)`.
+    let cam = sample.camera.resized(
+        sample.feature_size.0 * ss as u32,
+        sample.feature_size.1 * ss as u32,
+    );
     let opts = RenderOptions::new(Channels::Features, setup.feature_background.to_vec());
     // Only the window's pixels are rasterized (the Gaussians are projected for the whole map).
     let pixels = PixelWindow {
-        x: win.x as u32,
-        y: win.y as u32,
-        width: win.width as u32,
-        height: win.height as u32,
+        x: (win.x * ss) as u32,
+        y: (win.y * ss) as u32,
+        width: (win.width * ss) as u32,
+        height: (win.height * ss) as u32,
     };
     let fwd = render_window(&cam, scene, &opts, pixels)?;
-    let img = &fwd.raster.image;
+    let img = box_mean(&fwd.raster.image, win.width, win.height, f, ss)?;
     let r = Array4::from_shape_fn((1, f, win.height, win.width), |(_, ch, y, x)| {
         img[(y * win.width + x) * f + ch]
     });
@@ -192,6 +205,7 @@ pub fn stage3_gradients<T: Real>(
     for ((_, ch, y, x), &g) in grad_r.indexed_iter() {
         v_image[(y * win.width + x) * f + ch] = g;
     }
+    let v_image = box_mean_backward(&v_image, win.width, win.height, f, ss)?;
     // The geometry is frozen: only the features' gradient is formed.
     let features = render_backward_features(&cam, scene, &opts, &fwd, &v_image)?;
     Ok(Stage3Gradients {

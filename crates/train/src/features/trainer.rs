@@ -321,6 +321,7 @@ impl FeatureTrainer {
             feature_background: bg,
             weights,
             normalize: self.config.normalize,
+            supersample: self.config.supersample as usize,
         }
     }
 
@@ -659,6 +660,7 @@ impl FeatureTrainer {
                 provenance,
                 decoder_mode: self.config.decoder_mode,
                 normalize: self.config.normalize,
+                supersample: self.config.supersample,
                 ..BundleInfo::new(
                     &self.encoder,
                     self.config.variant,

@@ -716,24 +716,49 @@ impl SceneBundle {
     /// pixels a side, so the decoded image covers the frame and is cropped like the others.
     pub fn feature_camera(&self, camera: &Camera) -> Camera {
         let k = camera.intrinsics;
-        let floor = self.info.variant == Variant::Standard
-            && self.encoder.pool_rounding() == PoolRounding::Floor;
-        if !floor {
-            let (w, h) = self.feature_size(k.width, k.height);
-            return camera.resized(w, h);
-        }
-        let f = 1u32 << (self.encoder.depth().max(1) - 1);
-        let s = 1.0 / f as f64;
-        let intrinsics = Intrinsics {
-            fx: k.fx * s,
-            fy: k.fy * s,
-            cx: k.cx * s,
-            cy: k.cy * s,
-            width: k.width.div_ceil(f),
-            height: k.height.div_ceil(f),
+        let (w, h) = match pooling_grid(&self.encoder, self.info.variant) {
+            Some(f) => (k.width.div_ceil(f), k.height.div_ceil(f)),
+            None => self.feature_size(k.width, k.height),
         };
-        Camera::new(intrinsics, camera.camera_from_world)
+        feature_map_camera(&self.encoder, self.info.variant, camera, (w, h))
     }
+}
+
+/// The pooling factor `f = 2^(depth - 1)` when the feature map of `encoder` at `variant` lies
+/// on the encoder's pooling grid (the standard variant of an encoder that pools with floor
+/// rounding), else `None`.
+fn pooling_grid<T: base::Real>(encoder: &Encoder<T>, variant: Variant) -> Option<u32> {
+    (variant == Variant::Standard && encoder.pool_rounding() == PoolRounding::Floor)
+        .then(|| 1u32 << (encoder.depth().max(1) - 1))
+}
+
+/// The camera of a `size` feature map of the frame of `camera`, for `encoder` at `variant`:
+/// on the encoder's pooling grid (the image plane scaled by exactly `1 / f`, feature pixel `i`
+/// covering image pixels `f i .. f (i + 1)`) for the standard variant of an encoder that pools
+/// with floor rounding, whatever `size` (the encoder's own map, as training aligns to, or one
+/// pixel more where a side is not a multiple of `f`, as stylization decodes); otherwise
+/// `camera` resized to `size`. Training and stylization render features through it, so a
+/// Gaussian lands on the same feature pixel in both.
+pub fn feature_map_camera<T: base::Real>(
+    encoder: &Encoder<T>,
+    variant: Variant,
+    camera: &Camera,
+    size: (u32, u32),
+) -> Camera {
+    let Some(f) = pooling_grid(encoder, variant) else {
+        return camera.resized(size.0, size.1);
+    };
+    let k = camera.intrinsics;
+    let s = 1.0 / f as f64;
+    let intrinsics = Intrinsics {
+        fx: k.fx * s,
+        fy: k.fy * s,
+        cx: k.cx * s,
+        cy: k.cy * s,
+        width: size.0,
+        height: size.1,
+    };
+    Camera::new(intrinsics, camera.camera_from_world)
 }
 
 /// The feature-map size for an image of `width x height` under `encoder` and `variant`: the

@@ -178,3 +178,37 @@ fn a_supersampled_bundle_renders_block_means_and_keeps_its_factor() {
     assert_eq!(SceneBundle::load(&dir).unwrap().info.supersample, 1);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Training aligns the encoder's own feature map (`floor(side / 8)` pixels a side) and
+/// stylization decodes one pixel more where a side is not a multiple of 8: both render through
+/// `feature_map_camera`, so the training map is the top-left of the stylization map, and a
+/// Gaussian lands on the same feature pixel in both.
+#[test]
+fn training_and_stylization_render_features_on_one_grid() {
+    let bundle = compressed_bundle();
+    for (w, h) in [(90, 160), (37, 29), (64, 48)] {
+        let cam = camera(w, h);
+        let own = (w / 8, h / 8);
+        let train_cam =
+            runtime::bundle::feature_map_camera(&bundle.encoder, Variant::Standard, &cam, own);
+        let k = bundle.feature_camera(&cam).intrinsics;
+        let t = train_cam.intrinsics;
+        assert_eq!((t.fx, t.fy, t.cx, t.cy), (k.fx, k.fy, k.cx, k.cy));
+        let trained = runtime::frame::render_feature_map(
+            &bundle.scene,
+            &train_cam,
+            own,
+            &bundle.info.feature_background,
+            1,
+        )
+        .unwrap();
+        let styled = bundle.render_features(&cam).unwrap();
+        let (ow, oh) = (own.0 as usize, own.1 as usize);
+        // Each pixel blends the same Gaussians in the same order on either image size.
+        assert_eq!(
+            trained,
+            styled.slice(ndarray::s![.., .., ..oh, ..ow]).to_owned(),
+            "{w}x{h}"
+        );
+    }
+}

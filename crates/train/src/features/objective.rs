@@ -64,7 +64,9 @@ pub struct Stage3Setup<'a, T: Real> {
 /// One sample of the loss: a view, its alignment target, a style and a window.
 #[derive(Clone, Copy, Debug)]
 pub struct Stage3Sample<'a, T> {
-    /// The view's camera (any resolution; it is rescaled to `feature_size`).
+    /// The feature map's camera ([`runtime::bundle::feature_map_camera`]: on the encoder's
+    /// pooling grid where it pools with floor rounding), or any camera of the view, which is
+    /// then rescaled to `feature_size`.
     pub camera: &'a Camera,
     /// `(width, height)` of the feature map.
     pub feature_size: (u32, u32),

@@ -30,7 +30,9 @@ use crate::geometry::View;
 use crate::image_folder::{to_tensor, ImageSet};
 use base::event::{Event, Sink, Stage, Tally};
 use base::Fnv1a;
-use runtime::bundle::{weights_fingerprint, BundleInfo, CameraRecord, DecoderMode, SceneBundle};
+use runtime::bundle::{
+    feature_map_camera, weights_fingerprint, BundleInfo, CameraRecord, DecoderMode, SceneBundle,
+};
 
 /// What one iteration did.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -286,8 +288,14 @@ impl FeatureTrainer {
         let setup = self.stage3_setup(&bg, weights);
         let mut sum = [0.0f64; 4];
         for e in &self.eval {
+            let camera = feature_map_camera(
+                &self.encoder,
+                self.config.variant,
+                &e.camera,
+                e.feature_size,
+            );
             let sample = Stage3Sample {
-                camera: &e.camera,
+                camera: &camera,
                 feature_size: e.feature_size,
                 align_target: &e.target,
                 style: &e.style,
@@ -531,8 +539,14 @@ impl FeatureTrainer {
         let (_, _, h, w) = v.target.dim();
         let bg = vec![0.0f32; self.config.feature_dim];
         let setup = self.stage3_setup(&bg, self.config.weights_at(self.step + 1));
+        let camera = feature_map_camera(
+            &self.encoder,
+            self.config.variant,
+            &v.camera,
+            (w as u32, h as u32),
+        );
         let sample = Stage3Sample {
-            camera: &v.camera,
+            camera: &camera,
             feature_size: (w as u32, h as u32),
             align_target: &v.target,
             style: st,

@@ -287,8 +287,8 @@ fn measuring_with_another_encoder_changes_the_measures_not_the_frames() {
             "{}",
             a.name
         );
-        if a.style_loss.is_some() {
-            let (x, y) = (a.style_loss.unwrap(), c.style_loss.unwrap());
+        if let Some(x) = a.style_loss {
+            let y = c.style_loss.unwrap();
             assert!(y.is_finite() && y > 0.0 && x != y, "{}: {x} {y}", a.name);
             assert_ne!(a.texture_distance, c.texture_distance, "{}", a.name);
             assert_ne!(a.content_loss, c.content_loss, "{}", a.name);

@@ -41,8 +41,11 @@
 #                                           losses from the first iteration) and geometry (lego
 #                                           200x200, resumed from one checkpoint of about 100k
 #                                           Gaussians). Seconds per iteration are the difference
-#                                           of two runs of K and 3K iterations divided by 2K, so
-#                                           start-up (reading images, encoding views) cancels.
+#                                           of the training-loop times two runs of K and 3K
+#                                           iterations print, divided by 2K: set-up (reading
+#                                           images, encoding views) is outside those times, and
+#                                           what each loop does once (evaluations at its start
+#                                           and end, the final save) cancels.
 #                                           Each round prints
 #   train <loop> round=<r> old=<s> new=<s> ratio=<old/new>
 #                                           and at the end, per loop, the median round:
@@ -350,18 +353,23 @@ train)
       if [ "$loop" = geometry ]; then
         cp -r "$geo" "$out"
       fi
-      local start end
-      start="$(date +%s%N)"
       if ! run_loop "$loop" "$bin" "$n" "$out" >"$runs/log" 2>&1; then
         echo "train $loop: $bin failed:" >&2
         tail -5 "$runs/log" >&2
         exit 1
       fi
-      end="$(date +%s%N)"
-      t+=("$((end - start))")
+      # The run's own closing line, "N iterations in S s (R it/s)": the training loop's wall
+      # time, without the set-up before it (reading images, encoding views and styles).
+      local secs
+      secs="$(sed -n 's/.* iterations in \([0-9.]*\) s .*/\1/p' "$runs/log" | tail -1)"
+      if [ -z "$secs" ]; then
+        echo "train $loop: $bin printed no 'iterations in S s' line" >&2
+        exit 1
+      fi
+      t+=("$secs")
       rm -rf "$out"
     done
-    awk -v a="${t[0]}" -v b="${t[1]}" -v k="$k" 'BEGIN { printf "%.4f", (b - a) / 1e9 / (2 * k) }'
+    awk -v a="${t[0]}" -v b="${t[1]}" -v k="$k" 'BEGIN { printf "%.4f", (b - a) / (2 * k) }'
   }
   for r in $(seq 1 "$rounds"); do
     for loop in pretrain-standard pretrain-fullres features-fullres geometry; do

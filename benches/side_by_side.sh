@@ -71,6 +71,39 @@ cd "$(dirname "$0")/.."
 what="${1:-nets}"
 shift || true
 
+# options MODE DEFAULT_ROUNDS ARGS...: sets $quick (--quick) and $rounds (--rounds N, a positive
+# integer; DEFAULT_ROUNDS without it) from a mode's options, or exits naming a bad one.
+options() {
+  local mode="$1"
+  quick=
+  rounds="$2"
+  shift 2
+  while [ $# -gt 0 ]; do
+    case "$1" in
+    --quick) quick=yes ;;
+    --rounds)
+      if [ $# -lt 2 ]; then
+        echo "--rounds needs a positive integer" >&2
+        exit 2
+      fi
+      rounds="$2"
+      shift
+      ;;
+    *)
+      echo "unknown $mode option '$1' (expected --quick, --rounds N)" >&2
+      exit 2
+      ;;
+    esac
+    shift
+  done
+  case "$rounds" in
+  '' | *[!0-9]* | 0)
+    echo "--rounds needs a positive integer, got '$rounds'" >&2
+    exit 2
+    ;;
+  esac
+}
+
 case "$what" in
 nets)
   py="${1:-${DSGS_TORCH_PYTHON:-python3}}"
@@ -142,32 +175,7 @@ decoder_relu3_1_fullres_forward_backward_256:decoder_relu3_1_fullres_forward_bac
   fi
   ;;
 raster)
-  quick=
-  rounds=1
-  while [ $# -gt 0 ]; do
-    case "$1" in
-    --quick) quick=yes ;;
-    --rounds)
-      if [ $# -lt 2 ]; then
-        echo "--rounds needs a positive integer" >&2
-        exit 2
-      fi
-      rounds="$2"
-      shift
-      ;;
-    *)
-      echo "unknown raster option '$1' (expected --quick, --rounds N)" >&2
-      exit 2
-      ;;
-    esac
-    shift
-  done
-  case "$rounds" in
-  '' | *[!0-9]* | 0)
-    echo "--rounds needs a positive integer, got '$rounds'" >&2
-    exit 2
-    ;;
-  esac
+  options raster 1 "$@"
   if [ -n "$quick" ]; then
     cases="35ch/100k/256"
   else
@@ -256,32 +264,7 @@ train)
     exit 2
   fi
   old="$(cd "$(dirname "$old")" && pwd)/$(basename "$old")"
-  quick=
-  rounds=3
-  while [ $# -gt 0 ]; do
-    case "$1" in
-    --quick) quick=yes ;;
-    --rounds)
-      if [ $# -lt 2 ]; then
-        echo "--rounds needs a positive integer" >&2
-        exit 2
-      fi
-      rounds="$2"
-      shift
-      ;;
-    *)
-      echo "unknown train option '$1' (expected --rounds N, --quick)" >&2
-      exit 2
-      ;;
-    esac
-    shift
-  done
-  case "$rounds" in
-  '' | *[!0-9]* | 0)
-    echo "--rounds needs a positive integer, got '$rounds'" >&2
-    exit 2
-    ;;
-  esac
+  options train 3 "$@"
   [ -n "$quick" ] && rounds=1
   shared="${DSGS_SHARED:-../shared}"
   if [ ! -d "$shared/data/scenes/lego" ]; then

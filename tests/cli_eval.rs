@@ -227,20 +227,19 @@ fn bad_eval_input_is_refused_with_a_message() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// `measure_with` the bundle's own encoder (the tiny bundle's is the WCT relu3_1 encoder, read
-/// here again from its PyTorch checkpoint) measures every output exactly as the bundle's
-/// encoder does; another encoder (relu2_1, two levels) measures other losses and perceptual
-/// distances, leaves the stylized frames (hence the RMSE) alone, and the report names it.
-#[test]
-#[ignore = "slow: in the full set (-- --include-ignored)"]
-fn measuring_with_another_encoder_changes_the_measures_not_the_frames() {
-    let bundle = common::tiny_bundle();
+/// `frames` orbit views of the tiny bundle at 40x32.
+fn orbit(bundle: &runtime::SceneBundle, frames: usize) -> Vec<gaussian::Camera> {
     let mut req = CameraRequest::new(CameraSource::Orbit);
-    req.frames = Some(9);
+    req.frames = Some(frames);
     req.width = Some(40);
     req.height = Some(32);
-    let cams = select(&req, &KnownCameras::default(), &bundle.scene).unwrap();
-    let settings = EvalSettings {
+    select(&req, &KnownCameras::default(), &bundle.scene).unwrap()
+}
+
+/// Evaluation settings for two shared paintings at a 48-pixel style side, the bundle's own
+/// networks, no baseline, nothing written.
+fn two_styles() -> EvalSettings {
+    EvalSettings {
         styles: vec![
             shared_path("data/styles/mondrian.jpg"),
             shared_path("data/styles/sketch.png"),
@@ -251,10 +250,25 @@ fn measuring_with_another_encoder_changes_the_measures_not_the_frames() {
         style_side: 48,
         warp: WarpOptions::default(),
         tile_budget: runtime::DEFAULT_TILE_BUDGET_BYTES,
-        baseline: true,
+        baseline: false,
         frames_out: None,
         measure_with: None,
         part: Default::default(),
+    }
+}
+
+/// `measure_with` the bundle's own encoder (the tiny bundle's is the WCT relu3_1 encoder, read
+/// here again from its PyTorch checkpoint) measures every output exactly as the bundle's
+/// encoder does; another encoder (relu2_1, two levels) measures other losses and perceptual
+/// distances, leaves the stylized frames (hence the RMSE) alone, and the report names it.
+#[test]
+#[ignore = "slow: in the full set (-- --include-ignored)"]
+fn measuring_with_another_encoder_changes_the_measures_not_the_frames() {
+    let bundle = common::tiny_bundle();
+    let cams = orbit(&bundle, 9);
+    let settings = EvalSettings {
+        baseline: true,
+        ..two_styles()
     };
     let own = evaluate_bundle(&bundle, "tiny", &cams, &settings, &pipeline::Quiet).unwrap();
     let measured = |file: &str| {
@@ -306,27 +320,13 @@ fn measuring_with_another_encoder_changes_the_measures_not_the_frames() {
 #[ignore = "slow: in the full set (-- --include-ignored)"]
 fn the_streamed_evaluation_equals_the_whole_sequence_in_memory() {
     let bundle = common::tiny_bundle();
-    let mut req = CameraRequest::new(CameraSource::Orbit);
-    req.frames = Some(11);
-    req.width = Some(40);
-    req.height = Some(32);
-    let cams = select(&req, &KnownCameras::default(), &bundle.scene).unwrap();
+    let cams = orbit(&bundle, 11);
     let settings = EvalSettings {
-        styles: vec![
-            shared_path("data/styles/mondrian.jpg"),
-            shared_path("data/styles/sketch.png"),
-        ],
-        weights: None,
         alpha: 0.8,
         preserve_colour: true,
-        style_side: 48,
-        warp: WarpOptions::default(),
         // Small enough for several tiles per frame.
         tile_budget: 1 << 20,
-        baseline: false,
-        frames_out: None,
-        measure_with: None,
-        part: Default::default(),
+        ..two_styles()
     };
     let report = evaluate_bundle(&bundle, "tiny", &cams, &settings, &pipeline::Quiet).unwrap();
 

@@ -13,7 +13,10 @@
 //!
 //! Images are HWC, `channels` values per pixel, like the rasterizer's. Block sums run in a fixed
 //! order (rows of the block top to bottom, each left to right), coarse rows in parallel, so the
-//! result does not depend on the number of threads.
+//! result does not depend on the number of threads. At `s = 1` both are the identity and borrow
+//! their input rather than copy it.
+
+use std::borrow::Cow;
 
 use gaussian::Real;
 use rayon::prelude::*;
@@ -21,24 +24,24 @@ use rayon::prelude::*;
 use crate::error::{check_len, RasterError};
 
 /// The `width x height` image whose pixel `(x, y)` is the mean of the `s x s` block at
-/// `(s x, s y)` of `fine`, an `(s width) x (s height)` image; `s = 1` returns `fine` as it is.
+/// `(s x, s y)` of `fine`, an `(s width) x (s height)` image; `s = 1` borrows `fine` as it is.
 pub fn box_mean<T: Real>(
     fine: &[T],
     width: usize,
     height: usize,
     channels: usize,
     s: usize,
-) -> Result<Vec<T>, RasterError> {
+) -> Result<Cow<'_, [T]>, RasterError> {
     check_factor(s)?;
     let fw = width * s;
     check_len("fine image", fine.len(), fw * height * s * channels)?;
     if s == 1 {
-        return Ok(fine.to_vec());
+        return Ok(Cow::Borrowed(fine));
     }
     let scale = T::lit(1.0 / (s * s) as f64);
     let mut out = vec![T::lit(0.0); width * height * channels];
     if channels == 0 || width == 0 {
-        return Ok(out);
+        return Ok(Cow::Owned(out));
     }
     out.par_chunks_mut(width * channels)
         .enumerate()
@@ -58,29 +61,29 @@ pub fn box_mean<T: Real>(
                 }
             }
         });
-    Ok(out)
+    Ok(Cow::Owned(out))
 }
 
 /// The adjoint of [`box_mean`]: the `(s width) x (s height)` cotangent of the fine image from
 /// the `width x height` cotangent `grad` of the mean, each fine pixel receiving its block's
-/// value divided by `s * s`.
+/// value divided by `s * s`; `s = 1` borrows `grad` as it is.
 pub fn box_mean_backward<T: Real>(
     grad: &[T],
     width: usize,
     height: usize,
     channels: usize,
     s: usize,
-) -> Result<Vec<T>, RasterError> {
+) -> Result<Cow<'_, [T]>, RasterError> {
     check_factor(s)?;
     check_len("mean cotangent", grad.len(), width * height * channels)?;
     if s == 1 {
-        return Ok(grad.to_vec());
+        return Ok(Cow::Borrowed(grad));
     }
     let scale = T::lit(1.0 / (s * s) as f64);
     let fw = width * s;
     let mut fine = vec![T::lit(0.0); fw * height * s * channels];
     if channels == 0 || width == 0 {
-        return Ok(fine);
+        return Ok(Cow::Owned(fine));
     }
     fine.par_chunks_mut(fw * channels)
         .enumerate()
@@ -93,7 +96,7 @@ pub fn box_mean_backward<T: Real>(
                 }
             }
         });
-    Ok(fine)
+    Ok(Cow::Owned(fine))
 }
 
 fn check_factor(s: usize) -> Result<(), RasterError> {

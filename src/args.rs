@@ -77,12 +77,12 @@ pub enum Command {
 pub enum WeightsCommand {
     /// Convert PyTorch checkpoints (legacy pickle or zip) to one canonical safetensors file.
     Import {
-        /// Encoder checkpoint (e.g. vgg_normalised.pth, vgg_normalised_conv3_1.pth, 4SE.pth)
-        /// [default: none]
+        /// Encoder checkpoint (e.g. vgg_normalised.pth, vgg_normalised_conv3_1.pth, 4SE.pth), or a
+        /// canonical .safetensors file whose encoder is taken [default: none]
         #[arg(long)]
         encoder: Option<PathBuf>,
-        /// Decoder checkpoint (e.g. decoder.pth, feature_invertor_conv3_1.pth, 4SD.pth)
-        /// [default: none]
+        /// Decoder checkpoint (e.g. decoder.pth, feature_invertor_conv3_1.pth, 4SD.pth), or a
+        /// canonical .safetensors file whose decoder is taken [default: none]
         #[arg(long)]
         decoder: Option<PathBuf>,
         /// Output file (.safetensors).

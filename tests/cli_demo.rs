@@ -107,7 +107,8 @@ fn missing_shared_files_are_named_with_their_sources() {
     );
     assert!(err.contains("missing input files"), "{err}");
     assert!(err.contains("transforms_train.json"), "{err}");
-    assert!(err.contains("feature_invertor_conv3_1.pth"), "{err}");
+    // The default networks: the relu4_1 encoder (its decoder is built in).
+    assert!(err.contains("4SE.pth"), "{err}");
     assert!(err.contains("nerf_synthetic"), "{err}");
     assert!(
         !dir.join("out").exists(),

@@ -69,3 +69,54 @@ fn a_mismatched_pair_is_refused() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("not a pair"));
 }
+
+/// One network of a canonical pair is written alone: `--decoder PAIR.safetensors` keeps its
+/// decoder and no encoder; a canonical file without the network asked for is named.
+#[test]
+fn import_takes_one_network_of_a_canonical_pair() {
+    let dir = std::env::temp_dir().join(format!("dsgs-weights-one-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let pair = dir.join("pair.safetensors");
+    let run = |args: &[&std::ffi::OsStr]| dsgs().args(["weights", "import"]).args(args).output();
+    let pair_out = run(&[
+        "--encoder".as_ref(),
+        shared_path("oracle/fixtures/vgg_legacy.pth").as_os_str(),
+        "--decoder".as_ref(),
+        shared_path("oracle/fixtures/decoder_zip.pth").as_os_str(),
+        "-o".as_ref(),
+        pair.as_os_str(),
+    ])
+    .unwrap();
+    assert!(pair_out.status.success());
+    let alone = dir.join("decoder.safetensors");
+    let out = run(&[
+        "--decoder".as_ref(),
+        pair.as_os_str(),
+        "-o".as_ref(),
+        alone.as_os_str(),
+    ])
+    .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(text.contains("decoder: 64 -> 3 channels"), "{text}");
+    assert!(!text.contains("encoder:"), "{text}");
+    // The decoder-only file has no encoder to give.
+    let out = run(&[
+        "--encoder".as_ref(),
+        alone.as_os_str(),
+        "-o".as_ref(),
+        dir.join("x.safetensors").as_os_str(),
+    ])
+    .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    std::fs::remove_dir_all(&dir).ok();
+    assert!(!out.status.success());
+    assert!(
+        err.contains("decoder.safetensors holds no encoder"),
+        "{err}"
+    );
+}

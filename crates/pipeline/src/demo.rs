@@ -2,8 +2,9 @@
 //! [`Plan`] for the stages' runner of `dsgs run` ([`crate::run`]), which
 //! checks every input first, skips the stages already done and resumes an interrupted one.
 //!
-//! 1. `weights.safetensors`: the relu3_1 encoder and its decoder, imported from the PyTorch
-//!    checkpoints in `SHARED/weights/wct-relu1_1-3_1/` (or `--weights FILE`).
+//! 1. `weights.safetensors`: the networks of `--networks` ([`Pair`]; by default the compressed
+//!    relu4_1 encoder of `SHARED/weights/compressed-16x-relu4_1/` with the built-in decoder), or
+//!    `--weights FILE`.
 //! 2. `geometry/`: `dsgs fit-geometry` on `SHARED/data/scenes/lego` at 1/8 scale (100 x 100),
 //!    white background, 1,000 iterations of the 3DGS schedule scaled to that length, from
 //!    20,000 random points.
@@ -20,7 +21,8 @@ use std::path::{Path, PathBuf};
 
 use crate::cli::{at_least_one, positive, variant};
 use crate::error::Result;
-use crate::run::{Networks, Plan, RunReport, TRAINING_STYLES};
+use crate::run::{supersample_of, Networks, Plan, RunReport, TRAINING_STYLES};
+use crate::weights::Pair;
 use crate::Control;
 use train::Variant;
 
@@ -43,13 +45,15 @@ the demo needs, under the shared folder (--shared, DSGS_SHARED or ../shared):
                                      (the nerf_synthetic archive of the NeRF authors)
   data/styles/small-set/*.jpg        style images for training (any paintings will do)
   data/styles/<name>                 the stylization styles (or give --style FILE ...)
+  weights/compressed-16x-relu4_1/4SE.pth
+                                     the 16x-compressed normalised VGG-19 encoder to relu4_1
+                                     (the default --networks relu4_1; its decoder is built in)
   weights/wct-relu1_1-3_1/vgg_normalised_conv3_1.pth
   weights/wct-relu1_1-3_1/feature_invertor_conv3_1.pth
                                      the normalised VGG-19 encoder to relu3_1 and its inverting
-                                     decoder (the WCT feature invertors of the universal style
-                                     transfer code; or give --weights NETS.safetensors made by
-                                     `dsgs weights import` from the public pytorch-AdaIN
-                                     vgg_normalised.pth and decoder.pth)";
+                                     decoder (--networks wct-relu3_1: the WCT feature invertors
+                                     of the universal style transfer code); or --weights
+                                     NETS.safetensors made by `dsgs weights import`";
 
 /// Settings of a demo run; as [`clap::Args`], the flags of `dsgs demo` (the styles as given:
 /// [`styles_or_default`] adds the default ones).
@@ -75,11 +79,19 @@ pub struct DemoSettings {
                 an interrupted one"
     )]
     pub out_dir: PathBuf,
-    /// Canonical weights to use instead of importing the shared checkpoints.
+    /// The pair of networks by name (`--networks`).
+    #[arg(long, default_value = "relu4_1", value_parser = crate::cli::one_of::<Pair>(
+        Pair::NAMES.iter().copied()),
+        help = "Networks: relu4_1 (the compressed VGG-19 encoder to relu4_1 from \
+        SHARED/weights/compressed-16x-relu4_1 with dsgs's pre-trained decoder, built in; stage 3 \
+        renders the feature map 8 times finer and averages it) or wct-relu3_1 (the VGG-19 encoder \
+        to relu3_1 and the WCT reconstruction decoder from SHARED/weights/wct-relu1_1-3_1)")]
+    pub networks: Pair,
+    /// Canonical weights to use instead of the named pair.
     #[arg(
         long,
-        help = "Canonical network weights (.safetensors, encoder and decoder) [default: imported \
-                from SHARED/weights/wct-relu1_1-3_1]"
+        help = "Canonical network weights (.safetensors, encoder and decoder) instead of \
+                --networks [default: the --networks pair]"
     )]
     pub weights: Option<PathBuf>,
     /// A decoder to use instead of the one in the weights (e.g. a fine-tuned fullres decoder).
@@ -162,7 +174,7 @@ pub fn styles_or_default(shared: &Path, styles: &[PathBuf]) -> Vec<PathBuf> {
 }
 
 /// The demo's plan: the lego scene at `1 / downscale`, white, from 20,000 random points, the
-/// WCT relu3_1 networks of `SHARED` (or `--weights`), the small set of training paintings and an
+/// `--networks` pair (or `--weights`), the small set of training paintings and an
 /// orbit of `frames` views.
 pub fn plan(s: &DemoSettings) -> Plan {
     Plan {
@@ -172,7 +184,8 @@ pub fn plan(s: &DemoSettings) -> Plan {
         downscale: s.downscale,
         random_init_points: Some(20_000),
         out_dir: s.out_dir.clone(),
-        networks: Networks::given_or_shared(s.weights.as_ref(), &s.shared),
+        networks: Networks::given_or_shared(s.weights.as_ref(), s.networks, &s.shared),
+        supersample: supersample_of(s.weights.as_ref(), s.networks),
         decoder: s.decoder.clone(),
         variant: s.variant,
         geometry_iterations: s.geometry_iterations,
@@ -203,6 +216,7 @@ mod tests {
         DemoSettings {
             shared: shared.to_path_buf(),
             out_dir: shared.join("out"),
+            networks: Pair::Relu41,
             weights: None,
             decoder: None,
             variant: Variant::Standard,

@@ -289,7 +289,8 @@ fn network_files(s: &Plan) -> NetworkFiles {
         Networks::Import { encoder, decoder } => NetworkFiles {
             weights: None,
             encoder: Some(encoder.clone()),
-            decoder: Some(s.decoder.clone().unwrap_or_else(|| decoder.clone())),
+            // No decoder file: the built-in one (`NetworkFiles::load_decoder`).
+            decoder: s.decoder.clone().or_else(|| decoder.clone()),
         },
     }
 }

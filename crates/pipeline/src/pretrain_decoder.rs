@@ -59,10 +59,12 @@ pub struct NetworkFiles {
     )]
     pub encoder: Option<PathBuf>,
     /// Decoder file, a PyTorch checkpoint or `.safetensors`, instead of the one in `weights`
-    /// (`--decoder`).
+    /// (`--decoder`); with neither, the built-in decoder of the relu4_1 pair
+    /// ([`crate::weights::BUILT_IN_DECODER`]).
     #[arg(
         long,
-        help = "Decoder file (PyTorch checkpoint or .safetensors) [default: the one in --weights]"
+        help = "Decoder file (PyTorch checkpoint or .safetensors) [default: the one in --weights; \
+                without --weights, the built-in decoder of the compressed relu4_1 encoder]"
     )]
     pub decoder: Option<PathBuf>,
 }
@@ -81,13 +83,12 @@ impl NetworkFiles {
             .with_context(|| format!("{} holds no encoder", path.display()))
     }
 
-    /// The decoder: from `decoder` if given, else from `weights`.
+    /// The decoder: from `decoder` if given, else from `weights`, else the built-in decoder of
+    /// the relu4_1 pair.
     pub fn load_decoder(&self) -> Result<Decoder<f32>> {
-        let path = self
-            .decoder
-            .as_ref()
-            .or(self.weights.as_ref())
-            .context("no decoder given: use --weights NETS.safetensors or --decoder FILE")?;
+        let Some(path) = self.decoder.as_ref().or(self.weights.as_ref()) else {
+            return crate::weights::built_in_decoder();
+        };
         crate::weights::load_any(path)
             .with_context(|| format!("reading the decoder {}", path.display()))?
             .decoder

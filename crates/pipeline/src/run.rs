@@ -13,8 +13,9 @@
 //! already there (so an interrupted run continues where it stopped, and a finished one reruns in
 //! seconds):
 //!
-//! 1. `weights.safetensors`: the encoder and its decoder, imported from PyTorch checkpoints
-//!    (or the canonical weights file given instead).
+//! 1. `weights.safetensors`: the encoder and its decoder of the chosen [`Pair`] (the encoder
+//!    imported from its PyTorch checkpoint, the decoder likewise or built in), or the canonical
+//!    weights file given instead.
 //! 2. `geometry/`: `dsgs fit-geometry` on the dataset: the 3DGS schedule scaled to the plan's
 //!    iterations ([`geometry_config`]).
 //! 3. `features/`: `dsgs fit-features` on that geometry with the training paintings: the
@@ -54,6 +55,7 @@ use crate::fit_features::{FeatureOverrides, FitFeaturesConfig, FitFeaturesSettin
 use crate::fit_geometry::{FitGeometryConfig, FitSettings, GeometryOverrides};
 use crate::pretrain_decoder::NetworkFiles;
 use crate::stylize::{StylizeOutput, StylizeSettings};
+use crate::weights::Pair;
 use crate::{config, image_io, stylize, weights};
 
 /// Where a run's networks come from.
@@ -61,27 +63,36 @@ use crate::{config, image_io, stylize, weights};
 pub enum Networks {
     /// A canonical weights file (encoder and decoder).
     File(PathBuf),
-    /// PyTorch checkpoints of the encoder and the decoder, imported into
-    /// `OUT/weights.safetensors` by the first stage.
+    /// The encoder's PyTorch checkpoint and the decoder's (or the built-in decoder), imported
+    /// into `OUT/weights.safetensors` by the first stage.
     Import {
         /// The encoder checkpoint.
         encoder: PathBuf,
-        /// The decoder checkpoint.
-        decoder: PathBuf,
+        /// The decoder checkpoint; `None`: [`weights::BUILT_IN_DECODER`].
+        decoder: Option<PathBuf>,
     },
 }
 
 impl Networks {
-    /// The weights file given, else the default checkpoints under the shared folder
-    /// ([`ENCODER`], [`DECODER`]).
-    pub fn given_or_shared(weights: Option<&PathBuf>, shared: &Path) -> Networks {
+    /// The weights file given, else the `pair`'s checkpoints under the shared folder.
+    pub fn given_or_shared(weights: Option<&PathBuf>, pair: Pair, shared: &Path) -> Networks {
         match weights {
             Some(w) => Networks::File(w.clone()),
             None => Networks::Import {
-                encoder: shared.join(ENCODER),
-                decoder: shared.join(DECODER),
+                encoder: shared.join(pair.encoder()),
+                decoder: pair.decoder().map(|d| shared.join(d)),
             },
         }
+    }
+}
+
+/// The feature render's supersampling of a run: the pair's ([`Pair::supersample`]) unless a
+/// weights file replaces its networks (then 1, the direct render).
+pub fn supersample_of(weights: Option<&PathBuf>, pair: Pair) -> u32 {
+    if weights.is_some() {
+        1
+    } else {
+        pair.supersample()
     }
 }
 
@@ -104,6 +115,8 @@ pub struct Plan {
     pub out_dir: PathBuf,
     /// The encoder and decoder.
     pub networks: Networks,
+    /// The feature render's supersampling factor in stage 3 and stylization (1: direct).
+    pub supersample: u32,
     /// A decoder replacing the networks' (e.g. one fine-tuned for fullres).
     pub decoder: Option<PathBuf>,
     /// Network variant.
@@ -126,10 +139,6 @@ pub struct Plan {
     pub sources: String,
 }
 
-/// The default encoder checkpoint of `run` and `demo`, under `SHARED`.
-pub const ENCODER: &str = "weights/wct-relu1_1-3_1/vgg_normalised_conv3_1.pth";
-/// The default decoder checkpoint, under `SHARED`.
-pub const DECODER: &str = "weights/wct-relu1_1-3_1/feature_invertor_conv3_1.pth";
 /// The default training paintings, under `SHARED`.
 pub const TRAINING_STYLES: &str = "data/styles/small-set";
 /// A quality preset of `dsgs run`: the images' size and the stages' lengths.
@@ -218,12 +227,15 @@ const RUN_SOURCES: &str = "\
 dsgs run needs, besides the capture and the paintings, under the shared folder (--shared,
 DSGS_SHARED or ../shared) unless given otherwise:
   data/styles/small-set/*.jpg        paintings to train the features with (or --training-style)
+  weights/compressed-16x-relu4_1/4SE.pth
+                                     the 16x-compressed normalised VGG-19 encoder to relu4_1
+                                     (the default --networks relu4_1; its decoder is built in)
   weights/wct-relu1_1-3_1/vgg_normalised_conv3_1.pth
   weights/wct-relu1_1-3_1/feature_invertor_conv3_1.pth
                                      the normalised VGG-19 encoder to relu3_1 and its inverting
-                                     decoder (the WCT feature invertors of the universal style
-                                     transfer code; or --weights NETS.safetensors made by
-                                     `dsgs weights import`)";
+                                     decoder (--networks wct-relu3_1: the WCT feature invertors
+                                     of the universal style transfer code); or --weights
+                                     NETS.safetensors made by `dsgs weights import`";
 
 /// Settings of `dsgs run`; as [`clap::Args`], its flags.
 #[derive(Clone, Debug, clap::Args)]
@@ -263,11 +275,19 @@ pub struct RunSettings {
         folder holding the default networks and training paintings"
     )]
     pub shared: PathBuf,
-    /// Canonical network weights instead of the shared checkpoints.
+    /// The pair of networks by name.
+    #[arg(long, default_value = "relu4_1", value_parser = crate::cli::one_of::<Pair>(
+        Pair::NAMES.iter().copied()),
+        help = "Networks: relu4_1 (the compressed VGG-19 encoder to relu4_1 from \
+        SHARED/weights/compressed-16x-relu4_1 with dsgs's pre-trained decoder, built in; stage 3 \
+        renders the feature map 8 times finer and averages it) or wct-relu3_1 (the VGG-19 encoder \
+        to relu3_1 and the WCT reconstruction decoder from SHARED/weights/wct-relu1_1-3_1)")]
+    pub networks: Pair,
+    /// Canonical network weights instead of the named pair.
     #[arg(
         long,
-        help = "Canonical network weights (.safetensors, encoder and decoder) \
-        [default: imported from SHARED/weights/wct-relu1_1-3_1]"
+        help = "Canonical network weights (.safetensors, encoder and decoder) instead of \
+        --networks [default: the --networks pair]"
     )]
     pub weights: Option<PathBuf>,
     /// A decoder replacing the weights'.
@@ -345,7 +365,8 @@ pub fn plan(s: &RunSettings) -> Result<Plan> {
         downscale,
         random_init_points: None,
         out_dir: s.out_dir.clone(),
-        networks: Networks::given_or_shared(s.weights.as_ref(), &s.shared),
+        networks: Networks::given_or_shared(s.weights.as_ref(), s.networks, &s.shared),
+        supersample: supersample_of(s.weights.as_ref(), s.networks),
         decoder: s.decoder.clone(),
         variant: s.variant,
         geometry_iterations: s.geometry_iterations.unwrap_or(p.geometry_iterations),
@@ -504,7 +525,9 @@ pub fn check_inputs(s: &Plan) -> Result<()> {
         Networks::File(w) => need(w.clone()),
         Networks::Import { encoder, decoder } => {
             need(encoder.clone());
-            need(decoder.clone());
+            if let Some(d) = decoder {
+                need(d.clone());
+            }
         }
     }
     if let Some(d) = &s.decoder {
@@ -637,6 +660,7 @@ pub fn feature_config(s: &Plan) -> FitFeaturesConfig {
             iterations: s.feature_iterations,
             align_warmup: s.align_warmup,
             variant: s.variant,
+            supersample: s.supersample,
             checkpoint_interval: (s.feature_iterations / 6).max(1),
             log_interval: 0,
             // A run evaluates its result with `eval`; no loss curve.
@@ -705,7 +729,10 @@ pub fn execute(s: &Plan, control: &Control) -> Result<RunReport> {
                 seconds.push(("weights", None));
             } else {
                 let ((), t) = timed(|| {
-                    let nets = weights::import(Some(encoder), Some(decoder))?;
+                    let mut nets = weights::import(Some(encoder), decoder.as_deref())?;
+                    if decoder.is_none() {
+                        nets.decoder = Some(weights::built_in_decoder()?);
+                    }
                     nets.save(&w)
                         .with_context(|| format!("writing {}", w.display()))
                 })?;

@@ -4,6 +4,11 @@
 //! A PyTorch checkpoint (legacy pickle or zip) holds one network; whether it is an encoder or a
 //! decoder is recognised from its layers. The canonical file holds any of encoder, decoder and
 //! lifter, with metadata describing their depth and widths.
+//!
+//! The network pairs `run` and `demo` use by name ([`Pair`]): the encoder always comes from a
+//! PyTorch checkpoint under the shared folder; the relu4_1 pair's decoder is dsgs's own,
+//! pre-trained by `dsgs pretrain-decoder` and built into the library ([`BUILT_IN_DECODER`]; its
+//! card is `weights/relu41-decoder.md` beside the file).
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -11,6 +16,84 @@ use std::path::Path;
 use crate::error::{bail, Context, Result};
 use nets::checkpoint::load_checkpoint;
 use nets::{Decoder, Encoder, Lifter, NetWeights};
+
+/// The decoder of the relu4_1 pair, a canonical weights file holding only a decoder: the
+/// compressed relu4_1 decoder fine-tuned by AdaIN's recipe on photographs and paintings (for
+/// research use, like the data it was trained on; the card `weights/relu41-decoder.md` says
+/// how it was made and what it measures).
+pub const BUILT_IN_DECODER: &[u8] = include_bytes!("../weights/relu41-decoder.safetensors");
+
+/// The built-in decoder of the relu4_1 pair ([`BUILT_IN_DECODER`]).
+pub fn built_in_decoder() -> Result<Decoder<f32>> {
+    NetWeights::from_bytes(BUILT_IN_DECODER)?
+        .decoder
+        .context("the built-in weights hold no decoder")
+}
+
+/// A pair of networks known by name (`--networks` of `run` and `demo`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Pair {
+    /// The 16x-compressed VGG-19 encoder to relu4_1 (the paper's depth and receptive field)
+    /// with dsgs's pre-trained decoder ([`BUILT_IN_DECODER`]).
+    Relu41,
+    /// The normalised VGG-19 encoder to relu3_1 with the WCT feature invertor, a reconstruction
+    /// decoder: it recolours more than it paints.
+    WctRelu31,
+}
+
+impl Pair {
+    /// Every value, by its command-line name.
+    pub const NAMES: &'static [&'static str] = &["relu4_1", "wct-relu3_1"];
+
+    /// The command-line name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Pair::Relu41 => "relu4_1",
+            Pair::WctRelu31 => "wct-relu3_1",
+        }
+    }
+
+    /// The encoder's PyTorch checkpoint, under the shared folder.
+    pub fn encoder(self) -> &'static str {
+        match self {
+            Pair::Relu41 => "weights/compressed-16x-relu4_1/4SE.pth",
+            Pair::WctRelu31 => "weights/wct-relu1_1-3_1/vgg_normalised_conv3_1.pth",
+        }
+    }
+
+    /// The decoder's PyTorch checkpoint under the shared folder; `None`: the built-in decoder.
+    pub fn decoder(self) -> Option<&'static str> {
+        match self {
+            Pair::Relu41 => None,
+            Pair::WctRelu31 => Some("weights/wct-relu1_1-3_1/feature_invertor_conv3_1.pth"),
+        }
+    }
+
+    /// The feature render's supersampling factor stage 3 uses with this pair: the relu4_1
+    /// encoder pools by 8, and its 1/8 feature map rendered directly misses the Gaussians
+    /// between pixel centres (docs/results.md measures the difference); the relu3_1 pair keeps
+    /// the direct render it was measured with.
+    pub fn supersample(self) -> u32 {
+        match self {
+            Pair::Relu41 => 8,
+            Pair::WctRelu31 => 1,
+        }
+    }
+}
+
+impl std::str::FromStr for Pair {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "relu4_1" => Ok(Pair::Relu41),
+            "wct-relu3_1" => Ok(Pair::WctRelu31),
+            _ => Err(format!(
+                "unknown networks `{s}` (expected one of: {})",
+                Pair::NAMES.join(", ")
+            )),
+        }
+    }
+}
 
 /// The networks a single PyTorch checkpoint can hold.
 pub enum Network {
@@ -45,23 +128,37 @@ pub fn import_network(path: &Path) -> Result<Network> {
     }
 }
 
-/// Imports an encoder and/or a decoder checkpoint into one canonical weights bundle.
+/// Imports an encoder and/or a decoder into one canonical weights bundle: each a PyTorch
+/// checkpoint, or a canonical file whose encoder (decoder) is taken, so that one network of a
+/// trained pair can be written alone.
 pub fn import(encoder: Option<&Path>, decoder: Option<&Path>) -> Result<NetWeights> {
     if encoder.is_none() && decoder.is_none() {
         bail!("nothing to import: give --encoder and/or --decoder");
     }
     let mut weights = NetWeights::default();
     if let Some(p) = encoder {
-        match import_network(p)? {
-            Network::Encoder(e) => weights.encoder = Some(e),
-            Network::Decoder(_) => bail!("{} holds a decoder, not an encoder", p.display()),
-        }
+        weights.encoder = Some(if is_canonical(p) {
+            NetWeights::load(p)?
+                .encoder
+                .with_context(|| format!("{} holds no encoder", p.display()))?
+        } else {
+            match import_network(p)? {
+                Network::Encoder(e) => e,
+                Network::Decoder(_) => bail!("{} holds a decoder, not an encoder", p.display()),
+            }
+        });
     }
     if let Some(p) = decoder {
-        match import_network(p)? {
-            Network::Decoder(d) => weights.decoder = Some(d),
-            Network::Encoder(_) => bail!("{} holds an encoder, not a decoder", p.display()),
-        }
+        weights.decoder = Some(if is_canonical(p) {
+            NetWeights::load(p)?
+                .decoder
+                .with_context(|| format!("{} holds no decoder", p.display()))?
+        } else {
+            match import_network(p)? {
+                Network::Decoder(d) => d,
+                Network::Encoder(_) => bail!("{} holds an encoder, not a decoder", p.display()),
+            }
+        });
     }
     if let (Some(e), Some(d)) = (&weights.encoder, &weights.decoder) {
         let deepest = *e.widths().last().unwrap_or(&0);

@@ -9,6 +9,7 @@ use std::time::SystemTime;
 use dsgs_testkit::{scratch_dir, shared_dir};
 use pipeline::demo::{run, DemoSettings};
 use pipeline::run::RunReport;
+use pipeline::weights::Pair;
 use pipeline::Control;
 use train::Variant;
 
@@ -16,6 +17,7 @@ fn toy(out: &Path, styles: Vec<PathBuf>) -> DemoSettings {
     DemoSettings {
         shared: shared_dir(),
         out_dir: out.to_path_buf(),
+        networks: Pair::Relu41,
         weights: None,
         decoder: None,
         variant: Variant::Standard,

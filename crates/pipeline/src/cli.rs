@@ -278,6 +278,13 @@ pub fn with_repeat_tip(mut e: clap::Error, sub: Option<&clap::Command>) -> clap:
     e
 }
 
+/// The help of `--networks` (`run`, `demo`).
+pub const NETWORKS_HELP: &str = "Networks: relu4_1 (the compressed VGG-19 encoder to relu4_1 \
+    from SHARED/weights/compressed-16x-relu4_1 with dsgs's pre-trained decoder, built in; stage 3 \
+    fits the features by the alignment loss alone and renders the feature map 8 times finer and \
+    averages it) or wct-relu3_1 (the VGG-19 encoder to relu3_1 and the WCT reconstruction \
+    decoder from SHARED/weights/wct-relu1_1-3_1; the paper's stage-3 losses, direct render)";
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -9,8 +9,9 @@
 //!    white background, 1,000 iterations of the 3DGS schedule scaled to that length, from
 //!    20,000 random points.
 //! 3. `features/`: `dsgs fit-features` on that geometry, styles from
-//!    `SHARED/data/styles/small-set`: 1,800 iterations, the first 1,500 cheap alignment-only
-//!    ones, the last 300 with the full loss (alignment, content and style).
+//!    `SHARED/data/styles/small-set`: 1,800 iterations; with the relu4_1 pair all of them
+//!    alignment-only, with the WCT pair the first 1,500 alignment-only and the last 300 with
+//!    the full loss (alignment, content and style) ([`crate::run::Stage3Choice`]).
 //! 4. `stylized/`: `dsgs stylize` of an orbit with styles never used in training: PNG frames, a
 //!    GIF per style and `contact_sheet.png` (styles x views).
 //! 5. `eval.json`: `dsgs eval` of the same orbit.
@@ -21,7 +22,7 @@ use std::path::{Path, PathBuf};
 
 use crate::cli::{at_least_one, positive, variant};
 use crate::error::Result;
-use crate::run::{supersample_of, Networks, Plan, RunReport, TRAINING_STYLES};
+use crate::run::{Networks, Plan, RunReport, Stage3Choice, TRAINING_STYLES};
 use crate::weights::Pair;
 use crate::Control;
 use train::Variant;
@@ -82,10 +83,7 @@ pub struct DemoSettings {
     /// The pair of networks by name (`--networks`).
     #[arg(long, default_value = "relu4_1", value_parser = crate::cli::one_of::<Pair>(
         Pair::NAMES.iter().copied()),
-        help = "Networks: relu4_1 (the compressed VGG-19 encoder to relu4_1 from \
-        SHARED/weights/compressed-16x-relu4_1 with dsgs's pre-trained decoder, built in; stage 3 \
-        renders the feature map 8 times finer and averages it) or wct-relu3_1 (the VGG-19 encoder \
-        to relu3_1 and the WCT reconstruction decoder from SHARED/weights/wct-relu1_1-3_1)")]
+        help = crate::cli::NETWORKS_HELP)]
     pub networks: Pair,
     /// Canonical weights to use instead of the named pair.
     #[arg(
@@ -185,7 +183,7 @@ pub fn plan(s: &DemoSettings) -> Plan {
         random_init_points: Some(20_000),
         out_dir: s.out_dir.clone(),
         networks: Networks::given_or_shared(s.weights.as_ref(), s.networks, &s.shared),
-        supersample: supersample_of(s.weights.as_ref(), s.networks),
+        stage3: Stage3Choice::of(s.weights.as_ref(), s.networks),
         decoder: s.decoder.clone(),
         variant: s.variant,
         geometry_iterations: s.geometry_iterations,
@@ -247,13 +245,39 @@ mod tests {
     }
 
     #[test]
+    fn the_networks_choose_stage_3s_render_and_losses() {
+        let s = settings(Path::new("x"));
+        let relu41 = feature_config(&plan(&s)).features;
+        assert_eq!(relu41.supersample, 8);
+        assert_eq!((relu41.lambda_content, relu41.lambda_style), (0.0, 0.0));
+        let wct = feature_config(&plan(&DemoSettings {
+            networks: Pair::WctRelu31,
+            ..s.clone()
+        }))
+        .features;
+        assert_eq!(wct.supersample, 1);
+        assert_eq!((wct.lambda_content, wct.lambda_style), (1.0, 1.0));
+        // Networks from a file: the direct render and the paper's weights.
+        let file = plan(&DemoSettings {
+            weights: Some(PathBuf::from("nets.safetensors")),
+            ..s
+        });
+        assert_eq!(file.networks, Networks::File("nets.safetensors".into()));
+        let f = feature_config(&file).features;
+        assert_eq!(
+            (f.supersample, f.lambda_content, f.lambda_style),
+            (1, 1.0, 1.0)
+        );
+    }
+
+    #[test]
     fn missing_inputs_are_named_with_their_sources() {
         let dir = std::env::temp_dir().join(format!("dsgs-demo-missing-{}", std::process::id()));
         let err = check_inputs(&plan(&settings(&dir)))
             .unwrap_err()
             .to_string();
         assert!(err.contains("transforms_train.json"), "{err}");
-        assert!(err.contains("vgg_normalised_conv3_1.pth"), "{err}");
+        assert!(err.contains("compressed-16x-relu4_1/4SE.pth"), "{err}");
         assert!(err.contains("mondrian.jpg"), "{err}");
         assert!(err.contains("nerf_synthetic"), "{err}");
     }

@@ -86,13 +86,31 @@ impl Networks {
     }
 }
 
-/// The feature render's supersampling of a run: the pair's ([`Pair::supersample`]) unless a
-/// weights file replaces its networks (then 1, the direct render).
-pub fn supersample_of(weights: Option<&PathBuf>, pair: Pair) -> u32 {
-    if weights.is_some() {
-        1
-    } else {
-        pair.supersample()
+/// Stage 3's settings that depend on the networks: the pair's ([`Pair::supersample`],
+/// [`Pair::content_style_weight`]) unless a weights file replaces its networks (then the
+/// direct render and the paper's weights).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Stage3Choice {
+    /// The feature render's supersampling factor (1: direct).
+    pub supersample: u32,
+    /// The weight of the content and the style term (0: alignment only).
+    pub content_style_weight: f64,
+}
+
+impl Stage3Choice {
+    /// The choice for a run with `pair`, or with the networks of a weights file.
+    pub fn of(weights: Option<&PathBuf>, pair: Pair) -> Stage3Choice {
+        if weights.is_some() {
+            Stage3Choice {
+                supersample: 1,
+                content_style_weight: 1.0,
+            }
+        } else {
+            Stage3Choice {
+                supersample: pair.supersample(),
+                content_style_weight: pair.content_style_weight(),
+            }
+        }
     }
 }
 
@@ -115,8 +133,8 @@ pub struct Plan {
     pub out_dir: PathBuf,
     /// The encoder and decoder.
     pub networks: Networks,
-    /// The feature render's supersampling factor in stage 3 and stylization (1: direct).
-    pub supersample: u32,
+    /// Stage 3's supersampling and loss weights.
+    pub stage3: Stage3Choice,
     /// A decoder replacing the networks' (e.g. one fine-tuned for fullres).
     pub decoder: Option<PathBuf>,
     /// Network variant.
@@ -278,10 +296,7 @@ pub struct RunSettings {
     /// The pair of networks by name.
     #[arg(long, default_value = "relu4_1", value_parser = crate::cli::one_of::<Pair>(
         Pair::NAMES.iter().copied()),
-        help = "Networks: relu4_1 (the compressed VGG-19 encoder to relu4_1 from \
-        SHARED/weights/compressed-16x-relu4_1 with dsgs's pre-trained decoder, built in; stage 3 \
-        renders the feature map 8 times finer and averages it) or wct-relu3_1 (the VGG-19 encoder \
-        to relu3_1 and the WCT reconstruction decoder from SHARED/weights/wct-relu1_1-3_1)")]
+        help = crate::cli::NETWORKS_HELP)]
     pub networks: Pair,
     /// Canonical network weights instead of the named pair.
     #[arg(
@@ -366,7 +381,7 @@ pub fn plan(s: &RunSettings) -> Result<Plan> {
         random_init_points: None,
         out_dir: s.out_dir.clone(),
         networks: Networks::given_or_shared(s.weights.as_ref(), s.networks, &s.shared),
-        supersample: supersample_of(s.weights.as_ref(), s.networks),
+        stage3: Stage3Choice::of(s.weights.as_ref(), s.networks),
         decoder: s.decoder.clone(),
         variant: s.variant,
         geometry_iterations: s.geometry_iterations.unwrap_or(p.geometry_iterations),
@@ -392,12 +407,19 @@ pub fn describe(s: &Plan) -> String {
         s.downscale,
         s.out_dir.display()
     );
+    let alignment = if s.stage3.content_style_weight == 0.0 {
+        "all alignment-only".to_string()
+    } else {
+        format!(
+            "{} alignment-only",
+            s.align_warmup.min(s.feature_iterations)
+        )
+    };
     d += &format!(
-        "  geometry: {} iterations\n  features: {} iterations ({} alignment-only), {} \
+        "  geometry: {} iterations\n  features: {} iterations ({alignment}), {} \
          network\n  stylize and evaluate: {} frames along {}, {}\n",
         s.geometry_iterations,
         s.feature_iterations,
-        s.align_warmup,
         s.variant.as_str(),
         s.frames,
         s.cameras.as_str(),
@@ -660,7 +682,9 @@ pub fn feature_config(s: &Plan) -> FitFeaturesConfig {
             iterations: s.feature_iterations,
             align_warmup: s.align_warmup,
             variant: s.variant,
-            supersample: s.supersample,
+            supersample: s.stage3.supersample,
+            lambda_content: s.stage3.content_style_weight,
+            lambda_style: s.stage3.content_style_weight,
             checkpoint_interval: (s.feature_iterations / 6).max(1),
             log_interval: 0,
             // A run evaluates its result with `eval`; no loss curve.

@@ -81,6 +81,21 @@ impl Pair {
     }
 }
 
+impl Pair {
+    /// The weight of stage 3's content and style terms with this pair (`lambda_content` and
+    /// `lambda_style`; 0: the lifted features are fitted to the encoder's by the alignment
+    /// loss alone). With the relu4_1 pair the two terms, shared by every training painting,
+    /// teach the features one texture that every painting then shows, and move them away from
+    /// the encoder's (docs/results.md, "What stage 3's content and style terms do"); the
+    /// relu3_1 pair keeps the paper's weights, with which it was measured.
+    pub fn content_style_weight(self) -> f64 {
+        match self {
+            Pair::Relu41 => 0.0,
+            Pair::WctRelu31 => 1.0,
+        }
+    }
+}
+
 impl std::str::FromStr for Pair {
     type Err = String;
     fn from_str(s: &str) -> std::result::Result<Self, String> {

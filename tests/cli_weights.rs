@@ -71,7 +71,7 @@ fn a_mismatched_pair_is_refused() {
 }
 
 /// One network of a canonical pair is written alone: `--decoder PAIR.safetensors` keeps its
-/// decoder and no encoder; a canonical file without the network asked for is named.
+/// decoder and no encoder; a file without the network asked for is named.
 #[test]
 fn import_takes_one_network_of_a_canonical_pair() {
     let dir = std::env::temp_dir().join(format!("dsgs-weights-one-{}", std::process::id()));
@@ -116,7 +116,7 @@ fn import_takes_one_network_of_a_canonical_pair() {
     std::fs::remove_dir_all(&dir).ok();
     assert!(!out.status.success());
     assert!(
-        err.contains("decoder.safetensors holds no encoder"),
+        err.contains("decoder.safetensors holds a decoder, not an encoder"),
         "{err}"
     );
 }

@@ -152,28 +152,18 @@ pub fn import(encoder: Option<&Path>, decoder: Option<&Path>) -> Result<NetWeigh
     }
     let mut weights = NetWeights::default();
     if let Some(p) = encoder {
-        weights.encoder = Some(if is_canonical(p) {
-            NetWeights::load(p)?
-                .encoder
-                .with_context(|| format!("{} holds no encoder", p.display()))?
-        } else {
-            match import_network(p)? {
-                Network::Encoder(e) => e,
-                Network::Decoder(_) => bail!("{} holds a decoder, not an encoder", p.display()),
-            }
-        });
+        let w = load_any(p)?;
+        weights.encoder = Some(w.encoder.with_context(|| match w.decoder {
+            Some(_) => format!("{} holds a decoder, not an encoder", p.display()),
+            None => format!("{} holds no encoder", p.display()),
+        })?);
     }
     if let Some(p) = decoder {
-        weights.decoder = Some(if is_canonical(p) {
-            NetWeights::load(p)?
-                .decoder
-                .with_context(|| format!("{} holds no decoder", p.display()))?
-        } else {
-            match import_network(p)? {
-                Network::Decoder(d) => d,
-                Network::Encoder(_) => bail!("{} holds an encoder, not a decoder", p.display()),
-            }
-        });
+        let w = load_any(p)?;
+        weights.decoder = Some(w.decoder.with_context(|| match w.encoder {
+            Some(_) => format!("{} holds an encoder, not a decoder", p.display()),
+            None => format!("{} holds no decoder", p.display()),
+        })?);
     }
     if let (Some(e), Some(d)) = (&weights.encoder, &weights.decoder) {
         let deepest = *e.widths().last().unwrap_or(&0);
